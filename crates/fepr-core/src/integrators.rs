@@ -1,0 +1,115 @@
+//! Base integrators. Each takes `(model, state, dt)`, advances the state, and reports what the step is
+//! *supposed* to change physically (the energy budget and the external impulses of fepr-spec section 2),
+//! which the projection turns into targets.
+
+use crate::elasticity::{elastic_energy_gradient, ElasticWorkspace};
+use crate::invariants::{angular_momentum, center_of_mass, kinetic_energy, linear_momentum};
+use crate::linalg::{scale, Vec3};
+use crate::model::{Model, State};
+
+/// What a base step reports besides the new state.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StepReport {
+    /// Physical energy change of the step from non-conservative processes (damping < 0), J.
+    pub energy_budget: f64,
+    /// External linear impulse over the step (gravity `h m g`, damping), kg m/s.
+    pub impulse: Vec3,
+    /// External angular impulse about the centre of mass over the step, kg m^2/s.
+    pub angular_impulse: Vec3,
+    /// True when the step contained an impulsive event (then the projection keeps the base step's centre
+    /// of mass instead of the smooth-force target).
+    pub impulsive: bool,
+}
+
+/// A base time integrator.
+pub trait Integrator: Send {
+    /// Short name (as used in scene files).
+    fn name(&self) -> &'static str;
+    /// Advance `state` by `dt` seconds.
+    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport;
+}
+
+/// Symplectic (semi-implicit) Euler, the seed's integrator:
+/// `v <- (1 - d) (v + h M^-1 f(x))`, `x <- x + h v`, with `f = -grad E_el + m g` and damping factor `d`.
+/// Pinned vertices keep their position and zero velocity.
+#[derive(Clone, Debug, Default)]
+pub struct SymplecticEuler {
+    grad: Vec<Vec3>,
+    ws: ElasticWorkspace,
+}
+
+impl SymplecticEuler {
+    pub fn new() -> Self {
+        Self::default()
+    }
+}
+
+impl Integrator for SymplecticEuler {
+    fn name(&self) -> &'static str {
+        "symplectic_euler"
+    }
+
+    fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
+        let m = model.num_vertices();
+        self.grad.resize(m, [0.0; 3]);
+        elastic_energy_gradient(model, &state.x, &mut self.ws, &mut self.grad);
+        let g = model.gravity;
+        for i in 0..m {
+            if model.pinned[i] {
+                state.v[i] = [0.0; 3];
+                continue;
+            }
+            let inv_m = 1.0 / model.masses[i];
+            for a in 0..3 {
+                state.v[i][a] += h * (g[a] - self.grad[i][a] * inv_m);
+            }
+        }
+        let mut report = StepReport {
+            impulse: scale(g, h * model.free_mass()),
+            ..Default::default()
+        };
+        if model.damping > 0.0 {
+            // The damping impulse and dissipated energy, measured on the undamped velocities at the
+            // positions the step ends at (uniform scaling of v scales P and L by the same factor).
+            let d = model.damping;
+            let kin = kinetic_energy(&model.masses, &state.v);
+            let p = linear_momentum(&model.masses, &state.v);
+            let mut x_end = state.x.clone();
+            for (xi, vi) in x_end.iter_mut().zip(&state.v) {
+                for a in 0..3 {
+                    xi[a] += h * (1.0 - d) * vi[a];
+                }
+            }
+            let c = center_of_mass(&model.masses, model.total_mass, &x_end);
+            let l = angular_momentum(&model.masses, &x_end, &state.v, c);
+            for vi in state.v.iter_mut() {
+                *vi = scale(*vi, 1.0 - d);
+            }
+            report.energy_budget = -kin * (1.0 - (1.0 - d) * (1.0 - d));
+            report.impulse = [
+                report.impulse[0] - d * p[0],
+                report.impulse[1] - d * p[1],
+                report.impulse[2] - d * p[2],
+            ];
+            report.angular_impulse = scale(l, -d);
+        }
+        for i in 0..m {
+            for a in 0..3 {
+                state.x[i][a] += h * state.v[i][a];
+            }
+        }
+        state.time += h;
+        report
+    }
+}
+
+/// Integrator names known to [`integrator_by_name`].
+pub const INTEGRATOR_NAMES: &[&str] = &["symplectic_euler"];
+
+/// Make an integrator from its scene-file name.
+pub fn integrator_by_name(name: &str) -> Option<Box<dyn Integrator>> {
+    match name {
+        "symplectic_euler" => Some(Box::new(SymplecticEuler::new())),
+        _ => None,
+    }
+}

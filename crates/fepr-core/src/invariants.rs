@@ -1,0 +1,96 @@
+//! The single implementation of the quantities FEPR conserves (fepr-spec section 1): kinetic, elastic,
+//! gravitational and total energy (J), centre of mass (m), linear momentum (kg m/s) and angular momentum
+//! about the centre of mass (kg m^2/s). Integrators, the projection and the diagnostics all use these.
+
+use crate::elasticity::{elastic_energy, ElasticSummary};
+use crate::linalg::{add, cross, dot, scale, sub, Vec3};
+use crate::model::{Model, State};
+
+/// Everything measured about a state.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Invariants {
+    pub kinetic: f64,
+    pub elastic: f64,
+    pub gravitational: f64,
+    /// `kinetic + elastic + gravitational`, J.
+    pub total: f64,
+    /// Linear momentum, kg m/s.
+    pub momentum: Vec3,
+    /// Angular momentum about the centre of mass, kg m^2/s.
+    pub angular_momentum: Vec3,
+    /// Centre of mass, m.
+    pub center_of_mass: Vec3,
+    /// Smallest `J = det F` over all tets.
+    pub min_j: f64,
+    /// Number of tets with `J <= 0`.
+    pub inverted: usize,
+}
+
+/// Kinetic energy `1/2 sum m_i |v_i|^2`, J.
+pub fn kinetic_energy(masses: &[f64], v: &[Vec3]) -> f64 {
+    0.5 * masses
+        .iter()
+        .zip(v)
+        .map(|(m, vi)| m * dot(*vi, *vi))
+        .sum::<f64>()
+}
+
+/// Gravitational potential energy `-sum m_i g . x_i`, J.
+pub fn gravitational_energy(masses: &[f64], gravity: Vec3, x: &[Vec3]) -> f64 {
+    -masses
+        .iter()
+        .zip(x)
+        .map(|(m, xi)| m * dot(gravity, *xi))
+        .sum::<f64>()
+}
+
+/// Centre of mass, m.
+pub fn center_of_mass(masses: &[f64], total_mass: f64, x: &[Vec3]) -> Vec3 {
+    let s = masses
+        .iter()
+        .zip(x)
+        .fold([0.0; 3], |acc, (m, xi)| add(acc, scale(*xi, *m)));
+    scale(s, 1.0 / total_mass)
+}
+
+/// Linear momentum `sum m_i v_i`, kg m/s.
+pub fn linear_momentum(masses: &[f64], v: &[Vec3]) -> Vec3 {
+    masses
+        .iter()
+        .zip(v)
+        .fold([0.0; 3], |acc, (m, vi)| add(acc, scale(*vi, *m)))
+}
+
+/// Angular momentum about the point `c`: `sum (x_i - c) x m_i v_i`, kg m^2/s.
+pub fn angular_momentum(masses: &[f64], x: &[Vec3], v: &[Vec3], c: Vec3) -> Vec3 {
+    masses
+        .iter()
+        .zip(x.iter().zip(v))
+        .fold([0.0; 3], |acc, (m, (xi, vi))| {
+            add(acc, scale(cross(sub(*xi, c), *vi), *m))
+        })
+}
+
+/// Measure a state, evaluating the elastic energy.
+pub fn measure(model: &Model, state: &State) -> Invariants {
+    let el = elastic_energy(model, &state.x);
+    measure_with_elastic(model, state, el)
+}
+
+/// Measure a state whose elastic energy summary is already known.
+pub fn measure_with_elastic(model: &Model, state: &State, el: ElasticSummary) -> Invariants {
+    let kinetic = kinetic_energy(&model.masses, &state.v);
+    let gravitational = gravitational_energy(&model.masses, model.gravity, &state.x);
+    let com = center_of_mass(&model.masses, model.total_mass, &state.x);
+    Invariants {
+        kinetic,
+        elastic: el.energy,
+        gravitational,
+        total: kinetic + el.energy + gravitational,
+        momentum: linear_momentum(&model.masses, &state.v),
+        angular_momentum: angular_momentum(&model.masses, &state.x, &state.v, com),
+        center_of_mass: com,
+        min_j: el.min_j,
+        inverted: el.inverted,
+    }
+}

@@ -1,0 +1,474 @@
+//! Hyperelastic materials: energy density `Psi(F)`, first Piola-Kirchhoff stress `P = dPsi/dF` and its
+//! derivative `dP/dF` (9x9, row-major flattening `F[i][j] -> 3*i + j`), all analytic.
+//!
+//! Parameters are in SI units (Young's modulus in Pa, dimensionless Poisson ratio); energy density in J/m^3.
+//! Lame parameters: `mu = E / (2 (1 + nu))`, `lambda = E nu / ((1 + nu)(1 - 2 nu))`.
+//!
+//! Every material is gated by finite-difference tests of its stress and stress derivative (see `tests`).
+
+use crate::error::{invalid, Result};
+use crate::linalg::{cofactor, ddot, det, Mat3};
+
+/// A 9x9 stress derivative `dP_ij / dF_kl` at `[3*i + j][3*k + l]`.
+pub type StressDerivative = [[f64; 9]; 9];
+
+/// The material interface (after fenris and PBAT): energy density, stress, stress derivative.
+pub trait Hyperelastic {
+    /// Strain energy density `Psi(F)` in J/m^3; zero at `F = I`.
+    fn energy_density(&self, f: &Mat3) -> f64;
+    /// First Piola-Kirchhoff stress `P = dPsi/dF` in Pa.
+    fn first_piola(&self, f: &Mat3) -> Mat3 {
+        self.energy_and_stress(f).1
+    }
+    /// Energy density and stress together (shares the invariants).
+    fn energy_and_stress(&self, f: &Mat3) -> (f64, Mat3);
+    /// Stress derivative `dP/dF` (the energy density's Hessian with respect to F).
+    fn stress_derivative(&self, f: &Mat3) -> StressDerivative;
+}
+
+/// Lame parameters `(mu, lambda)` from Young's modulus and Poisson ratio, validated
+/// (`E > 0` finite, `-1 < nu < 0.5`).
+pub fn lame_parameters(youngs_modulus: f64, poisson_ratio: f64) -> Result<(f64, f64)> {
+    if !(youngs_modulus.is_finite() && youngs_modulus > 0.0) {
+        return Err(invalid(
+            "youngs_modulus",
+            format!("must be a positive finite number of pascals, got {youngs_modulus}"),
+        ));
+    }
+    if !(poisson_ratio.is_finite() && poisson_ratio > -1.0 && poisson_ratio < 0.5) {
+        return Err(invalid(
+            "poisson_ratio",
+            format!("must satisfy -1 < nu < 0.5 (0.5 is incompressible and not supported), got {poisson_ratio}"),
+        ));
+    }
+    let e = youngs_modulus;
+    let nu = poisson_ratio;
+    Ok((
+        e / (2.0 * (1.0 + nu)),
+        e * nu / ((1.0 + nu) * (1.0 - 2.0 * nu)),
+    ))
+}
+
+/// `d cof(F)_ij / dF_kl = eps_ikn eps_jlq F_nq`: the (F-linear) second derivative of `det F`.
+fn cofactor_derivative(f: &Mat3) -> StressDerivative {
+    // Levi-Civita symbol of (a, b, c) in 0..3.
+    fn eps(a: usize, b: usize, c: usize) -> f64 {
+        ((a as i32 - b as i32) * (b as i32 - c as i32) * (c as i32 - a as i32)) as f64 / 2.0
+    }
+    let mut d = [[0.0; 9]; 9];
+    for i in 0..3 {
+        for j in 0..3 {
+            for k in 0..3 {
+                for l in 0..3 {
+                    let mut s = 0.0;
+                    for n in 0..3 {
+                        let e1 = eps(i, k, n);
+                        if e1 == 0.0 {
+                            continue;
+                        }
+                        for q in 0..3 {
+                            s += e1 * eps(j, l, q) * f[n][q];
+                        }
+                    }
+                    d[3 * i + j][3 * k + l] = s;
+                }
+            }
+        }
+    }
+    d
+}
+
+fn flatten(m: &Mat3) -> [f64; 9] {
+    [
+        m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
+    ]
+}
+
+/// The seed's log Neo-Hookean, `Psi = mu/2 (tr F^T F - 3) - mu l(J) + lambda/2 l(J)^2`, where `l(J) = log J`
+/// for `J >= j0` and its C2 quadratic extension below `j0` (fepr-spec section 4):
+/// `l(J) = log j0 + (J - j0)/j0 - (J - j0)^2 / (2 j0^2)`. The extension keeps energy and forces finite and
+/// restoring for inverted elements (J <= 0); it is used identically in forces, Hessian and energy.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NeoHookean {
+    /// First Lame parameter `mu` (shear modulus), Pa.
+    pub mu: f64,
+    /// Second Lame parameter `lambda`, Pa.
+    pub lambda: f64,
+    /// Below this J the logarithm is replaced by its C2 extension (default 0.1).
+    pub j0: f64,
+}
+
+impl NeoHookean {
+    /// Default `j0` of the C2 extension.
+    pub const DEFAULT_J0: f64 = 0.1;
+
+    /// From Young's modulus (Pa) and Poisson ratio, with the default `j0 = 0.1`.
+    pub fn new(youngs_modulus: f64, poisson_ratio: f64) -> Result<Self> {
+        Self::with_j0(youngs_modulus, poisson_ratio, Self::DEFAULT_J0)
+    }
+
+    /// From Young's modulus (Pa), Poisson ratio and the extension threshold `0 < j0 <= 1`.
+    pub fn with_j0(youngs_modulus: f64, poisson_ratio: f64, j0: f64) -> Result<Self> {
+        let (mu, lambda) = lame_parameters(youngs_modulus, poisson_ratio)?;
+        if !(j0.is_finite() && j0 > 0.0 && j0 <= 1.0) {
+            return Err(invalid("j0", format!("must satisfy 0 < j0 <= 1, got {j0}")));
+        }
+        Ok(Self { mu, lambda, j0 })
+    }
+
+    /// `(l, l', l'')` of the extended logarithm at J.
+    #[inline]
+    fn extended_log(&self, j: f64) -> (f64, f64, f64) {
+        if j >= self.j0 {
+            (j.ln(), 1.0 / j, -1.0 / (j * j))
+        } else {
+            let j0 = self.j0;
+            let d = j - j0;
+            (
+                j0.ln() + d / j0 - d * d / (2.0 * j0 * j0),
+                1.0 / j0 - d / (j0 * j0),
+                -1.0 / (j0 * j0),
+            )
+        }
+    }
+
+    /// Volumetric part `g(J) = -mu l + lambda/2 l^2` and its first two derivatives in J.
+    #[inline]
+    fn volumetric(&self, j: f64) -> (f64, f64, f64) {
+        let (l, dl, ddl) = self.extended_log(j);
+        let g = -self.mu * l + 0.5 * self.lambda * l * l;
+        let dg = (-self.mu + self.lambda * l) * dl;
+        let ddg = self.lambda * dl * dl + (-self.mu + self.lambda * l) * ddl;
+        (g, dg, ddg)
+    }
+}
+
+impl Hyperelastic for NeoHookean {
+    fn energy_density(&self, f: &Mat3) -> f64 {
+        let ic = ddot(f, f);
+        0.5 * self.mu * (ic - 3.0) + self.volumetric(det(f)).0
+    }
+
+    #[inline]
+    fn energy_and_stress(&self, f: &Mat3) -> (f64, Mat3) {
+        let ic = ddot(f, f);
+        let j = det(f);
+        let (g, dg, _) = self.volumetric(j);
+        let c = cofactor(f);
+        let mut p = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for k in 0..3 {
+                p[i][k] = self.mu * f[i][k] + dg * c[i][k];
+            }
+        }
+        (0.5 * self.mu * (ic - 3.0) + g, p)
+    }
+
+    fn stress_derivative(&self, f: &Mat3) -> StressDerivative {
+        let j = det(f);
+        let (_, dg, ddg) = self.volumetric(j);
+        let c = flatten(&cofactor(f));
+        let mut d = cofactor_derivative(f);
+        for a in 0..9 {
+            for b in 0..9 {
+                d[a][b] = dg * d[a][b] + ddg * c[a] * c[b];
+            }
+            d[a][a] += self.mu;
+        }
+        d
+    }
+}
+
+/// Stable Neo-Hookean (Smith, de Goes, Kim 2018):
+/// `Psi = mu'/2 (I_C - 3) + lambda'/2 (J - alpha)^2 - mu'/2 log(I_C + 1) - Psi0`, with
+/// `mu' = 4/3 mu`, `lambda' = lambda + 5/6 mu` (matching linear elasticity), `alpha = 1 + mu'/lambda' - mu'/(4 lambda')`,
+/// and the constant `Psi0` chosen so that `Psi(I) = 0`. Defined for every F, inverted ones included.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StableNeoHookean {
+    /// Reparameterised shear modulus `mu' = 4/3 mu`, Pa.
+    pub mu: f64,
+    /// Reparameterised bulk term `lambda' = lambda + 5/6 mu`, Pa.
+    pub lambda: f64,
+    /// Rest-stability offset `alpha`.
+    pub alpha: f64,
+    /// Energy density of the raw formula at `F = I` (subtracted so that the rest energy is zero).
+    pub rest_offset: f64,
+}
+
+impl StableNeoHookean {
+    /// From Young's modulus (Pa) and Poisson ratio.
+    pub fn new(youngs_modulus: f64, poisson_ratio: f64) -> Result<Self> {
+        let (mu, lambda) = lame_parameters(youngs_modulus, poisson_ratio)?;
+        let mu_s = 4.0 / 3.0 * mu;
+        let lambda_s = lambda + 5.0 / 6.0 * mu;
+        let alpha = 1.0 + mu_s / lambda_s - mu_s / (4.0 * lambda_s);
+        let rest_offset = 0.5 * lambda_s * (1.0 - alpha) * (1.0 - alpha) - 0.5 * mu_s * 4.0f64.ln();
+        Ok(Self {
+            mu: mu_s,
+            lambda: lambda_s,
+            alpha,
+            rest_offset,
+        })
+    }
+}
+
+impl Hyperelastic for StableNeoHookean {
+    fn energy_density(&self, f: &Mat3) -> f64 {
+        let ic = ddot(f, f);
+        let j = det(f);
+        0.5 * self.mu * (ic - 3.0) + 0.5 * self.lambda * (j - self.alpha) * (j - self.alpha)
+            - 0.5 * self.mu * (ic + 1.0).ln()
+            - self.rest_offset
+    }
+
+    #[inline]
+    fn energy_and_stress(&self, f: &Mat3) -> (f64, Mat3) {
+        let ic = ddot(f, f);
+        let j = det(f);
+        let c = cofactor(f);
+        let a = self.mu * (1.0 - 1.0 / (ic + 1.0));
+        let b = self.lambda * (j - self.alpha);
+        let mut p = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for k in 0..3 {
+                p[i][k] = a * f[i][k] + b * c[i][k];
+            }
+        }
+        let psi = 0.5 * self.mu * (ic - 3.0)
+            + 0.5 * self.lambda * (j - self.alpha) * (j - self.alpha)
+            - 0.5 * self.mu * (ic + 1.0).ln()
+            - self.rest_offset;
+        (psi, p)
+    }
+
+    fn stress_derivative(&self, f: &Mat3) -> StressDerivative {
+        let ic = ddot(f, f);
+        let j = det(f);
+        let c = flatten(&cofactor(f));
+        let ff = flatten(f);
+        let a = self.mu * (1.0 - 1.0 / (ic + 1.0));
+        let bf = 2.0 * self.mu / ((ic + 1.0) * (ic + 1.0));
+        let b = self.lambda * (j - self.alpha);
+        let mut d = cofactor_derivative(f);
+        for r in 0..9 {
+            for s in 0..9 {
+                d[r][s] = b * d[r][s] + self.lambda * c[r] * c[s] + bf * ff[r] * ff[s];
+            }
+            d[r][r] += a;
+        }
+        d
+    }
+}
+
+/// The materials fepr-core knows, as one enum so that the per-tet loops dispatch statically.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Material {
+    NeoHookean(NeoHookean),
+    StableNeoHookean(StableNeoHookean),
+}
+
+impl Hyperelastic for Material {
+    #[inline]
+    fn energy_density(&self, f: &Mat3) -> f64 {
+        match self {
+            Material::NeoHookean(m) => m.energy_density(f),
+            Material::StableNeoHookean(m) => m.energy_density(f),
+        }
+    }
+    #[inline]
+    fn energy_and_stress(&self, f: &Mat3) -> (f64, Mat3) {
+        match self {
+            Material::NeoHookean(m) => m.energy_and_stress(f),
+            Material::StableNeoHookean(m) => m.energy_and_stress(f),
+        }
+    }
+    fn stress_derivative(&self, f: &Mat3) -> StressDerivative {
+        match self {
+            Material::NeoHookean(m) => m.stress_derivative(f),
+            Material::StableNeoHookean(m) => m.stress_derivative(f),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn samples() -> Vec<Mat3> {
+        vec![
+            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            [[1.2, 0.1, -0.05], [0.03, 0.9, 0.2], [-0.1, 0.05, 1.1]],
+            // compressed close to, and below, j0 = 0.1
+            [[0.5, 0.02, 0.0], [0.0, 0.45, 0.01], [0.03, 0.0, 0.42]],
+            [[0.3, 0.1, 0.0], [0.0, 0.3, 0.05], [0.02, 0.0, 0.3]],
+            // inverted (J < 0)
+            [[-0.8, 0.1, 0.0], [0.05, 1.0, 0.1], [0.0, 0.2, 0.9]],
+            // stretched and sheared
+            [[1.6, 0.4, 0.2], [-0.3, 1.3, 0.1], [0.2, -0.2, 0.7]],
+        ]
+    }
+
+    fn materials() -> Vec<Material> {
+        vec![
+            Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
+            Material::NeoHookean(NeoHookean::with_j0(5e4, 0.45, 0.3).unwrap()),
+            Material::StableNeoHookean(StableNeoHookean::new(1e3, 0.3).unwrap()),
+            Material::StableNeoHookean(StableNeoHookean::new(2e5, -0.2).unwrap()),
+        ]
+    }
+
+    fn perturbed(f: &Mat3, idx: usize, h: f64) -> Mat3 {
+        let mut g = *f;
+        g[idx / 3][idx % 3] += h;
+        g
+    }
+
+    #[test]
+    fn stress_matches_finite_differences_of_energy() {
+        for m in materials() {
+            for f in samples() {
+                let p = m.first_piola(&f);
+                for idx in 0..9 {
+                    let h = 1e-6;
+                    let fd = (m.energy_density(&perturbed(&f, idx, h))
+                        - m.energy_density(&perturbed(&f, idx, -h)))
+                        / (2.0 * h);
+                    let an = p[idx / 3][idx % 3];
+                    let scale = 1.0 + an.abs().max(fd.abs());
+                    assert!(
+                        (fd - an).abs() <= 1e-6 * scale * m_scale(&m),
+                        "{m:?} F={f:?} idx {idx}: fd {fd} vs {an}"
+                    );
+                }
+            }
+        }
+    }
+
+    fn m_scale(m: &Material) -> f64 {
+        match m {
+            Material::NeoHookean(n) => n.mu + n.lambda.abs(),
+            Material::StableNeoHookean(s) => s.mu + s.lambda,
+        }
+    }
+
+    #[test]
+    fn stress_derivative_matches_finite_differences_of_stress() {
+        for m in materials() {
+            for f in samples() {
+                let d = m.stress_derivative(&f);
+                for b in 0..9 {
+                    let h = 1e-6;
+                    let pp = m.first_piola(&perturbed(&f, b, h));
+                    let pm = m.first_piola(&perturbed(&f, b, -h));
+                    for a in 0..9 {
+                        let fd = (pp[a / 3][a % 3] - pm[a / 3][a % 3]) / (2.0 * h);
+                        let an = d[a][b];
+                        assert!(
+                            (fd - an).abs() <= 1e-6 * (1.0 + an.abs()) * m_scale(&m),
+                            "{m:?} F={f:?} d[{a}][{b}]: fd {fd} vs {an}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn stress_derivative_is_symmetric() {
+        for m in materials() {
+            for f in samples() {
+                let d = m.stress_derivative(&f);
+                for a in 0..9 {
+                    for b in 0..9 {
+                        assert!(
+                            (d[a][b] - d[b][a]).abs()
+                                <= 1e-12 * m_scale(&m) * (1.0 + d[a][b].abs()),
+                            "{m:?} {a} {b}: {} vs {}",
+                            d[a][b],
+                            d[b][a]
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn rest_state_has_zero_energy_and_stress() {
+        let id = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        for m in materials() {
+            let (psi, p) = m.energy_and_stress(&id);
+            assert!(psi.abs() < 1e-9 * m_scale(&m), "{m:?}: Psi(I) = {psi}");
+            for row in p {
+                for x in row {
+                    assert!(x.abs() < 1e-9 * m_scale(&m), "{m:?}: P(I) = {p:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn extension_is_c2_at_j0() {
+        let m = NeoHookean::new(1e3, 0.3).unwrap();
+        let below = m.extended_log(m.j0 * (1.0 - 1e-12));
+        let at = m.extended_log(m.j0);
+        assert!((below.0 - at.0).abs() < 1e-10);
+        assert!((below.1 - at.1).abs() < 1e-8);
+        assert!((below.2 - at.2).abs() < 1e-6 * at.2.abs());
+    }
+
+    #[test]
+    fn inverted_elements_have_finite_restoring_energy() {
+        let m = NeoHookean::new(1e3, 0.3).unwrap();
+        // Energy decreases from an inverted F towards the identity along a straight path.
+        let f_inv = [[-0.5, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        let e_inv = m.energy_density(&f_inv);
+        assert!(e_inv.is_finite() && e_inv > 0.0);
+        let p = m.first_piola(&f_inv);
+        // Force on F[0][0] pushes it back up (towards positive J): dPsi/dF00 < 0.
+        assert!(p[0][0] < 0.0, "stress {p:?}");
+    }
+
+    #[test]
+    fn invalid_parameters_are_rejected_with_their_names() {
+        assert!(matches!(
+            NeoHookean::new(0.0, 0.3),
+            Err(crate::FeprError::InvalidParameter {
+                name: "youngs_modulus",
+                ..
+            })
+        ));
+        assert!(matches!(
+            NeoHookean::new(-1.0, 0.3),
+            Err(crate::FeprError::InvalidParameter {
+                name: "youngs_modulus",
+                ..
+            })
+        ));
+        assert!(matches!(
+            NeoHookean::new(1e3, 0.5),
+            Err(crate::FeprError::InvalidParameter {
+                name: "poisson_ratio",
+                ..
+            })
+        ));
+        assert!(matches!(
+            StableNeoHookean::new(1e3, -1.0),
+            Err(crate::FeprError::InvalidParameter {
+                name: "poisson_ratio",
+                ..
+            })
+        ));
+        assert!(matches!(
+            NeoHookean::new(f64::NAN, 0.3),
+            Err(crate::FeprError::InvalidParameter {
+                name: "youngs_modulus",
+                ..
+            })
+        ));
+        assert!(matches!(
+            NeoHookean::with_j0(1e3, 0.3, 0.0),
+            Err(crate::FeprError::InvalidParameter { name: "j0", .. })
+        ));
+    }
+}

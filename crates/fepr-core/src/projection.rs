@@ -1,0 +1,690 @@
+//! FEPR: the fast energy projection of fepr-spec sections 2 and 3.
+//!
+//! Given the base step's result `q~ = (x*, v*, s = 0, t = 0)`, find the closest `q` in the metric
+//! `D = diag(M, h^2 M, eps, eps)` with `c(q) = 0`, where the rows are (each optional, see [`ActiveRows`]):
+//!
+//! ```text
+//! c_H = H(x, v) - H_target
+//! c_P = P(v) - [P_target + s (P* - P_target)]          (3 rows)
+//! c_L = L_Ct(x, v) - [L_target + t (L* - L_target)]    (3 rows, about C_target)
+//! c_C = C(x) - C_target                                (3 rows)
+//! ```
+//!
+//! Each iteration evaluates `c` and its gradient (one elastic energy + gradient evaluation), tests
+//! convergence *before* solving (at rest the system is singular but `c = 0`), forms the small matrix
+//! `S = G^T D^-1 G` from closed-form mass moments (never a dense `(6m+2)^2` matrix), solves the scaled,
+//! regularised system, and steps `q <- q - D^-1 G lambda`, halving the step if it would increase the scaled
+//! residual. Non-convergence keeps the best iterate (or `q~`) and is reported; the result is never NaN and
+//! never has more inverted tets than the base step.
+
+use crate::elasticity::{elastic_energy_gradient, ElasticSummary, ElasticWorkspace};
+use crate::error::{invalid, Result};
+use crate::invariants::Invariants;
+use crate::linalg::{cross, dot, solve_symmetric_psd, sub, Vec3};
+use crate::model::{Model, State};
+
+/// Which constraint rows the projection enforces.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ActiveRows {
+    /// `All` for a free body, `Energy` when vertices are pinned (supports exchange momentum with it).
+    Auto,
+    /// Total energy only.
+    Energy,
+    /// Energy, linear and angular momentum (the paper's 7 rows).
+    EnergyMomentum,
+    /// Energy, momenta and centre of mass (10 rows).
+    All,
+}
+
+impl ActiveRows {
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "auto" => Some(Self::Auto),
+            "energy" => Some(Self::Energy),
+            "energy_momentum" => Some(Self::EnergyMomentum),
+            "all" => Some(Self::All),
+            _ => None,
+        }
+    }
+    /// Active-row mask over `[H, Px, Py, Pz, Lx, Ly, Lz, Cx, Cy, Cz]`.
+    pub fn mask(self, has_pins: bool) -> [bool; ROWS] {
+        let resolved = match self {
+            Self::Auto if has_pins => Self::Energy,
+            Self::Auto => Self::All,
+            other => other,
+        };
+        let mut m = [false; ROWS];
+        m[0] = true;
+        if matches!(resolved, Self::EnergyMomentum | Self::All) {
+            m[1..7].iter_mut().for_each(|r| *r = true);
+        }
+        if resolved == Self::All {
+            m[7..10].iter_mut().for_each(|r| *r = true);
+        }
+        m
+    }
+}
+
+/// Number of constraint rows in total.
+pub const ROWS: usize = 10;
+
+/// Projection settings, with the defaults of fepr-spec section 3.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ProjectionSettings {
+    /// Relative per-row tolerance (default 1e-10).
+    pub tolerance: f64,
+    /// Maximum iterations (default 20).
+    pub max_iterations: usize,
+    /// `eps = c_eps m_tot r^2` weights the slack variables s and t (default 0.01).
+    pub c_eps: f64,
+    /// Diagonal regularisation `delta * trace(S)/rows` of the scaled small system (default 1e-12).
+    pub regularization: f64,
+    /// Maximum step halvings per iteration (default 4).
+    pub max_halvings: usize,
+    /// Which rows are enforced (default `Auto`).
+    pub rows: ActiveRows,
+    /// Optional cap on the D-norm of the total correction, as a fraction of `sqrt(m_tot) r` (the correction
+    /// may move the body by at most this fraction of its size, mass-weighted RMS). `None`: no cap.
+    pub impact_bound: Option<f64>,
+}
+
+impl Default for ProjectionSettings {
+    fn default() -> Self {
+        Self {
+            tolerance: 1e-10,
+            max_iterations: 20,
+            c_eps: 0.01,
+            regularization: 1e-12,
+            max_halvings: 4,
+            rows: ActiveRows::Auto,
+            impact_bound: None,
+        }
+    }
+}
+
+impl ProjectionSettings {
+    pub fn validate(&self) -> Result<()> {
+        if !(self.tolerance.is_finite() && self.tolerance > 0.0 && self.tolerance < 1.0) {
+            return Err(invalid(
+                "tolerance",
+                format!("must satisfy 0 < tolerance < 1, got {}", self.tolerance),
+            ));
+        }
+        if self.max_iterations == 0 || self.max_iterations > 10_000 {
+            return Err(invalid(
+                "max_iterations",
+                format!("must be in 1..=10000, got {}", self.max_iterations),
+            ));
+        }
+        if !(self.c_eps.is_finite() && self.c_eps > 0.0) {
+            return Err(invalid(
+                "c_eps",
+                format!("must be positive and finite, got {}", self.c_eps),
+            ));
+        }
+        if !(self.regularization.is_finite()
+            && self.regularization >= 0.0
+            && self.regularization < 1.0)
+        {
+            return Err(invalid(
+                "regularization",
+                format!("must satisfy 0 <= delta < 1, got {}", self.regularization),
+            ));
+        }
+        if let Some(b) = self.impact_bound {
+            if !(b.is_finite() && b > 0.0) {
+                return Err(invalid(
+                    "impact_bound",
+                    format!("must be positive and finite, got {b}"),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Targets of one projection (fepr-spec section 2).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Targets {
+    /// `H_target = H_ref + W`, J.
+    pub energy: f64,
+    /// `P_target = P_ref + J`, kg m/s.
+    pub momentum: Vec3,
+    /// `L_target = L_ref + K`, about the target centre of mass, kg m^2/s.
+    pub angular_momentum: Vec3,
+    /// `C_target`, m.
+    pub center_of_mass: Vec3,
+}
+
+/// What one projection did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ProjectionReport {
+    /// Iterations taken (0 when the base step already satisfied every row).
+    pub iterations: usize,
+    /// Every active row is within tolerance.
+    pub converged: bool,
+    /// Largest scaled residual `|c_i| / scale_i` at the base step's state.
+    pub initial_residual: f64,
+    /// Largest scaled residual at the returned state (compare with the tolerance).
+    pub final_residual: f64,
+    /// D-norm of the total correction `|q - q~|_D`, sqrt(kg) m.
+    pub correction: f64,
+    /// Final slack values.
+    pub s: f64,
+    pub t: f64,
+    /// Not converged: the best iterate (or the base state) was kept.
+    pub fallback: bool,
+    /// The impact bound limited the correction (conservation is then not exact).
+    pub bound_hit: bool,
+    /// Small solves that needed the least-squares fallback.
+    pub least_squares_solves: usize,
+    /// Step halvings taken in total.
+    pub halvings: usize,
+    /// Number of active rows.
+    pub active_rows: usize,
+}
+
+/// Everything an evaluation of `c(q)` produces.
+#[derive(Clone, Copy, Debug)]
+struct Eval {
+    c: [f64; ROWS],
+    el: ElasticSummary,
+    kinetic: f64,
+    gravitational: f64,
+    momentum: Vec3,
+    /// About the target centre of mass.
+    angular_momentum: Vec3,
+    com: Vec3,
+    // Moments over the free vertices, for S.
+    grad_sq_over_m: f64,
+    grad_sum: Vec3,
+    grad_cross_v: Vec3,
+    free_mass: f64,
+    free_p: Vec3,
+    free_l: Vec3,
+    free_r: Vec3,
+    vv: [[f64; 3]; 3],
+    rr: [[f64; 3]; 3],
+}
+
+/// The projection with its scratch memory (reused across steps).
+#[derive(Clone, Debug, Default)]
+pub struct Projector {
+    pub settings: ProjectionSettings,
+    ws: ElasticWorkspace,
+    grad: Vec<Vec3>,
+    grad_trial: Vec<Vec3>,
+    x_base: Vec<Vec3>,
+    v_base: Vec<Vec3>,
+    x: Vec<Vec3>,
+    v: Vec<Vec3>,
+    x_trial: Vec<Vec3>,
+    v_trial: Vec<Vec3>,
+    x_best: Vec<Vec3>,
+    v_best: Vec<Vec3>,
+}
+
+struct Problem<'a> {
+    model: &'a Model,
+    h: f64,
+    targets: &'a Targets,
+    /// `P* - P_target` and `L* - L_target`.
+    dp_star: Vec3,
+    dl_star: Vec3,
+    active: [bool; ROWS],
+    row_scale: [f64; ROWS],
+    eps: f64,
+}
+
+impl Projector {
+    pub fn new(settings: ProjectionSettings) -> Result<Self> {
+        settings.validate()?;
+        Ok(Self {
+            settings,
+            ..Default::default()
+        })
+    }
+
+    /// Project `state` (holding the base step's result `(x*, v*)`) in place, for step size `h` and the given
+    /// targets. Returns the report and the invariants measured at the returned state.
+    pub fn project(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        targets: &Targets,
+    ) -> (ProjectionReport, Invariants) {
+        let m = model.num_vertices();
+        for buf in [
+            &mut self.grad,
+            &mut self.grad_trial,
+            &mut self.x_trial,
+            &mut self.v_trial,
+        ] {
+            buf.resize(m, [0.0; 3]);
+        }
+        for (dst, src) in [
+            (&mut self.x_base, &state.x),
+            (&mut self.x, &state.x),
+            (&mut self.v_base, &state.v),
+            (&mut self.v, &state.v),
+        ] {
+            dst.clear();
+            dst.extend_from_slice(src);
+        }
+        let r = model.length_scale;
+        let mt = model.total_mass;
+        let p_star = crate::invariants::linear_momentum(&model.masses, &state.v);
+        let l_star = crate::invariants::angular_momentum(
+            &model.masses,
+            &state.x,
+            &state.v,
+            targets.center_of_mass,
+        );
+        let mut pb = Problem {
+            model,
+            h,
+            targets,
+            dp_star: sub(p_star, targets.momentum),
+            dl_star: sub(l_star, targets.angular_momentum),
+            active: self.settings.rows.mask(model.num_pinned() > 0),
+            row_scale: [1.0; ROWS],
+            eps: self.settings.c_eps * mt * r * r,
+        };
+        let (mut s, mut t) = (0.0, 0.0);
+        let mut cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+        // Row scales (fepr-spec section 3): fixed at the base state so that residuals are comparable.
+        let h_scale = targets
+            .energy
+            .abs()
+            .max(cur.kinetic + cur.el.energy.abs() + cur.gravitational.abs())
+            .max(1e-300);
+        pb.row_scale[0] = h_scale;
+        for a in 0..3 {
+            pb.row_scale[1 + a] = mt * r / h;
+            pb.row_scale[4 + a] = mt * r * r / h;
+            pb.row_scale[7 + a] = r;
+        }
+        let tol = self.settings.tolerance;
+        let base_inverted = cur.el.inverted;
+        let base_finite = cur.c.iter().all(|c| c.is_finite());
+        let mut report = ProjectionReport {
+            active_rows: pb.active.iter().filter(|a| **a).count(),
+            initial_residual: max_scaled(&pb, &cur.c),
+            ..Default::default()
+        };
+        let mut cur_norm = norm_scaled(&pb, &cur.c);
+        let base_norm = cur_norm;
+        let mut best_norm = cur_norm;
+        let mut best_is_base = true;
+        let mut best_eval = cur;
+        let (mut best_s, mut best_t) = (0.0, 0.0);
+        self.x_best.clear();
+        self.v_best.clear();
+
+        if base_finite {
+            for _ in 0..self.settings.max_iterations {
+                if max_scaled(&pb, &cur.c) <= tol {
+                    report.converged = true;
+                    break;
+                }
+                let (lambda, used_lstsq) =
+                    solve_multipliers(&pb, &cur, self.settings.regularization);
+                report.least_squares_solves += used_lstsq as usize;
+                let mut alpha = 1.0;
+                let mut accepted = None;
+                for halving in 0..=self.settings.max_halvings {
+                    let (s_new, t_new) = apply_step(
+                        &pb,
+                        &self.x,
+                        &self.v,
+                        s,
+                        t,
+                        &self.grad,
+                        &lambda,
+                        alpha,
+                        &cur,
+                        &mut self.x_trial,
+                        &mut self.v_trial,
+                    );
+                    let trial = evaluate(
+                        &pb,
+                        &self.x_trial,
+                        &self.v_trial,
+                        s_new,
+                        t_new,
+                        &mut self.ws,
+                        &mut self.grad_trial,
+                    );
+                    let admissible =
+                        trial.c.iter().all(|c| c.is_finite()) && trial.el.inverted <= base_inverted;
+                    let n = norm_scaled(&pb, &trial.c);
+                    if admissible && (n < cur_norm || halving == self.settings.max_halvings) {
+                        accepted = Some((trial, n, s_new, t_new));
+                        break;
+                    }
+                    if halving < self.settings.max_halvings {
+                        report.halvings += 1;
+                    }
+                    alpha *= 0.5;
+                }
+                report.iterations += 1;
+                let Some((trial, n, s_new, t_new)) = accepted else {
+                    break; // no admissible step: stop, keep the best so far
+                };
+                std::mem::swap(&mut self.x, &mut self.x_trial);
+                std::mem::swap(&mut self.v, &mut self.v_trial);
+                std::mem::swap(&mut self.grad, &mut self.grad_trial);
+                cur = trial;
+                cur_norm = n;
+                s = s_new;
+                t = t_new;
+                if n < best_norm {
+                    best_norm = n;
+                    best_is_base = false;
+                    best_eval = cur;
+                    best_s = s;
+                    best_t = t;
+                    self.x_best.clear();
+                    self.x_best.extend_from_slice(&self.x);
+                    self.v_best.clear();
+                    self.v_best.extend_from_slice(&self.v);
+                }
+            }
+            if !report.converged && max_scaled(&pb, &cur.c) <= tol {
+                report.converged = true;
+            }
+        }
+
+        // Choose the result: the converged iterate, else the best iterate if it improved on q~, else q~.
+        let mut fin = cur;
+        if report.converged {
+            state.x.copy_from_slice(&self.x);
+            state.v.copy_from_slice(&self.v);
+        } else {
+            report.fallback = true;
+            if !best_is_base && best_norm < base_norm {
+                state.x.copy_from_slice(&self.x_best);
+                state.v.copy_from_slice(&self.v_best);
+                fin = best_eval;
+                s = best_s;
+                t = best_t;
+            } else {
+                // state still holds q~ (never modified above).
+                fin = evaluate(
+                    &pb,
+                    &state.x,
+                    &state.v,
+                    0.0,
+                    0.0,
+                    &mut self.ws,
+                    &mut self.grad,
+                );
+                s = 0.0;
+                t = 0.0;
+            }
+        }
+
+        // D-norm of the correction; optional impact bound.
+        report.correction = d_norm(&pb, &state.x, &state.v, s, t, &self.x_base, &self.v_base);
+        if let Some(bound) = self.settings.impact_bound {
+            let cap = bound * mt.sqrt() * r;
+            if report.correction > cap && report.correction.is_finite() {
+                let beta = cap / report.correction;
+                for i in 0..m {
+                    for a in 0..3 {
+                        let (xb, vb) = (self.x_base[i][a], self.v_base[i][a]);
+                        state.x[i][a] = xb + beta * (state.x[i][a] - xb);
+                        state.v[i][a] = vb + beta * (state.v[i][a] - vb);
+                    }
+                }
+                s *= beta;
+                t *= beta;
+                report.bound_hit = true;
+                report.correction = cap;
+                fin = evaluate(&pb, &state.x, &state.v, s, t, &mut self.ws, &mut self.grad);
+                report.converged = max_scaled(&pb, &fin.c) <= tol;
+            }
+        }
+        report.final_residual = max_scaled(&pb, &fin.c);
+        report.s = s;
+        report.t = t;
+        let com = fin.com;
+        // L about the actual centre of mass: L_C = L_Ct - (C - C_t) x P.
+        let l_com = sub(
+            fin.angular_momentum,
+            cross(sub(com, targets.center_of_mass), fin.momentum),
+        );
+        let inv = Invariants {
+            kinetic: fin.kinetic,
+            elastic: fin.el.energy,
+            gravitational: fin.gravitational,
+            total: fin.kinetic + fin.el.energy + fin.gravitational,
+            momentum: fin.momentum,
+            angular_momentum: l_com,
+            center_of_mass: com,
+            min_j: fin.el.min_j,
+            inverted: fin.el.inverted,
+        };
+        (report, inv)
+    }
+}
+
+fn max_scaled(pb: &Problem, c: &[f64; ROWS]) -> f64 {
+    (0..ROWS)
+        .filter(|&i| pb.active[i])
+        .map(|i| (c[i] / pb.row_scale[i]).abs())
+        .fold(0.0, f64::max)
+}
+
+fn norm_scaled(pb: &Problem, c: &[f64; ROWS]) -> f64 {
+    (0..ROWS)
+        .filter(|&i| pb.active[i])
+        .map(|i| (c[i] / pb.row_scale[i]).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// `|q - q_base|_D` with `D = diag(M, h^2 M, eps, eps)`.
+fn d_norm(pb: &Problem, x: &[Vec3], v: &[Vec3], s: f64, t: f64, xb: &[Vec3], vb: &[Vec3]) -> f64 {
+    let h2 = pb.h * pb.h;
+    let mut sum = pb.eps * (s * s + t * t);
+    for i in 0..x.len() {
+        let dx = sub(x[i], xb[i]);
+        let dv = sub(v[i], vb[i]);
+        sum += pb.model.masses[i] * (dot(dx, dx) + h2 * dot(dv, dv));
+    }
+    sum.sqrt()
+}
+
+/// Evaluate the constraints, the potential gradient (into `grad`, including gravity: `grad U = grad E_el - m g`)
+/// and the mass moments that `S` needs, in one pass over the vertices.
+fn evaluate(
+    pb: &Problem,
+    x: &[Vec3],
+    v: &[Vec3],
+    s: f64,
+    t: f64,
+    ws: &mut ElasticWorkspace,
+    grad: &mut [Vec3],
+) -> Eval {
+    let model = pb.model;
+    let el = elastic_energy_gradient(model, x, ws, grad);
+    let g = model.gravity;
+    let ct = pb.targets.center_of_mass;
+    let mut e = Eval {
+        c: [0.0; ROWS],
+        el,
+        kinetic: 0.0,
+        gravitational: 0.0,
+        momentum: [0.0; 3],
+        angular_momentum: [0.0; 3],
+        com: [0.0; 3],
+        grad_sq_over_m: 0.0,
+        grad_sum: [0.0; 3],
+        grad_cross_v: [0.0; 3],
+        free_mass: 0.0,
+        free_p: [0.0; 3],
+        free_l: [0.0; 3],
+        free_r: [0.0; 3],
+        vv: [[0.0; 3]; 3],
+        rr: [[0.0; 3]; 3],
+    };
+    let mut mx = [0.0; 3];
+    for i in 0..x.len() {
+        let mi = model.masses[i];
+        let (xi, vi) = (x[i], v[i]);
+        let gi = &mut grad[i];
+        for a in 0..3 {
+            gi[a] -= mi * g[a];
+        }
+        let gi = *gi;
+        e.kinetic += 0.5 * mi * dot(vi, vi);
+        e.gravitational -= mi * dot(g, xi);
+        let r = sub(xi, ct);
+        let lv = cross(r, vi);
+        for a in 0..3 {
+            e.momentum[a] += mi * vi[a];
+            e.angular_momentum[a] += mi * lv[a];
+            mx[a] += mi * xi[a];
+        }
+        if model.pinned[i] {
+            continue;
+        }
+        e.free_mass += mi;
+        e.grad_sq_over_m += dot(gi, gi) / mi;
+        let gxv = cross(gi, vi);
+        for a in 0..3 {
+            e.grad_sum[a] += gi[a];
+            e.grad_cross_v[a] += gxv[a];
+            e.free_p[a] += mi * vi[a];
+            e.free_l[a] += mi * lv[a];
+            e.free_r[a] += mi * r[a];
+            for b in 0..3 {
+                e.vv[a][b] += mi * vi[a] * vi[b];
+                e.rr[a][b] += mi * r[a] * r[b];
+            }
+        }
+    }
+    let mt = model.total_mass;
+    e.com = [mx[0] / mt, mx[1] / mt, mx[2] / mt];
+    let tg = pb.targets;
+    e.c[0] = e.kinetic + el.energy + e.gravitational - tg.energy;
+    for a in 0..3 {
+        e.c[1 + a] = e.momentum[a] - (tg.momentum[a] + s * pb.dp_star[a]);
+        e.c[4 + a] = e.angular_momentum[a] - (tg.angular_momentum[a] + t * pb.dl_star[a]);
+        e.c[7 + a] = e.com[a] - tg.center_of_mass[a];
+    }
+    e
+}
+
+/// The full 10x10 `S = G^T D^-1 G` from the moments (fepr-spec section 3; derivation in docs/fepr.md).
+fn small_matrix(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
+    let h2 = pb.h * pb.h;
+    let mt = pb.model.total_mass;
+    let mut s = [[0.0; ROWS]; ROWS];
+    let unit = |a: usize| {
+        let mut u = [0.0; 3];
+        u[a] = 1.0;
+        u
+    };
+    let tr_vv = e.vv[0][0] + e.vv[1][1] + e.vv[2][2];
+    let tr_rr = e.rr[0][0] + e.rr[1][1] + e.rr[2][2];
+    s[0][0] = e.grad_sq_over_m + 2.0 * e.kinetic_free(pb) / h2;
+    for a in 0..3 {
+        s[0][1 + a] = e.free_p[a] / h2;
+        s[0][4 + a] = e.grad_cross_v[a] + e.free_l[a] / h2;
+        s[0][7 + a] = e.grad_sum[a] / mt;
+        let pxa = cross(e.free_p, unit(a));
+        for b in 0..3 {
+            let delta = if a == b { 1.0 } else { 0.0 };
+            s[1 + a][1 + b] = e.free_mass * delta / h2 + pb.dp_star[a] * pb.dp_star[b] / pb.eps;
+            // e_a . (e_b x R) = eps_abc R_c
+            s[1 + a][4 + b] = dot(unit(a), cross(unit(b), e.free_r)) / h2;
+            s[4 + a][4 + b] = (tr_vv * delta - e.vv[a][b])
+                + (tr_rr * delta - e.rr[a][b]) / h2
+                + pb.dl_star[a] * pb.dl_star[b] / pb.eps;
+            s[4 + a][7 + b] = pxa[b] / mt;
+            s[7 + a][7 + b] = e.free_mass / (mt * mt) * delta;
+        }
+    }
+    for i in 0..ROWS {
+        for j in 0..i {
+            s[i][j] = s[j][i];
+        }
+    }
+    s
+}
+
+impl Eval {
+    /// Kinetic energy of the free vertices: `1/2 tr(sum m v v^T)`.
+    fn kinetic_free(&self, _pb: &Problem) -> f64 {
+        0.5 * (self.vv[0][0] + self.vv[1][1] + self.vv[2][2])
+    }
+}
+
+/// Solve the scaled, regularised small system for the multipliers (zero for inactive rows).
+fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> ([f64; ROWS], bool) {
+    let full = small_matrix(pb, e);
+    let idx: Vec<usize> = (0..ROWS).filter(|&i| pb.active[i]).collect();
+    let n = idx.len();
+    let mut a = vec![0.0; n * n];
+    let mut b = vec![0.0; n];
+    for (p, &i) in idx.iter().enumerate() {
+        b[p] = e.c[i] / pb.row_scale[i];
+        for (q, &j) in idx.iter().enumerate() {
+            a[p * n + q] = full[i][j] / (pb.row_scale[i] * pb.row_scale[j]);
+        }
+    }
+    let (y, lstsq) = solve_symmetric_psd(&a, &b, n, delta);
+    let mut lambda = [0.0; ROWS];
+    for (p, &i) in idx.iter().enumerate() {
+        lambda[i] = y[p] / pb.row_scale[i];
+    }
+    (lambda, lstsq)
+}
+
+/// `q_trial = q - alpha D^-1 G lambda`, written to `x_out`, `v_out`; returns the new (s, t).
+#[allow(clippy::too_many_arguments)]
+fn apply_step(
+    pb: &Problem,
+    x: &[Vec3],
+    v: &[Vec3],
+    s: f64,
+    t: f64,
+    grad: &[Vec3],
+    lambda: &[f64; ROWS],
+    alpha: f64,
+    _e: &Eval,
+    x_out: &mut [Vec3],
+    v_out: &mut [Vec3],
+) -> (f64, f64) {
+    let model = pb.model;
+    let h2 = pb.h * pb.h;
+    let mt = model.total_mass;
+    let lh = lambda[0];
+    let lp = [lambda[1], lambda[2], lambda[3]];
+    let ll = [lambda[4], lambda[5], lambda[6]];
+    let lc = [lambda[7], lambda[8], lambda[9]];
+    let ct = pb.targets.center_of_mass;
+    for i in 0..x.len() {
+        if model.pinned[i] {
+            x_out[i] = x[i];
+            v_out[i] = v[i];
+            continue;
+        }
+        let inv_m = 1.0 / model.masses[i];
+        let vxl = cross(v[i], ll);
+        let lxr = cross(ll, sub(x[i], ct));
+        for a in 0..3 {
+            let dx = lh * grad[i][a] * inv_m + vxl[a] + lc[a] / mt;
+            let dv = (lh * v[i][a] + lp[a] + lxr[a]) / h2;
+            x_out[i][a] = x[i][a] - alpha * dx;
+            v_out[i][a] = v[i][a] - alpha * dv;
+        }
+    }
+    // d c_P / d s = -(P* - P_t); d c_L / d t = -(L* - L_t); D^-1 = 1/eps on s and t.
+    let s_new = s + alpha * dot(lp, pb.dp_star) / pb.eps;
+    let t_new = t + alpha * dot(ll, pb.dl_star) / pb.eps;
+    (s_new, t_new)
+}

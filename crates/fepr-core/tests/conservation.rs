@@ -1,0 +1,249 @@
+//! Conservation gates (fepr-spec sections 2, 3, 6, 7): every conservation claim is measured here.
+
+mod common;
+use common::*;
+use fepr_core::model::State;
+
+/// Seed demo 3 analogue on the procedural L: stretched 1.5x about the origin, dt = 1/30, no gravity.
+#[test]
+fn seed_demo3_on_procedural_ell_conserves_energy_and_momenta() {
+    let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0; 3]);
+    let mut state = State::at_rest(&model);
+    scaled(&mut state, 1.5, [0.0; 3]);
+    let mut sim = simulation(model, state, 1.0 / 30.0, true);
+    let h0 = sim.history()[0].invariants.total;
+    let mut max_dh: f64 = 0.0;
+    let mut max_p: f64 = 0.0;
+    let mut max_l: f64 = 0.0;
+    let mut iters = 0;
+    for _ in 0..300 {
+        let d = *sim.step().unwrap();
+        max_dh = max_dh.max(rel(d.invariants.total, h0));
+        max_p = max_p.max(norm(d.invariants.momentum));
+        max_l = max_l.max(norm(d.invariants.angular_momentum));
+        let p = d.projection.unwrap();
+        assert!(p.converged, "step {}: {p:?}", d.step);
+        iters += p.iterations;
+    }
+    eprintln!("demo3 (procedural L): max |H/H0-1| = {max_dh:.2e}, max |P| = {max_p:.2e}, max |L| = {max_l:.2e}, mean iterations {:.2}", iters as f64 / 300.0);
+    assert!(max_dh <= 1e-8);
+    let m_tot = sim.model.total_mass;
+    let r = sim.model.length_scale;
+    // P and L are zero initially: compare with the natural scales m r / dt and m r^2 / dt.
+    assert!(max_p <= 1e-10 * m_tot * r * 30.0);
+    assert!(max_l <= 1e-10 * m_tot * r * r * 30.0);
+}
+
+#[test]
+fn free_body_thousand_steps_conserves_h_p_l_and_beats_the_unprojected_drift() {
+    // A spinning, thrown, stretched L at a stable step size.
+    let build = |project: bool| {
+        let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0; 3]);
+        let mut state = State::at_rest(&model);
+        let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+        scaled(&mut state, 1.1, c);
+        for (x, v) in state.x.iter().zip(state.v.iter_mut()) {
+            // angular velocity (0.3, 0.2, 1.0) rad/s about the centre of mass, plus (1, 0.5, 0) m/s
+            let w = [0.3, 0.2, 1.0];
+            let r = [x[0] - c[0], x[1] - c[1], x[2] - c[2]];
+            *v = [
+                1.0 + w[1] * r[2] - w[2] * r[1],
+                0.5 + w[2] * r[0] - w[0] * r[2],
+                w[0] * r[1] - w[1] * r[0],
+            ];
+        }
+        simulation(model, state, 0.01, project)
+    };
+    let mut results = Vec::new();
+    for project in [true, false] {
+        let mut sim = build(project);
+        let d0 = sim.history()[0].invariants;
+        let (mut dh, mut dp, mut dl) = (0.0f64, 0.0f64, 0.0f64);
+        for _ in 0..1000 {
+            let d = sim.step().unwrap().invariants;
+            dh = dh.max(rel(d.total, d0.total));
+            dp = dp.max(
+                norm([
+                    d.momentum[0] - d0.momentum[0],
+                    d.momentum[1] - d0.momentum[1],
+                    d.momentum[2] - d0.momentum[2],
+                ]) / norm(d0.momentum),
+            );
+            dl = dl.max(
+                norm([
+                    d.angular_momentum[0] - d0.angular_momentum[0],
+                    d.angular_momentum[1] - d0.angular_momentum[1],
+                    d.angular_momentum[2] - d0.angular_momentum[2],
+                ]) / norm(d0.angular_momentum),
+            );
+        }
+        eprintln!("free body, projection {project}: max |dH|/H0 = {dh:.3e}, |dP|/P0 = {dp:.3e}, |dL|/L0 = {dl:.3e}");
+        results.push((dh, dp, dl));
+    }
+    let (dh, dp, dl) = results[0];
+    assert!(dh <= 1e-8, "projected energy drift {dh}");
+    assert!(dp <= 1e-10, "projected momentum drift {dp}");
+    assert!(dl <= 1e-10, "projected angular momentum drift {dl}");
+    assert!(
+        results[1].0 > 100.0 * dh,
+        "the unprojected drift {} should be measurably larger than {dh}",
+        results[1].0
+    );
+}
+
+#[test]
+fn gravity_centre_of_mass_follows_the_ballistic_path_and_h_is_held() {
+    let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0, 0.0, -9.81]);
+    let mut state = State::at_rest(&model);
+    let c0 = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+    scaled(&mut state, 1.05, c0);
+    let v0 = [1.0, 0.0, 2.0];
+    for (x, v) in state.x.iter().zip(state.v.iter_mut()) {
+        let r = [x[0] - c0[0], x[1] - c0[1]];
+        *v = [v0[0] - r[1], v0[1] + r[0], v0[2]]; // 1 rad/s about z
+    }
+    let dt = 0.01;
+    let mut sim = simulation(model, state, dt, true);
+    let h0 = sim.history()[0].invariants.total;
+    let mut worst_c: f64 = 0.0;
+    let mut worst_h: f64 = 0.0;
+    for _ in 0..100 {
+        let d = *sim.step().unwrap();
+        let t = d.time;
+        let expected = [
+            c0[0] + v0[0] * t,
+            c0[1] + v0[1] * t,
+            c0[2] + v0[2] * t - 0.5 * 9.81 * t * t,
+        ];
+        let c = d.invariants.center_of_mass;
+        let err =
+            norm([c[0] - expected[0], c[1] - expected[1], c[2] - expected[2]]) / norm(expected);
+        worst_c = worst_c.max(err);
+        worst_h = worst_h.max(rel(d.invariants.total, h0));
+        assert!(d.projection.unwrap().converged);
+    }
+    eprintln!("gravity: centre of mass off the parabola by {worst_c:.2e} (relative), max |H/H0-1| = {worst_h:.2e}");
+    assert!(worst_c <= 1e-10);
+    assert!(worst_h <= 1e-8);
+}
+
+#[test]
+fn dropped_from_rest_converges_in_one_iteration_without_singular_failure() {
+    let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0, 0.0, -9.81]);
+    let state = State::at_rest(&model);
+    let c0 = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+    let mut sim = simulation(model, state, 1.0 / 60.0, true);
+    let h0 = sim.history()[0].invariants.total;
+    for _ in 0..60 {
+        let d = *sim.step().unwrap();
+        let p = d.projection.unwrap();
+        assert!(p.converged && p.iterations <= 1, "step {}: {p:?}", d.step);
+        assert!(!p.fallback);
+        let t = d.time;
+        let c = d.invariants.center_of_mass;
+        assert!(
+            (c[2] - (c0[2] - 0.5 * 9.81 * t * t)).abs() <= 1e-10,
+            "step {}: {c:?}",
+            d.step
+        );
+        assert!(rel(d.invariants.total, h0) <= 1e-12);
+    }
+}
+
+#[test]
+fn rest_state_and_rigid_translation_take_zero_iterations() {
+    let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0; 3]);
+    let state = State::at_rest(&model);
+    let mut sim = simulation(model.clone(), state, 1.0 / 30.0, true);
+    for _ in 0..10 {
+        let d = *sim.step().unwrap();
+        let p = d.projection.unwrap();
+        assert_eq!(p.iterations, 0, "{p:?}");
+        assert!(p.converged && d.state_is_finite());
+    }
+    let mut state = State::at_rest(&model);
+    // Far from the origin, moving rigidly.
+    for (x, v) in state.x.iter_mut().zip(state.v.iter_mut()) {
+        x[0] += 1e3;
+        *v = [2.0, -1.0, 0.5];
+    }
+    let mut sim = simulation(model, state, 1.0 / 30.0, true);
+    for _ in 0..10 {
+        let d = *sim.step().unwrap();
+        let p = d.projection.unwrap();
+        assert_eq!(p.iterations, 0, "{p:?}");
+        assert!(p.converged);
+    }
+}
+
+trait FiniteCheck {
+    fn state_is_finite(&self) -> bool;
+}
+impl FiniteCheck for fepr_core::simulation::StepDiagnostics {
+    fn state_is_finite(&self) -> bool {
+        self.invariants.total.is_finite() && self.invariants.min_j.is_finite()
+    }
+}
+
+#[test]
+fn damping_budget_is_honoured_by_the_projection() {
+    // With damping d the projection must follow the budget (energy removed), not restore H0.
+    let mut m = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0; 3]);
+    m.damping = 0.01;
+    let mut state = State::at_rest(&m);
+    scaled(&mut state, 1.2, [0.0; 3]);
+    let mut sim = simulation(m, state, 1.0 / 60.0, true);
+    let h0 = sim.history()[0].invariants.total;
+    let mut expected = h0;
+    for _ in 0..200 {
+        let d = *sim.step().unwrap();
+        expected += d.energy_budget;
+        assert!(d.projection.unwrap().converged);
+        assert!(
+            rel(d.invariants.total, expected) <= 1e-8,
+            "step {}: H {} vs expected {expected}",
+            d.step,
+            d.invariants.total
+        );
+    }
+    let last = sim.history().last().unwrap().invariants.total;
+    assert!(
+        last < 0.9 * h0,
+        "damping must remove energy: {last} vs {h0}"
+    );
+}
+
+#[test]
+fn projected_run_is_bit_identical_for_any_thread_count() {
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let big = cubes_mesh(
+                    &(0..6)
+                        .flat_map(|i| (0..6).flat_map(move |j| (0..6).map(move |k| [i, j, k])))
+                        .collect::<Vec<_>>(),
+                    0.1,
+                );
+                let model = model(big, neo_hookean(1e4, 0.3), 0.01, [0.0, 0.0, -9.81]);
+                let mut state = State::at_rest(&model);
+                scaled(&mut state, 1.1, [0.3, 0.3, 0.3]);
+                let mut sim = simulation(model, state, 2e-3, true);
+                for _ in 0..20 {
+                    sim.step().unwrap();
+                }
+                sim.state
+                    .x
+                    .iter()
+                    .chain(&sim.state.v)
+                    .flatten()
+                    .map(|c| c.to_bits())
+                    .collect::<Vec<u64>>()
+            })
+    };
+    let one = run(1);
+    assert_eq!(one, run(2));
+    assert_eq!(one, run(3));
+}

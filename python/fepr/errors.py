@@ -1,0 +1,20 @@
+"""Exception types of fepr. Every error names the problem so that a user can act on it."""
+
+
+class FeprError(Exception):
+    """Base class of all fepr errors."""
+
+
+class MeshError(FeprError, ValueError):
+    """A mesh is invalid or a mesh file cannot be read.
+
+    The message names the file (when there is one), the line or element and the problem.
+    """
+
+
+class ConfigError(FeprError, ValueError):
+    """A parameter or a scene file entry is invalid (the message names the key or parameter)."""
+
+
+class SimulationError(FeprError, RuntimeError):
+    """A simulation cannot continue, e.g. the state became non-finite (runaway of an unstable step)."""
