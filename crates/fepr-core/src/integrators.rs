@@ -22,7 +22,7 @@ pub struct StepReport {
 }
 
 /// A base time integrator.
-pub trait Integrator: Send {
+pub trait Integrator: Send + Sync {
     /// Short name (as used in scene files).
     fn name(&self) -> &'static str;
     /// Advance `state` by `dt` seconds.

@@ -688,3 +688,163 @@ fn apply_step(
     let t_new = t + alpha * dot(ll, pb.dl_star) / pb.eps;
     (s_new, t_new)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::material::{Material, NeoHookean};
+    use crate::mesh::{tests::cube, MassSpec, TetMesh};
+    use crate::model::ModelBuilder;
+
+    /// The closed-form `S` must equal `G^T D^-1 G` assembled from explicit constraint gradients, and the
+    /// explicit gradients must match finite differences of `c(q)`.
+    #[test]
+    fn small_matrix_matches_explicit_gradients_and_finite_differences() {
+        let (v, t) = cube();
+        let (mesh, _) = TetMesh::new(v, &t).unwrap();
+        let m = mesh.num_vertices();
+        let masses: Vec<f64> = (0..m).map(|i| 1.0 + 0.1 * i as f64).collect();
+        let mut model = ModelBuilder::new(
+            mesh,
+            Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
+        )
+        .mass(MassSpec::PerVertex(masses))
+        .gravity([0.3, -0.2, -9.81])
+        .build()
+        .unwrap();
+        let x: Vec<Vec3> = model
+            .mesh
+            .vertices()
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let k = i as f64;
+                [
+                    1.1 * p[0] + 0.03 * k.sin(),
+                    0.9 * p[1] + 0.02 * k.cos(),
+                    p[2] + 0.1 * p[0] + 0.01 * k,
+                ]
+            })
+            .collect();
+        let v: Vec<Vec3> = (0..m)
+            .map(|i| {
+                let k = i as f64;
+                [0.3 * k.cos(), -0.2 + 0.1 * k.sin(), 0.05 * k]
+            })
+            .collect();
+        let targets = Targets {
+            energy: 10.0,
+            momentum: [0.1, 0.2, -0.3],
+            angular_momentum: [0.05, -0.1, 0.2],
+            center_of_mass: [0.4, 0.6, 0.5],
+        };
+        for pinned in [false, true] {
+            model.pinned = vec![false; m];
+            if pinned {
+                model.pinned[3] = true;
+            }
+            let h = 0.02;
+            let pb = Problem {
+                model: &model,
+                h,
+                targets: &targets,
+                dp_star: [0.3, -0.1, 0.2],
+                dl_star: [-0.2, 0.4, 0.1],
+                active: [true; ROWS],
+                row_scale: [1.0; ROWS],
+                eps: 0.7,
+            };
+            let (s0, t0) = (0.1, -0.2);
+            let mut grad = vec![[0.0; 3]; m];
+            let mut ws = ElasticWorkspace::default();
+            let e = evaluate(&pb, &x, &v, s0, t0, &mut ws, &mut grad);
+            let s_closed = small_matrix(&pb, &e);
+            // Explicit gradients by finite differences of c(q), q = (x, v, s, t).
+            let n = 6 * m + 2;
+            let eval_c = |q: &[f64]| {
+                let xs: Vec<Vec3> = (0..m)
+                    .map(|i| [q[3 * i], q[3 * i + 1], q[3 * i + 2]])
+                    .collect();
+                let vs: Vec<Vec3> = (0..m)
+                    .map(|i| [q[3 * m + 3 * i], q[3 * m + 3 * i + 1], q[3 * m + 3 * i + 2]])
+                    .collect();
+                let mut g = vec![[0.0; 3]; m];
+                let mut w = ElasticWorkspace::default();
+                evaluate(&pb, &xs, &vs, q[6 * m], q[6 * m + 1], &mut w, &mut g).c
+            };
+            let mut q0 = vec![0.0; n];
+            for i in 0..m {
+                for a in 0..3 {
+                    q0[3 * i + a] = x[i][a];
+                    q0[3 * m + 3 * i + a] = v[i][a];
+                }
+            }
+            q0[6 * m] = s0;
+            q0[6 * m + 1] = t0;
+            let mut g = vec![[0.0; ROWS]; n];
+            for k in 0..n {
+                let step = 1e-6;
+                let mut qp = q0.clone();
+                qp[k] += step;
+                let mut qm = q0.clone();
+                qm[k] -= step;
+                let (cp, cm) = (eval_c(&qp), eval_c(&qm));
+                for r in 0..ROWS {
+                    g[k][r] = (cp[r] - cm[r]) / (2.0 * step);
+                }
+            }
+            // D^-1, with pinned degrees of freedom excluded.
+            let dinv = |k: usize| -> f64 {
+                if k >= 6 * m {
+                    return 1.0 / pb.eps;
+                }
+                let (i, vel) = if k < 3 * m {
+                    (k / 3, false)
+                } else {
+                    ((k - 3 * m) / 3, true)
+                };
+                if model.pinned[i] {
+                    0.0
+                } else if vel {
+                    1.0 / (h * h * model.masses[i])
+                } else {
+                    1.0 / model.masses[i]
+                }
+            };
+            for a in 0..ROWS {
+                for b in 0..ROWS {
+                    let explicit: f64 = (0..n).map(|k| g[k][a] * dinv(k) * g[k][b]).sum();
+                    let tol = 1e-5 * (1.0 + explicit.abs());
+                    assert!(
+                        (explicit - s_closed[a][b]).abs() <= tol,
+                        "pinned {pinned}: S[{a}][{b}] closed {} vs explicit {explicit}",
+                        s_closed[a][b]
+                    );
+                }
+            }
+            // The update direction D^-1 G lambda must match apply_step.
+            let lambda = [0.3, -0.2, 0.1, 0.05, 0.02, -0.04, 0.03, 0.2, -0.1, 0.07];
+            let mut xo = vec![[0.0; 3]; m];
+            let mut vo = vec![[0.0; 3]; m];
+            let (s1, t1) = apply_step(
+                &pb, &x, &v, s0, t0, &grad, &lambda, 1.0, &e, &mut xo, &mut vo,
+            );
+            for k in 0..n {
+                let dq: f64 = dinv(k) * (0..ROWS).map(|r| g[k][r] * lambda[r]).sum::<f64>();
+                let got = if k < 3 * m {
+                    q0[k] - xo[k / 3][k % 3]
+                } else if k < 6 * m {
+                    q0[k] - vo[(k - 3 * m) / 3][(k - 3 * m) % 3]
+                } else if k == 6 * m {
+                    s0 - s1
+                } else {
+                    t0 - t1
+                };
+                assert!(
+                    (dq - got).abs() <= 1e-5 * (1.0 + dq.abs()),
+                    "pinned {pinned}: dof {k}: {got} vs {dq}"
+                );
+            }
+        }
+    }
+}

@@ -26,7 +26,8 @@ pub struct StepDiagnostics {
     pub proj_ms: f64,
     /// Relative energy error of the *base* step against its target, `|H* - H_target| / H_scale0`.
     pub base_energy_error: f64,
-    /// Runaway detected: the base step's energy error exceeded 100% of the energy scale (an unstable step).
+    /// Runaway detected: the base step's energy error exceeded 100% of the energy scale (an unstable step)
+    /// and the projection (if any) did not converge back onto the targets.
     pub runaway: bool,
     /// The projection failed and the references were reset to the measured values.
     pub references_reset: bool,
@@ -134,6 +135,11 @@ impl Simulation {
         self.references = References::measured(&inv);
         self.energy_scale =
             (inv.kinetic + inv.elastic.abs() + inv.gravitational.abs()).max(f64::MIN_POSITIVE);
+        // Before the first step, row 0 must describe the state the run starts from.
+        if let [only] = self.history.as_mut_slice() {
+            only.invariants = inv;
+            only.time = self.state.time;
+        }
     }
 
     pub fn dt(&self) -> f64 {
@@ -241,7 +247,9 @@ impl Simulation {
             base_ms,
             proj_ms,
             base_energy_error,
-            runaway: !(base_energy_error <= 1.0),
+            // The base step gained or lost more than 100% of the energy scale, and no converged projection
+            // rescued the step.
+            runaway: !(base_energy_error <= 1.0) && !projection.is_some_and(|p| p.converged),
             references_reset,
         });
         Ok(self.history.last().expect("just pushed"))

@@ -1,1 +1,530 @@
+//! Thin PyO3 bindings of fepr-core (Python module `fepr._core`). Types and conversions only; the public
+//! Python API lives in `python/fepr`. `Simulation.step` releases the GIL.
 
+use numpy::ndarray::{Array1, Array2, Array3};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArray3,
+};
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
+use fepr_core::integrators::{integrator_by_name, INTEGRATOR_NAMES};
+use fepr_core::invariants::measure;
+use fepr_core::linalg::Vec3;
+use fepr_core::material::{Hyperelastic, Material, NeoHookean, StableNeoHookean};
+use fepr_core::mesh::{MassSpec, TetMesh};
+use fepr_core::model::{ModelBuilder, State};
+use fepr_core::projection::{ActiveRows, ProjectionReport, ProjectionSettings, Projector};
+use fepr_core::simulation::{Simulation as CoreSimulation, StepDiagnostics};
+use fepr_core::FeprError;
+
+fn value_error(e: FeprError) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+fn to_vec3(a: &PyReadonlyArray2<f64>, name: &str) -> PyResult<Vec<Vec3>> {
+    let a = a.as_array();
+    if a.ncols() != 3 {
+        return Err(PyValueError::new_err(format!(
+            "{name} must have shape (n, 3), got {:?}",
+            a.shape()
+        )));
+    }
+    Ok(a.rows().into_iter().map(|r| [r[0], r[1], r[2]]).collect())
+}
+
+fn from_vec3<'py>(py: Python<'py>, v: &[Vec3]) -> Bound<'py, PyArray2<f64>> {
+    let mut a = Array2::<f64>::zeros((v.len(), 3));
+    for (i, p) in v.iter().enumerate() {
+        for c in 0..3 {
+            a[[i, c]] = p[c];
+        }
+    }
+    a.into_pyarray(py)
+}
+
+fn build_mesh(
+    vertices: &PyReadonlyArray2<f64>,
+    tets: &PyReadonlyArray2<i64>,
+) -> PyResult<(TetMesh, fepr_core::mesh::MeshReport)> {
+    let v = to_vec3(vertices, "vertices")?;
+    let t = tets.as_array();
+    if t.ncols() != 4 {
+        return Err(PyValueError::new_err(format!(
+            "tets must have shape (k, 4), got {:?}",
+            t.shape()
+        )));
+    }
+    let t: Vec<[i64; 4]> = t
+        .rows()
+        .into_iter()
+        .map(|r| [r[0], r[1], r[2], r[3]])
+        .collect();
+    TetMesh::new(v, &t).map_err(value_error)
+}
+
+/// Validate a mesh; returns (positively oriented tets (k, 4) int64, number flipped, number of unreferenced vertices).
+#[pyfunction]
+fn validate_mesh<'py>(
+    py: Python<'py>,
+    vertices: PyReadonlyArray2<'py, f64>,
+    tets: PyReadonlyArray2<'py, i64>,
+) -> PyResult<(Bound<'py, PyArray2<i64>>, usize, usize)> {
+    let (mesh, report) = build_mesh(&vertices, &tets)?;
+    let mut out = Array2::<i64>::zeros((mesh.num_tets(), 4));
+    for (e, t) in mesh.tets().iter().enumerate() {
+        for c in 0..4 {
+            out[[e, c]] = t[c] as i64;
+        }
+    }
+    Ok((out.into_pyarray(py), report.flipped, report.unreferenced))
+}
+
+fn make_material(
+    model: &str,
+    youngs_modulus: f64,
+    poisson_ratio: f64,
+    j0: f64,
+) -> PyResult<Material> {
+    match model {
+        "neo_hookean" => Ok(Material::NeoHookean(
+            NeoHookean::with_j0(youngs_modulus, poisson_ratio, j0).map_err(value_error)?,
+        )),
+        "stable_neo_hookean" => Ok(Material::StableNeoHookean(
+            StableNeoHookean::new(youngs_modulus, poisson_ratio).map_err(value_error)?,
+        )),
+        other => Err(PyValueError::new_err(format!(
+            "material: unknown model '{other}' (known: neo_hookean, stable_neo_hookean)"
+        ))),
+    }
+}
+
+/// Evaluate a material at deformation gradients `F` (n, 3, 3): returns energy densities (n,) J/m^3, first
+/// Piola stresses (n, 3, 3) Pa and stress derivatives (n, 9, 9) Pa (row-major flattening of F).
+#[pyfunction]
+#[pyo3(signature = (model, youngs_modulus, poisson_ratio, j0, f, derivative = true))]
+fn material_eval<'py>(
+    py: Python<'py>,
+    model: &str,
+    youngs_modulus: f64,
+    poisson_ratio: f64,
+    j0: f64,
+    f: PyReadonlyArray3<'py, f64>,
+    derivative: bool,
+) -> PyResult<(
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray3<f64>>,
+    Option<Bound<'py, PyArray3<f64>>>,
+)> {
+    let mat = make_material(model, youngs_modulus, poisson_ratio, j0)?;
+    let f = f.as_array();
+    if f.shape()[1] != 3 || f.shape()[2] != 3 {
+        return Err(PyValueError::new_err(format!(
+            "F must have shape (n, 3, 3), got {:?}",
+            f.shape()
+        )));
+    }
+    let n = f.shape()[0];
+    let mut psi = Array1::<f64>::zeros(n);
+    let mut p = Array3::<f64>::zeros((n, 3, 3));
+    let mut d = derivative.then(|| Array3::<f64>::zeros((n, 9, 9)));
+    for k in 0..n {
+        let mut fk = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                fk[i][j] = f[[k, i, j]];
+            }
+        }
+        let (e, pk) = mat.energy_and_stress(&fk);
+        psi[k] = e;
+        for i in 0..3 {
+            for j in 0..3 {
+                p[[k, i, j]] = pk[i][j];
+            }
+        }
+        if let Some(d) = d.as_mut() {
+            let dk = mat.stress_derivative(&fk);
+            for a in 0..9 {
+                for b in 0..9 {
+                    d[[k, a, b]] = dk[a][b];
+                }
+            }
+        }
+    }
+    Ok((
+        psi.into_pyarray(py),
+        p.into_pyarray(py),
+        d.map(|d| d.into_pyarray(py)),
+    ))
+}
+
+/// The simulation: model, state, integrator and projection (see `fepr.Simulation` for the documented API).
+#[pyclass(module = "fepr._core")]
+struct Simulation {
+    inner: CoreSimulation,
+    pool: Option<rayon::ThreadPool>,
+}
+
+fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("iterations", r.iterations)?;
+    d.set_item("converged", r.converged)?;
+    d.set_item("residual", r.final_residual)?;
+    d.set_item("initial_residual", r.initial_residual)?;
+    d.set_item("correction", r.correction)?;
+    d.set_item("s", r.s)?;
+    d.set_item("t", r.t)?;
+    d.set_item("fallback", r.fallback)?;
+    d.set_item("bound_hit", r.bound_hit)?;
+    d.set_item("least_squares_solves", r.least_squares_solves)?;
+    d.set_item("halvings", r.halvings)?;
+    d.set_item("active_rows", r.active_rows)?;
+    Ok(d)
+}
+
+/// Column names of `history()`, in order.
+const HISTORY_COLUMNS: &[&str] = &[
+    "step",
+    "time",
+    "kinetic",
+    "elastic",
+    "gravitational",
+    "total",
+    "px",
+    "py",
+    "pz",
+    "lx",
+    "ly",
+    "lz",
+    "cx",
+    "cy",
+    "cz",
+    "proj_iterations",
+    "proj_converged",
+    "proj_residual",
+    "proj_initial_residual",
+    "proj_correction",
+    "proj_fallback",
+    "proj_bound_hit",
+    "proj_s",
+    "proj_t",
+    "base_ms",
+    "proj_ms",
+    "min_j",
+    "inverted",
+    "energy_budget",
+    "base_energy_error",
+    "runaway",
+    "references_reset",
+];
+
+fn history_row(d: &StepDiagnostics) -> [f64; 32] {
+    let i = &d.invariants;
+    let p = d.projection.unwrap_or_default();
+    let has = d.projection.is_some();
+    let nan_if = |x: f64| if has { x } else { f64::NAN };
+    [
+        d.step as f64,
+        d.time,
+        i.kinetic,
+        i.elastic,
+        i.gravitational,
+        i.total,
+        i.momentum[0],
+        i.momentum[1],
+        i.momentum[2],
+        i.angular_momentum[0],
+        i.angular_momentum[1],
+        i.angular_momentum[2],
+        i.center_of_mass[0],
+        i.center_of_mass[1],
+        i.center_of_mass[2],
+        if has { p.iterations as f64 } else { 0.0 },
+        if has { p.converged as u8 as f64 } else { 0.0 },
+        nan_if(p.final_residual),
+        nan_if(p.initial_residual),
+        nan_if(p.correction),
+        if has { p.fallback as u8 as f64 } else { 0.0 },
+        if has { p.bound_hit as u8 as f64 } else { 0.0 },
+        nan_if(p.s),
+        nan_if(p.t),
+        d.base_ms,
+        d.proj_ms,
+        i.min_j,
+        i.inverted as f64,
+        d.energy_budget,
+        d.base_energy_error,
+        d.runaway as u8 as f64,
+        d.references_reset as u8 as f64,
+    ]
+}
+
+#[pymethods]
+impl Simulation {
+    #[new]
+    #[pyo3(signature = (
+        vertices, tets, *, material, youngs_modulus, poisson_ratio, j0, mass_kind, mass_value, node_masses,
+        integrator, dt, projection, tolerance, max_iterations, rows, c_eps, regularization, max_halvings,
+        impact_bound, gravity, pinned, damping, threads
+    ))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        vertices: PyReadonlyArray2<'_, f64>,
+        tets: PyReadonlyArray2<'_, i64>,
+        material: &str,
+        youngs_modulus: f64,
+        poisson_ratio: f64,
+        j0: f64,
+        mass_kind: &str,
+        mass_value: f64,
+        node_masses: Option<PyReadonlyArray1<'_, f64>>,
+        integrator: &str,
+        dt: f64,
+        projection: bool,
+        tolerance: f64,
+        max_iterations: usize,
+        rows: &str,
+        c_eps: f64,
+        regularization: f64,
+        max_halvings: usize,
+        impact_bound: Option<f64>,
+        gravity: [f64; 3],
+        pinned: Vec<usize>,
+        damping: f64,
+        threads: Option<usize>,
+    ) -> PyResult<Self> {
+        let (mesh, _) = build_mesh(&vertices, &tets)?;
+        let mat = make_material(material, youngs_modulus, poisson_ratio, j0)?;
+        let mass = match (mass_kind, node_masses) {
+            ("density", _) => MassSpec::Density(mass_value),
+            ("node_mass", Some(arr)) => MassSpec::PerVertex(arr.as_array().to_vec()),
+            ("node_mass", None) => MassSpec::NodeMass(mass_value),
+            (other, _) => {
+                return Err(PyValueError::new_err(format!(
+                    "mass_kind: unknown '{other}'"
+                )))
+            }
+        };
+        let model = ModelBuilder::new(mesh, mat)
+            .mass(mass)
+            .gravity(gravity)
+            .pinned(pinned)
+            .damping(damping)
+            .build()
+            .map_err(value_error)?;
+        let integ = integrator_by_name(integrator).ok_or_else(|| {
+            PyValueError::new_err(format!(
+                "integrator: unknown '{integrator}' (known: {})",
+                INTEGRATOR_NAMES.join(", ")
+            ))
+        })?;
+        let projector = if projection {
+            let rows = ActiveRows::from_name(rows).ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "rows: unknown '{rows}' (known: auto, energy, energy_momentum, all)"
+                ))
+            })?;
+            let settings = ProjectionSettings {
+                tolerance,
+                max_iterations,
+                c_eps,
+                regularization,
+                max_halvings,
+                rows,
+                impact_bound,
+            };
+            Some(Projector::new(settings).map_err(value_error)?)
+        } else {
+            None
+        };
+        let pool = match threads {
+            Some(0) => return Err(PyValueError::new_err("threads: must be at least 1")),
+            Some(n) => Some(
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(n)
+                    .build()
+                    .map_err(|e| {
+                        PyRuntimeError::new_err(format!("cannot start {n} threads: {e}"))
+                    })?,
+            ),
+            None => None,
+        };
+        let state = State::at_rest(&model);
+        let inner = CoreSimulation::new(model, state, integ, dt, projector).map_err(value_error)?;
+        Ok(Self { inner, pool })
+    }
+
+    /// Take `n` steps with the GIL released. Raises RuntimeError("SimulationError: ...") on runaway to NaN.
+    /// Returns the number of steps taken.
+    fn step(&mut self, py: Python<'_>, n: usize) -> PyResult<usize> {
+        let Self { inner, pool } = self;
+        let result = py.detach(|| {
+            let mut run = || -> Result<usize, FeprError> {
+                for _ in 0..n {
+                    inner.step()?;
+                }
+                Ok(n)
+            };
+            match pool {
+                Some(p) => p.install(run),
+                None => run(),
+            }
+        });
+        result.map_err(|e| PyRuntimeError::new_err(e.to_string()))
+    }
+
+    #[getter]
+    fn positions<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        from_vec3(py, &self.inner.state.x)
+    }
+    #[setter]
+    fn set_positions(&mut self, x: PyReadonlyArray2<'_, f64>) -> PyResult<()> {
+        let x = self.checked_state_array(&x, "positions")?;
+        self.inner.state.x = x;
+        self.inner.reset_references();
+        Ok(())
+    }
+    #[getter]
+    fn velocities<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        from_vec3(py, &self.inner.state.v)
+    }
+    #[setter]
+    fn set_velocities(&mut self, v: PyReadonlyArray2<'_, f64>) -> PyResult<()> {
+        let mut v = self.checked_state_array(&v, "velocities")?;
+        for (vi, p) in v.iter_mut().zip(&self.inner.model.pinned) {
+            if *p {
+                *vi = [0.0; 3];
+            }
+        }
+        self.inner.state.v = v;
+        self.inner.reset_references();
+        Ok(())
+    }
+    #[getter]
+    fn time(&self) -> f64 {
+        self.inner.state.time
+    }
+    #[getter]
+    fn num_steps(&self) -> usize {
+        self.inner.num_steps()
+    }
+    #[getter]
+    fn dt(&self) -> f64 {
+        self.inner.dt()
+    }
+    #[getter]
+    fn integrator(&self) -> &'static str {
+        self.inner.integrator_name()
+    }
+    #[getter]
+    fn masses<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
+        Array1::from(self.inner.model.masses.clone()).into_pyarray(py)
+    }
+    #[getter]
+    fn total_mass(&self) -> f64 {
+        self.inner.model.total_mass
+    }
+    #[getter]
+    fn length_scale(&self) -> f64 {
+        self.inner.model.length_scale
+    }
+    #[getter]
+    fn rest_positions<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        from_vec3(py, self.inner.model.mesh.vertices())
+    }
+    #[getter]
+    fn pinned<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<bool>> {
+        Array1::from(self.inner.model.pinned.clone()).into_pyarray(py)
+    }
+
+    /// (kinetic, elastic, gravitational, total, min_j, inverted) of the current state.
+    fn measure(&self) -> (f64, f64, f64, f64, f64, usize) {
+        let i = measure(&self.inner.model, &self.inner.state);
+        (
+            i.kinetic,
+            i.elastic,
+            i.gravitational,
+            i.total,
+            i.min_j,
+            i.inverted,
+        )
+    }
+    /// (P, L about the centre of mass, centre of mass), each a 3-tuple.
+    fn momenta(&self) -> ([f64; 3], [f64; 3], [f64; 3]) {
+        let i = measure(&self.inner.model, &self.inner.state);
+        (i.momentum, i.angular_momentum, i.center_of_mass)
+    }
+    /// Elastic energy (J) and its gradient (m, 3) J/m at positions `x` (m, 3).
+    fn elastic_energy_gradient<'py>(
+        &self,
+        py: Python<'py>,
+        x: PyReadonlyArray2<'py, f64>,
+    ) -> PyResult<(f64, Bound<'py, PyArray2<f64>>)> {
+        let x = self.checked_state_array(&x, "x")?;
+        let mut grad = vec![[0.0; 3]; x.len()];
+        let s = elastic_energy_gradient(
+            &self.inner.model,
+            &x,
+            &mut ElasticWorkspace::default(),
+            &mut grad,
+        );
+        Ok((s.energy, from_vec3(py, &grad)))
+    }
+    fn last_projection<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        match self.inner.history().last().and_then(|d| d.projection) {
+            Some(r) => Ok(Some(report_dict(py, &r)?)),
+            None => Ok(None),
+        }
+    }
+    #[staticmethod]
+    fn history_columns() -> Vec<&'static str> {
+        HISTORY_COLUMNS.to_vec()
+    }
+    /// The diagnostics as a (rows, columns) float64 array; see `history_columns()`.
+    fn history<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
+        let h = self.inner.history();
+        let mut a = Array2::<f64>::zeros((h.len(), HISTORY_COLUMNS.len()));
+        for (r, d) in h.iter().enumerate() {
+            for (c, v) in history_row(d).iter().enumerate() {
+                a[[r, c]] = *v;
+            }
+        }
+        a.into_pyarray(py)
+    }
+}
+
+impl Simulation {
+    fn checked_state_array(
+        &self,
+        a: &PyReadonlyArray2<'_, f64>,
+        name: &str,
+    ) -> PyResult<Vec<Vec3>> {
+        let m = self.inner.model.num_vertices();
+        let v = to_vec3(a, name)?;
+        if v.len() != m {
+            return Err(PyValueError::new_err(format!(
+                "{name} must have shape ({m}, 3), got ({}, 3)",
+                v.len()
+            )));
+        }
+        if let Some(i) = v.iter().position(|p| !p.iter().all(|c| c.is_finite())) {
+            return Err(PyValueError::new_err(format!(
+                "{name}: row {i} is not finite ({:?})",
+                v[i]
+            )));
+        }
+        Ok(v)
+    }
+}
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(validate_mesh, m)?)?;
+    m.add_function(wrap_pyfunction!(material_eval, m)?)?;
+    m.add_class::<Simulation>()?;
+    m.add("INTEGRATORS", INTEGRATOR_NAMES.to_vec())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}

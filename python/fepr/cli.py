@@ -1,0 +1,189 @@
+"""The ``fepr`` command line.
+
+Commands::
+
+    fepr run SCENE.toml [--steps N] [--out DIR] [--no-projection] [--quiet]
+    fepr demo [--steps N] [--out DIR] [--quiet]
+    fepr --version | --help
+
+Exit status: 0 success; 1 an output file could not be written; 2 invalid command line, scene or mesh;
+3 the simulation ran away (the state became non-finite; the diagnostics up to that step are still written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Optional, Sequence
+
+from .errors import FeprError
+
+__all__ = ["EXIT_ERROR", "EXIT_INVALID", "EXIT_OK", "EXIT_RUNAWAY", "build_parser", "main"]
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_INVALID = 2
+EXIT_RUNAWAY = 3
+
+
+def _version() -> str:
+    try:
+        from . import __version__  # type: ignore[attr-defined]
+
+        return str(__version__)
+    except ImportError:
+        pass
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+
+        return version("fepr")
+    except (ImportError, PackageNotFoundError):
+        return "unknown"
+
+
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of steps, got {text!r}") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"steps must be >= 0, got {n}")
+    return n
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``fepr`` command (subcommands ``run`` and ``demo``)."""
+    parser = argparse.ArgumentParser(
+        prog="fepr",
+        description="FEPR: tetrahedral FEM with energy- and momentum-conserving projection.",
+        epilog="Exit status: 0 ok, 1 write error, 2 invalid input, 3 runaway simulation.",
+    )
+    parser.add_argument("--version", action="version", version=f"fepr {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    run = sub.add_parser(
+        "run",
+        help="run a scene file and write diagnostics.csv and final_state.npz",
+        description="Run a scene file (TOML). Writes DIR/diagnostics.csv (one row per step plus the initial "
+        "state) and DIR/final_state.npz, and prints a one-line summary.",
+    )
+    run.add_argument("scene", metavar="SCENE.toml", help="scene file")
+    run.add_argument(
+        "--steps",
+        type=_positive_int,
+        default=None,
+        metavar="N",
+        help="number of steps (default: [run] steps)",
+    )
+    run.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="output folder (default: ./fepr-out/<scene stem>)",
+    )
+    run.add_argument(
+        "--no-projection",
+        action="store_true",
+        help="turn FEPR off (base integrator only), whatever the scene says",
+    )
+    run.add_argument("--quiet", "-q", action="store_true", help="print only the final summary line")
+
+    demo = sub.add_parser(
+        "demo",
+        help="run the built-in demo scenes with and without FEPR and print a table",
+        description="Run the built-in demo scenes (builtin meshes, no files needed), each with and without "
+        "FEPR, and print a table of conservation errors, iterations and timings.",
+    )
+    demo.add_argument(
+        "--steps",
+        type=_positive_int,
+        default=None,
+        metavar="N",
+        help="steps per run (default: each scene's own)",
+    )
+    demo.add_argument(
+        "--out", type=Path, default=None, metavar="DIR", help="also write each run's diagnostics under DIR"
+    )
+    demo.add_argument("--quiet", "-q", action="store_true", help="print only the table")
+    return parser
+
+
+def _err(msg: str) -> None:
+    print(f"fepr: {msg}", file=sys.stderr, flush=True)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from .scene import load_scene, run_scene
+
+    scene = load_scene(args.scene)
+    out = args.out if args.out is not None else Path("fepr-out") / Path(args.scene).stem
+    steps = scene.run.steps if args.steps is None else args.steps
+    projection = False if args.no_projection else None
+    last = [time.perf_counter()]
+
+    def progress(done: int, total: int, sim) -> None:
+        if args.quiet:
+            return
+        if done == 0:
+            proj = "off" if (args.no_projection or not scene.projection.enabled) else "on"
+            print(
+                f"fepr run {scene.name}: {len(sim.rest_positions)} vertices, {len(sim.tets)} tets, "
+                f"{scene.integrator.name} dt={scene.integrator.dt:.6g} s, FEPR {proj}, {total} steps "
+                f"-> {out}",
+                flush=True,
+            )
+            return
+        now = time.perf_counter()
+        if now - last[0] >= 1.0 or done == total:
+            last[0] = now
+            print(f"  step {done}/{total}  t={float(sim.time):.4g} s", flush=True)
+
+    result = run_scene(scene, steps=steps, out_dir=out, projection=projection, progress=progress)
+    if not args.quiet:
+        for w in result.warnings:
+            _err(f"warning: {w}")
+    if result.runaway:
+        _err(f"runaway at step {result.runaway_step}: {result.runaway_message}")
+    print(result.summary(), flush=True)
+    if not args.quiet:
+        print(f"wrote {result.diagnostics_path} and {result.state_path}", flush=True)
+    return EXIT_RUNAWAY if result.runaway else EXIT_OK
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from . import demo
+
+    return demo.main(steps=args.steps, out_dir=args.out, quiet=args.quiet)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run the ``fepr`` command with ``argv`` (default: ``sys.argv[1:]``); returns the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(None if argv is None else list(argv))
+    except SystemExit as exc:  # --help, --version, usage errors
+        code = exc.code
+        return code if isinstance(code, int) else (EXIT_OK if code is None else EXIT_INVALID)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return EXIT_INVALID
+    try:
+        if args.command == "run":
+            return _cmd_run(args)
+        return _cmd_demo(args)
+    except FeprError as exc:
+        _err(f"error: {exc}")
+        return EXIT_INVALID
+    except OSError as exc:
+        _err(f"error: {exc}")
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        _err("interrupted")
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

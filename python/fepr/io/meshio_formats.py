@@ -1,0 +1,96 @@
+"""Readers for Gmsh ``.msh``, VTK ``.vtk`` / ``.vtu`` and Medit ``.mesh`` / ``.meshb`` through meshio.
+
+meshio is imported lazily (only when such a file is read). Only tetrahedral cells are kept: ``tetra``
+blocks as they are and ``tetra10`` blocks reduced to their 4 corners; all other cells (triangles, lines,
+vertices, ...) are ignored. All points are kept, in file order, so indices stay those of the file.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Dict, List, Tuple, Union
+
+import numpy as np
+
+from ..errors import MeshError
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+#: extension (lower case) -> (meshio file format, description)
+MESHIO_FORMATS: Dict[str, Tuple[str, str]] = {
+    ".msh": ("gmsh", "Gmsh"),
+    ".vtk": ("vtk", "VTK legacy"),
+    ".vtu": ("vtu", "VTK XML"),
+    ".mesh": ("medit", "Medit"),
+    ".meshb": ("medit", "Medit binary"),
+}
+
+
+def read_meshio(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
+    """Read the tetrahedra of a Gmsh, VTK or Medit file with meshio.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A ``.msh`` (Gmsh 2.2 or 4.1, ASCII or binary), ``.vtk``, ``.vtu``, ``.mesh`` or ``.meshb`` file.
+
+    Returns
+    -------
+    vertices : numpy.ndarray, shape (m, 3), float64
+        All points of the file, in file order (units of the file).
+    tets : numpy.ndarray, shape (k, 4), int64
+        0-based point indices of every ``tetra`` cell, then (in block order) the corners of ``tetra10`` cells.
+
+    Raises
+    ------
+    MeshError
+        If the file is missing or cannot be parsed (the message names the file and meshio's error), the points
+        do not have 3 coordinates, or there are no tetrahedra (the message lists the cell types present).
+    """
+    p = Path(os.fspath(path))
+    if not p.exists():
+        raise MeshError(f"{p}: file not found")
+    if not p.is_file():
+        raise MeshError(f"{p}: not a regular file")
+    file_format, description = MESHIO_FORMATS.get(p.suffix.lower(), (None, "mesh"))
+    try:
+        import meshio
+    except ImportError:  # pragma: no cover - meshio is a dependency of fepr
+        raise MeshError(
+            f"{p}: reading {description} files needs the meshio package (pip install meshio)"
+        ) from None
+    # Call the format's reader directly: meshio.read() prints and calls sys.exit(1) when a reader raises
+    # meshio.ReadError, which must never end the user's program.
+    reader = getattr(meshio, file_format).read if file_format else meshio.read
+    try:
+        mesh = reader(str(p))
+    except (Exception, SystemExit) as exc:  # meshio raises many exception types on bad input
+        detail = str(exc).strip() or f"not valid {description} data"
+        raise MeshError(f"{p}: cannot read {description} file: {type(exc).__name__}: {detail}") from exc
+
+    points = np.asarray(mesh.points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        ncoord = points.shape[1] if points.ndim == 2 else "?"
+        raise MeshError(
+            f"{p}: points have {ncoord} coordinates (array shape {points.shape}); a tetrahedral mesh needs 3"
+        )
+    if not np.issubdtype(points.dtype, np.number):
+        raise MeshError(f"{p}: point coordinates are not numeric (dtype {points.dtype})")
+    vertices = np.ascontiguousarray(points, dtype=np.float64)
+
+    blocks: List[np.ndarray] = []
+    present: List[str] = []
+    for block in mesh.cells:
+        if block.type not in present:
+            present.append(block.type)
+        data = np.asarray(block.data)
+        if block.type == "tetra":
+            blocks.append(data.reshape(-1, 4))
+        elif block.type == "tetra10":
+            blocks.append(data.reshape(-1, 10)[:, :4])
+    if not blocks or sum(len(b) for b in blocks) == 0:
+        kinds = ", ".join(present) if present else "none"
+        raise MeshError(f"{p}: no tetrahedra found (cell types present: {kinds})")
+    tets = np.concatenate([b.astype(np.int64, copy=False) for b in blocks], axis=0)
+    return vertices, np.ascontiguousarray(tets)

@@ -1,0 +1,137 @@
+"""Hyperelastic materials (SI units: Young's modulus in Pa, dimensionless Poisson ratio).
+
+Each material evaluates, through the Rust core, its energy density ``Psi(F)`` (J/m^3), first Piola-Kirchhoff
+stress ``P = dPsi/dF`` (Pa) and stress derivative ``dP/dF`` (Pa, 9x9 with row-major flattening of F), all
+analytic and gated by finite-difference tests.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _core
+from .errors import ConfigError
+
+
+def _check_elastic(youngs_modulus: float, poisson_ratio: float) -> None:
+    try:
+        e = float(youngs_modulus)
+        nu = float(poisson_ratio)
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"youngs_modulus and poisson_ratio must be numbers, got {youngs_modulus!r}, {poisson_ratio!r}"
+        ) from None
+    if not (math.isfinite(e) and e > 0):
+        raise ConfigError(f"youngs_modulus must be a positive finite number of pascals, got {youngs_modulus!r}")
+    if not (math.isfinite(nu) and -1.0 < nu < 0.5):
+        raise ConfigError(
+            f"poisson_ratio must satisfy -1 < nu < 0.5 (0.5 is incompressible, not supported), got {poisson_ratio!r}"
+        )
+
+
+class _Material:
+    model: str = ""
+    youngs_modulus: float
+    poisson_ratio: float
+
+    @property
+    def _j0(self) -> float:
+        return 0.1
+
+    @property
+    def mu(self) -> float:
+        """First Lame parameter (shear modulus), Pa."""
+        return self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
+
+    @property
+    def lam(self) -> float:
+        """Second Lame parameter, Pa."""
+        nu = self.poisson_ratio
+        return self.youngs_modulus * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+
+    def _eval(self, F, derivative: bool):
+        f = np.asarray(F, dtype=np.float64)
+        single = f.ndim == 2
+        f = np.ascontiguousarray(f.reshape(-1, 3, 3))
+        psi, p, d = _core.material_eval(self.model, self.youngs_modulus, self.poisson_ratio, self._j0, f, derivative)
+        if single:
+            return psi[0], p[0], (d[0] if d is not None else None)
+        return psi, p, d
+
+    def energy_density(self, F) -> np.ndarray:
+        """Energy density Psi(F) in J/m^3. ``F``: (3, 3) or (n, 3, 3); returns a float or (n,)."""
+        return self._eval(F, False)[0]
+
+    def first_piola(self, F) -> np.ndarray:
+        """First Piola-Kirchhoff stress dPsi/dF in Pa, shape like ``F``."""
+        return self._eval(F, False)[1]
+
+    def stress_derivative(self, F) -> np.ndarray:
+        """dP/dF in Pa: (9, 9) for one F or (n, 9, 9); index ``3*i + j`` is ``F[i, j]``."""
+        return self._eval(F, True)[2]
+
+
+@dataclass(frozen=True)
+class NeoHookean(_Material):
+    """The seed's log Neo-Hookean: ``Psi = mu/2 (tr F^T F - 3) - mu l(J) + lambda/2 l(J)^2``.
+
+    ``l(J) = log J`` for ``J >= j0`` and its C2 quadratic extension below ``j0`` (fepr-spec section 4), so
+    that energy and forces stay finite and restoring for inverted elements.
+
+    Parameters
+    ----------
+    youngs_modulus : float
+        Young's modulus E, Pa (> 0).
+    poisson_ratio : float
+        Poisson ratio nu, -1 < nu < 0.5.
+    j0 : float
+        Extension threshold, 0 < j0 <= 1 (default 0.1).
+    """
+
+    youngs_modulus: float
+    poisson_ratio: float
+    j0: float = 0.1
+    model = "neo_hookean"
+
+    def __post_init__(self):
+        _check_elastic(self.youngs_modulus, self.poisson_ratio)
+        if not (isinstance(self.j0, (int, float)) and 0 < self.j0 <= 1):
+            raise ConfigError(f"j0 must satisfy 0 < j0 <= 1, got {self.j0!r}")
+        object.__setattr__(self, "youngs_modulus", float(self.youngs_modulus))
+        object.__setattr__(self, "poisson_ratio", float(self.poisson_ratio))
+        object.__setattr__(self, "j0", float(self.j0))
+
+    @property
+    def _j0(self) -> float:
+        return self.j0
+
+
+@dataclass(frozen=True)
+class StableNeoHookean(_Material):
+    """Stable Neo-Hookean (Smith, de Goes, Kim 2018), shifted so that Psi(I) = 0.
+
+    ``Psi = mu'/2 (I_C - 3) + lambda'/2 (J - alpha)^2 - mu'/2 log(I_C + 1) - Psi0`` with ``mu' = 4/3 mu``,
+    ``lambda' = lambda + 5/6 mu``, ``alpha = 1 + mu'/lambda' - mu'/(4 lambda')``. Defined for inverted F.
+
+    Parameters
+    ----------
+    youngs_modulus : float
+        Young's modulus E, Pa (> 0).
+    poisson_ratio : float
+        Poisson ratio nu, -1 < nu < 0.5.
+    """
+
+    youngs_modulus: float
+    poisson_ratio: float
+    model = "stable_neo_hookean"
+
+    def __post_init__(self):
+        _check_elastic(self.youngs_modulus, self.poisson_ratio)
+        object.__setattr__(self, "youngs_modulus", float(self.youngs_modulus))
+        object.__setattr__(self, "poisson_ratio", float(self.poisson_ratio))
+
+
+Material = _Material

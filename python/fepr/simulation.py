@@ -1,0 +1,466 @@
+"""The simulation API: :class:`Simulation`, :class:`Projection`, energies and per-step diagnostics.
+
+Units are SI throughout: metres, seconds, kilograms, joules. Arrays are NumPy ``float64``; positions and
+velocities have shape ``(m, 3)``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Union
+
+import numpy as np
+
+from . import _core
+from .errors import ConfigError, SimulationError
+from .materials import NeoHookean, StableNeoHookean, _Material
+from .mesh import TetMesh
+
+ROWS = ("auto", "energy", "energy_momentum", "all")
+
+
+@dataclass(frozen=True)
+class Projection:
+    """Settings of the FEPR projection (fepr-spec sections 2-3).
+
+    Parameters
+    ----------
+    tolerance : float
+        Relative per-row tolerance (default 1e-10): ``|c_H| <= tol * H_scale``, ``|c_P| <= tol * m r / h``,
+        ``|c_L| <= tol * m r^2 / h``, ``|c_C| <= tol * r``.
+    max_iterations : int
+        Iterations per step before falling back (default 20).
+    rows : str
+        Active constraint rows: ``"auto"`` (all 10 rows for a free body, energy only with pinned vertices),
+        ``"energy"``, ``"energy_momentum"`` (the paper's 7 rows), ``"all"`` (plus the centre of mass).
+    c_eps : float
+        Weight of the slack variables s, t: ``eps = c_eps * m_tot * r^2`` (default 0.01).
+    regularization : float
+        Relative diagonal regularisation of the small system (default 1e-12).
+    max_halvings : int
+        Step halvings per iteration when a full step increases the residual (default 4).
+    impact_bound : float or None
+        Optional cap on the D-norm of the total correction as a fraction of ``sqrt(m_tot) * r`` (the seed's
+        "upper bound on FEPR impact"). When it bites, conservation is not exact and the report says so.
+    """
+
+    tolerance: float = 1e-10
+    max_iterations: int = 20
+    rows: str = "auto"
+    c_eps: float = 0.01
+    regularization: float = 1e-12
+    max_halvings: int = 4
+    impact_bound: Optional[float] = None
+
+    def __post_init__(self):
+        if not (isinstance(self.tolerance, (int, float)) and 0 < self.tolerance < 1):
+            raise ConfigError(f"projection tolerance must satisfy 0 < tolerance < 1, got {self.tolerance!r}")
+        if not (isinstance(self.max_iterations, int) and 1 <= self.max_iterations <= 10000):
+            raise ConfigError(f"projection max_iterations must be an integer in 1..10000, got {self.max_iterations!r}")
+        if self.rows not in ROWS:
+            raise ConfigError(f"projection rows must be one of {', '.join(ROWS)}, got {self.rows!r}")
+        if not (isinstance(self.c_eps, (int, float)) and math.isfinite(self.c_eps) and self.c_eps > 0):
+            raise ConfigError(f"projection c_eps must be positive, got {self.c_eps!r}")
+        if not (isinstance(self.regularization, (int, float)) and 0 <= self.regularization < 1):
+            raise ConfigError(f"projection regularization must satisfy 0 <= delta < 1, got {self.regularization!r}")
+        if not (isinstance(self.max_halvings, int) and 0 <= self.max_halvings <= 60):
+            raise ConfigError(f"projection max_halvings must be an integer in 0..60, got {self.max_halvings!r}")
+        if self.impact_bound is not None and not (
+            isinstance(self.impact_bound, (int, float)) and math.isfinite(self.impact_bound) and self.impact_bound > 0
+        ):
+            raise ConfigError(f"projection impact_bound must be positive or None, got {self.impact_bound!r}")
+
+
+class Energy(NamedTuple):
+    """Energies of a state, J."""
+
+    kinetic: float
+    elastic: float
+    gravitational: float
+    total: float
+
+
+@dataclass(frozen=True)
+class ProjectionReport:
+    """What the last projection did.
+
+    ``residual`` and ``initial_residual`` are the largest scaled constraint residuals (compare with the
+    tolerance) after and before the projection; ``correction`` is the D-norm of the change (sqrt(kg) m);
+    ``fallback`` means it did not converge and kept the best iterate or the base step's state.
+    """
+
+    iterations: int
+    converged: bool
+    residual: float
+    initial_residual: float
+    correction: float
+    s: float
+    t: float
+    fallback: bool
+    bound_hit: bool
+    least_squares_solves: int
+    halvings: int
+    active_rows: int
+
+
+class History:
+    """Per-step diagnostics, one row per step; row 0 is the initial state.
+
+    ``h["total"]`` is a column as a (rows,) float64 array; ``h.columns`` lists the names; ``h.as_dict()``
+    gives all columns. Energies in J, momenta in kg m/s, angular momenta (about the centre of mass) in
+    kg m^2/s, times in s, wall times in ms.
+    """
+
+    def __init__(self, data: np.ndarray, columns: Sequence[str]):
+        self._data = data
+        self.columns: List[str] = list(columns)
+        self._index = {c: i for i, c in enumerate(self.columns)}
+
+    def __len__(self) -> int:
+        return int(self._data.shape[0])
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        try:
+            return self._data[:, self._index[name]]
+        except KeyError:
+            raise KeyError(f"no history column {name!r} (columns: {', '.join(self.columns)})") from None
+
+    def __iter__(self) -> Iterator[Dict[str, float]]:
+        for row in self._data:
+            yield dict(zip(self.columns, row.tolist()))
+
+    def as_dict(self) -> Dict[str, np.ndarray]:
+        return {c: self._data[:, i].copy() for i, c in enumerate(self.columns)}
+
+    def to_csv(self, path: Union[str, Path]) -> None:
+        ints = {"step", "proj_iterations", "proj_converged", "proj_fallback", "proj_bound_hit", "inverted",
+                "runaway", "references_reset"}
+        with open(path, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(self.columns)
+            for row in self._data:
+                w.writerow([
+                    str(int(v)) if c in ints else repr(float(v)) for c, v in zip(self.columns, row)
+                ])
+
+    def __repr__(self) -> str:
+        return f"History({len(self)} rows, columns={self.columns})"
+
+
+def _as_float3(value, name: str) -> tuple:
+    try:
+        a = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name} must be three numbers, got {value!r}") from None
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ConfigError(f"{name} must be three finite numbers, got {value!r}")
+    return tuple(float(x) for x in a)
+
+
+def _positive(value, name: str, unit: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise ConfigError(f"{name} must be a number ({unit}), got {value!r}")
+    v = float(value)
+    if not (math.isfinite(v) and v > 0):
+        raise ConfigError(f"{name} must be a positive finite number ({unit}), got {value!r}")
+    return v
+
+
+class Simulation:
+    """A deformable body: mesh, material, masses, a base integrator and the FEPR projection.
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        The rest shape (metres).
+    material : NeoHookean or StableNeoHookean
+        Material, SI units.
+    node_mass : float or array_like (m,), optional
+        Mass per vertex, kg (as the seed used). Exactly one of ``node_mass`` and ``density``.
+    density : float, optional
+        Density, kg/m^3, lumped: a quarter of each tet's mass to each of its vertices.
+    integrator : str
+        Base integrator (``"symplectic_euler"``).
+    dt : float
+        Time step, s (> 0).
+    projection : bool or Projection
+        ``True`` for FEPR with default settings, ``False`` for the bare integrator, or a :class:`Projection`.
+    gravity : (3,) float
+        Gravitational acceleration, m/s^2; gravity is potential energy and part of the conserved H.
+    pinned : array_like of int or bool mask (m,), optional
+        Vertices held fixed at their position.
+    damping : float
+        The seed's velocity damping factor per step, ``v <- (1 - damping) v``, in [0, 1); the energy it
+        removes enters the step's energy budget, so the projection does not undo it.
+    threads : int, optional
+        Worker threads (default: all cores). Results are bit-identical for any thread count.
+
+    Raises
+    ------
+    ConfigError
+        For invalid parameters (the message names the parameter).
+    """
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        *,
+        material: _Material,
+        node_mass=None,
+        density: Optional[float] = None,
+        integrator: str = "symplectic_euler",
+        dt: float,
+        projection: Union[bool, Projection] = True,
+        gravity=(0.0, 0.0, 0.0),
+        pinned=None,
+        damping: float = 0.0,
+        threads: Optional[int] = None,
+    ):
+        if not isinstance(mesh, TetMesh):
+            raise ConfigError(f"mesh must be a fepr.TetMesh, got {type(mesh).__name__}")
+        if not isinstance(material, (NeoHookean, StableNeoHookean)):
+            raise ConfigError(
+                f"material must be fepr.NeoHookean(...) or fepr.StableNeoHookean(...), got {material!r}"
+            )
+        m = mesh.num_vertices
+        node_masses = None
+        if (node_mass is None) == (density is None):
+            raise ConfigError("give exactly one of node_mass (kg per vertex) and density (kg/m^3)")
+        if density is not None:
+            mass_kind, mass_value = "density", _positive(density, "density", "kg/m^3")
+        elif np.ndim(node_mass) == 0:
+            mass_kind, mass_value = "node_mass", _positive(node_mass, "node_mass", "kg")
+        else:
+            node_masses = np.ascontiguousarray(node_mass, dtype=np.float64)
+            if node_masses.shape != (m,):
+                raise ConfigError(f"node_mass array must have shape ({m},), got {node_masses.shape}")
+            bad = np.flatnonzero(~(np.isfinite(node_masses) & (node_masses > 0)))
+            if bad.size:
+                raise ConfigError(f"node_mass of vertex {bad[0]} is {node_masses[bad[0]]}; masses must be positive")
+            mass_kind, mass_value = "node_mass", 0.0
+        dt = _positive(dt, "dt", "seconds")
+        if integrator not in _core.INTEGRATORS:
+            raise ConfigError(f"unknown integrator {integrator!r} (known: {', '.join(_core.INTEGRATORS)})")
+        if projection is True:
+            proj = Projection()
+        elif projection is False or projection is None:
+            proj = None
+        elif isinstance(projection, Projection):
+            proj = projection
+        else:
+            raise ConfigError(f"projection must be True, False or fepr.Projection(...), got {projection!r}")
+        gravity = _as_float3(gravity, "gravity")
+        pinned_idx = self._pinned_indices(pinned, m)
+        if isinstance(damping, bool) or not isinstance(damping, (int, float)) or not (0 <= damping < 1):
+            raise ConfigError(f"damping must satisfy 0 <= damping < 1, got {damping!r}")
+        if threads is not None and (not isinstance(threads, int) or threads < 1):
+            raise ConfigError(f"threads must be a positive integer, got {threads!r}")
+        p = proj or Projection()
+        try:
+            self._sim = _core.Simulation(
+                mesh.vertices, mesh.tets,
+                material=material.model, youngs_modulus=material.youngs_modulus,
+                poisson_ratio=material.poisson_ratio, j0=material._j0,
+                mass_kind=mass_kind, mass_value=mass_value, node_masses=node_masses,
+                integrator=integrator, dt=dt, projection=proj is not None,
+                tolerance=float(p.tolerance), max_iterations=int(p.max_iterations), rows=p.rows,
+                c_eps=float(p.c_eps), regularization=float(p.regularization), max_halvings=int(p.max_halvings),
+                impact_bound=None if p.impact_bound is None else float(p.impact_bound),
+                gravity=gravity, pinned=pinned_idx, damping=float(damping), threads=threads,
+            )
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        self.mesh = mesh
+        self.material = material
+        self.projection: Optional[Projection] = proj
+        self.gravity = np.array(gravity)
+        self.damping = float(damping)
+        self._warned_runaway = False
+
+    @staticmethod
+    def _pinned_indices(pinned, m: int) -> List[int]:
+        if pinned is None:
+            return []
+        a = np.asarray(pinned)
+        if a.dtype == bool:
+            if a.shape != (m,):
+                raise ConfigError(f"pinned mask must have shape ({m},), got {a.shape}")
+            return [int(i) for i in np.flatnonzero(a)]
+        if a.size == 0:
+            return []
+        if not np.issubdtype(a.dtype, np.integer) or a.ndim != 1:
+            raise ConfigError("pinned must be a 1-D array of vertex indices or a boolean mask of shape (m,)")
+        bad = a[(a < 0) | (a >= m)]
+        if bad.size:
+            raise ConfigError(f"pinned vertex {int(bad[0])} is out of range: the mesh has {m} vertices")
+        return sorted({int(i) for i in a})
+
+    # --- state -------------------------------------------------------------------------------------------
+    @property
+    def positions(self) -> np.ndarray:
+        """Current positions, (m, 3) float64, m (a copy; assign to change; assigning resets the references)."""
+        return self._sim.positions
+
+    @positions.setter
+    def positions(self, x) -> None:
+        self._set_state_array("positions", x)
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """Current velocities, (m, 3) float64, m/s (a copy; assign to change; pinned rows stay zero)."""
+        return self._sim.velocities
+
+    @velocities.setter
+    def velocities(self, v) -> None:
+        self._set_state_array("velocities", v)
+
+    def _set_state_array(self, name: str, value) -> None:
+        a = np.ascontiguousarray(value, dtype=np.float64)
+        m = self.mesh.num_vertices
+        if a.shape != (m, 3):
+            raise ConfigError(f"{name} must have shape ({m}, 3), got {a.shape}")
+        try:
+            setattr(self._sim, name, a)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+    @property
+    def rest_positions(self) -> np.ndarray:
+        """Rest positions, (m, 3) float64, m."""
+        return self._sim.rest_positions
+
+    @property
+    def tets(self) -> np.ndarray:
+        """Tets, (k, 4) int64, positively oriented."""
+        return self.mesh.tets
+
+    @property
+    def masses(self) -> np.ndarray:
+        """Lumped vertex masses, (m,) float64, kg."""
+        return self._sim.masses
+
+    @property
+    def total_mass(self) -> float:
+        return self._sim.total_mass
+
+    @property
+    def pinned(self) -> np.ndarray:
+        """Pinned-vertex mask, (m,) bool."""
+        return self._sim.pinned
+
+    @property
+    def time(self) -> float:
+        """Simulated time, s."""
+        return self._sim.time
+
+    @property
+    def num_steps(self) -> int:
+        return self._sim.num_steps
+
+    @property
+    def dt(self) -> float:
+        """Time step, s."""
+        return self._sim.dt
+
+    @property
+    def integrator(self) -> str:
+        return self._sim.integrator
+
+    # --- stepping ----------------------------------------------------------------------------------------
+    def step(self, n: int = 1) -> None:
+        """Advance ``n`` steps (the GIL is released while stepping).
+
+        Raises
+        ------
+        SimulationError
+            If the state becomes non-finite (runaway of an unstable step size). The state is left at the last
+            finite step and the history keeps every completed step.
+        """
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+            raise ConfigError(f"n must be a non-negative integer, got {n!r}")
+        before = self.num_steps
+        try:
+            self._sim.step(int(n))
+        except RuntimeError as exc:
+            raise SimulationError(str(exc)) from None
+        finally:
+            self._check_runaway(before)
+
+    def _check_runaway(self, before: int) -> None:
+        if self._warned_runaway or self.num_steps == before:
+            return
+        runaway = self.history["runaway"][before + 1:]
+        if np.any(runaway > 0):
+            k = before + 1 + int(np.argmax(runaway > 0))
+            self._warned_runaway = True
+            warnings.warn(
+                f"runaway detected at step {k}: the base integrator's energy error exceeded 100% of the energy "
+                f"scale (dt = {self.dt} s is unstable for this material and mesh; see history['base_energy_error'])",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+
+    # --- measurements ------------------------------------------------------------------------------------
+    def energy(self) -> Energy:
+        """Kinetic, elastic, gravitational and total energy of the current state, J."""
+        k, e, g, t, _, _ = self._sim.measure()
+        return Energy(k, e, g, t)
+
+    def linear_momentum(self) -> np.ndarray:
+        """Linear momentum, (3,) float64, kg m/s."""
+        return np.array(self._sim.momenta()[0])
+
+    def angular_momentum(self) -> np.ndarray:
+        """Angular momentum about the centre of mass, (3,) float64, kg m^2/s."""
+        return np.array(self._sim.momenta()[1])
+
+    def center_of_mass(self) -> np.ndarray:
+        """Centre of mass, (3,) float64, m."""
+        return np.array(self._sim.momenta()[2])
+
+    def min_volume_ratio(self) -> float:
+        """Smallest J = det F over all tets (J <= 0: inverted)."""
+        return self._sim.measure()[4]
+
+    def elastic_energy_gradient(self, x=None):
+        """Elastic energy (J) and its gradient ((m, 3) float64, J/m) at positions ``x`` (default: current)."""
+        x = self.positions if x is None else np.ascontiguousarray(x, dtype=np.float64)
+        return self._sim.elastic_energy_gradient(x)
+
+    @property
+    def last_projection(self) -> Optional[ProjectionReport]:
+        """Report of the last step's projection, or None (no projection, or no step yet)."""
+        d = self._sim.last_projection()
+        return None if d is None else ProjectionReport(**d)
+
+    @property
+    def history(self) -> History:
+        """Per-step diagnostics (row 0: the initial state)."""
+        return History(self._sim.history(), _core.Simulation.history_columns())
+
+    def save_diagnostics(self, path: Union[str, Path]) -> None:
+        """Write :attr:`history` as CSV (one row per step, header of column names)."""
+        self.history.to_csv(path)
+
+    def save_state(self, path: Union[str, Path]) -> None:
+        """Write ``positions, velocities, rest_positions, tets, masses, time`` to a NumPy ``.npz`` file."""
+        np.savez(
+            path,
+            positions=self.positions,
+            velocities=self.velocities,
+            rest_positions=self.rest_positions,
+            tets=self.tets,
+            masses=self.masses,
+            time=np.float64(self.time),
+        )
+
+    def __repr__(self) -> str:
+        proj = "FEPR" if self.projection else "no projection"
+        return (
+            f"Simulation({self.mesh.num_vertices} vertices, {self.mesh.num_tets} tets, {self.integrator}, "
+            f"dt={self.dt}, {proj}, t={self.time:.4g} s)"
+        )
