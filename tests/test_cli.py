@@ -9,9 +9,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import fepr
 import numpy as np
 import pytest
+
+import fepr
 from fepr.cli import EXIT_INVALID, EXIT_OK, EXIT_RUNAWAY, main
 from fepr.demo import DEMO_SCENES
 
@@ -161,8 +162,7 @@ def test_runaway_writes_diagnostics_and_exits_3(tmp_path, capsys):
 def test_invalid_scene_exits_2_naming_the_key(tmp_path, capsys):
     scene = write_scene(
         tmp_path / "bad.toml",
-        '[mesh]\nbuiltin = "ell"\n[material]\nyoungs_modulu = 1e3\npoisson_ratio = 0.3\n'
-        "[mass]\nnode_mass = 5.0\n",
+        '[mesh]\nbuiltin = "ell"\n[material]\nyoungs_modulu = 1e3\npoisson_ratio = 0.3\n[mass]\nnode_mass = 5.0\n',
     )
     assert main(["run", str(scene), "--out", str(tmp_path / "o")]) == EXIT_INVALID
     err = capsys.readouterr().err

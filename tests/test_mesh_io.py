@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from fepr.errors import ConfigError, MeshError
 from fepr.io import SUPPORTED_EXTENSIONS, load_mesh, read_meshio, read_npz, read_tetgen
 from fepr.mesh import TetMesh
@@ -364,9 +365,7 @@ TETGEN_ERRORS = [
 
 
 @pytest.mark.parametrize("case, node, ele, where, pattern", TETGEN_ERRORS, ids=[c[0] for c in TETGEN_ERRORS])
-def test_tetgen_malformed_files_raise_mesh_error_naming_file_and_line(
-    tmp_path, case, node, ele, where, pattern
-):
+def test_tetgen_malformed_files_raise_mesh_error_naming_file_and_line(tmp_path, case, node, ele, where, pattern):
     base = _write(tmp_path, node, ele)
     with pytest.raises(MeshError) as info:
         read_tetgen(base)
@@ -567,8 +566,7 @@ def _corrupt_cases(tmp_path: Path):
         "bad-nodes.msh": b"$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 2 x\n",
         "binary-noise.msh": bytes(range(256)) * 8,
         "garbage.vtu": b"<VTKFile",
-        "garbage.vtk": b"# vtk DataFile Version 4.2\nx\nASCII\n"
-        b"DATASET UNSTRUCTURED_GRID\nPOINTS 3 float\n1 2\n",
+        "garbage.vtk": b"# vtk DataFile Version 4.2\nx\nASCII\nDATASET UNSTRUCTURED_GRID\nPOINTS 3 float\n1 2\n",
         "garbage.mesh": b"MeshVersionFormatted 1\nDimension 3\nVertices\n5\n1 2 3\n",
     }
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from fepr import meshes
 from fepr.errors import ConfigError
 from fepr.mesh import TetMesh
@@ -194,9 +195,7 @@ def test_ell_occupies_the_seed_cells():
         assert vols[in_cell].sum() == pytest.approx(1.0, rel=1e-12)
 
 
-@pytest.mark.skipif(
-    SHARED is None, reason="shared seed meshes not found (../shared/meshes or FEPR_SHARED_MESHES)"
-)
+@pytest.mark.skipif(SHARED is None, reason="shared seed meshes not found (../shared/meshes or FEPR_SHARED_MESHES)")
 def test_ell_matches_seed_ellell_geometry():
     from fepr.io import load_mesh
 

@@ -5,9 +5,10 @@ from __future__ import annotations
 import copy
 from pathlib import Path
 
-import fepr
 import numpy as np
 import pytest
+
+import fepr
 from fepr import meshes
 from fepr.demo import DEMO_SCENES
 from fepr.errors import ConfigError, FeprError
@@ -89,9 +90,7 @@ def test_unknown_key_in_each_section_is_named(section):
 def test_misspelled_key_lists_the_known_ones():
     d = minimal()
     d["material"]["youngs_modulu"] = d["material"].pop("youngs_modulus")
-    with pytest.raises(
-        ConfigError, match=r"\[material\] unknown key 'youngs_modulu' \(known: model, youngs_modulus"
-    ):
+    with pytest.raises(ConfigError, match=r"\[material\] unknown key 'youngs_modulu' \(known: model, youngs_modulus"):
         scene_from_dict(d, ".", source="scene.toml")
 
 
@@ -190,9 +189,7 @@ BAD_VALUES = [
 ]
 
 
-@pytest.mark.parametrize(
-    "section,key,value,fragment", BAD_VALUES, ids=[f"{s}.{k}={v!r}" for s, k, v, _ in BAD_VALUES]
-)
+@pytest.mark.parametrize("section,key,value,fragment", BAD_VALUES, ids=[f"{s}.{k}={v!r}" for s, k, v, _ in BAD_VALUES])
 def test_bad_value_is_named(section, key, value, fragment):
     d = with_(section, **{key: value})
     with pytest.raises(ConfigError) as info:
@@ -340,9 +337,7 @@ def test_builtin_option_that_does_not_apply():
 def test_unknown_builtin_lists_the_known_ones():
     d = minimal()
     d["mesh"] = {"builtin": "teapot"}
-    with pytest.raises(
-        ConfigError, match=r"\[mesh\] builtin: unknown built-in mesh 'teapot' \(known: box, ell"
-    ):
+    with pytest.raises(ConfigError, match=r"\[mesh\] builtin: unknown built-in mesh 'teapot' \(known: box, ell"):
         scene_from_dict(d, ".")
 
 
@@ -374,8 +369,7 @@ def test_file_errors_start_with_the_file_name(tmp_path):
 def test_scene_name_defaults_to_the_file_stem(tmp_path):
     p = write_scene(
         tmp_path / "my_scene.toml",
-        '[mesh]\nbuiltin = "ell"\n[material]\nyoungs_modulus = 1e3\npoisson_ratio = 0.3\n'
-        "[mass]\nnode_mass = 5.0\n",
+        '[mesh]\nbuiltin = "ell"\n[material]\nyoungs_modulus = 1e3\npoisson_ratio = 0.3\n[mass]\nnode_mass = 5.0\n',
     )
     assert load_scene(p).name == "my_scene"
 

@@ -52,8 +52,10 @@ class TetMesh:
         if t_raw.ndim != 2 or t_raw.shape[1] != 4:
             raise MeshError(f"{where}tets must have shape (k, 4), got {t_raw.shape}")
         if t_raw.size and not np.issubdtype(t_raw.dtype, np.integer):
-            if np.issubdtype(t_raw.dtype, np.floating) and np.all(np.isfinite(t_raw)) and np.all(
-                t_raw == np.round(t_raw)
+            if (
+                np.issubdtype(t_raw.dtype, np.floating)
+                and np.all(np.isfinite(t_raw))
+                and np.all(t_raw == np.round(t_raw))
             ):
                 t_raw = t_raw.astype(np.int64)
             else:
@@ -107,12 +109,11 @@ class TetMesh:
         """(min, max) corners of the axis-aligned bounding box, each shape (3,) float64, metres."""
         return self._vertices.min(axis=0), self._vertices.max(axis=0)
 
-    def transformed(self, *, scale: float = 1.0, translate=(0.0, 0.0, 0.0)) -> "TetMesh":
+    def transformed(self, *, scale: float = 1.0, translate=(0.0, 0.0, 0.0)) -> TetMesh:
         """A copy with vertices ``scale * x + translate`` (scale > 0 keeps the orientation)."""
         if not (np.isfinite(scale) and scale > 0):
             raise MeshError(f"scale must be a positive finite number, got {scale}")
-        return TetMesh(self._vertices * scale + np.asarray(translate, dtype=np.float64), self._tets,
-                       source=self.source)
+        return TetMesh(self._vertices * scale + np.asarray(translate, dtype=np.float64), self._tets, source=self.source)
 
     def __repr__(self) -> str:
         src = f", source={self.source!r}" if self.source else ""

@@ -198,9 +198,7 @@ def ell(size: float = 1.0, resolution: int = 1) -> TetMesh:
     unit = _positive_float(size, "size")
     r = _positive_int(resolution, "resolution")
     _check_tets_budget("ell", 6 * len(_ELL_CELLS) * r**3)
-    sub = np.stack(np.meshgrid(np.arange(r), np.arange(r), np.arange(r), indexing="ij"), axis=-1).reshape(
-        -1, 3
-    )
+    sub = np.stack(np.meshgrid(np.arange(r), np.arange(r), np.arange(r), indexing="ij"), axis=-1).reshape(-1, 3)
     cells = (_ELL_CELLS[:, None, :] * r + sub[None, :, :]).reshape(-1, 3)
     lattice, tets = _grid_tets(cells)
     vertices = unit * (lattice / float(r))

@@ -158,8 +158,7 @@ class InitialSettings:
     def is_rest(self) -> bool:
         """True if the initial state is the rest shape at rest."""
         return self.scale == 1.0 and not any(
-            v is not None
-            for v in (self.velocity, self.angular_velocity, self.velocities, self.alternating_velocity)
+            v is not None for v in (self.velocity, self.angular_velocity, self.velocities, self.alternating_velocity)
         )
 
 
@@ -286,9 +285,7 @@ class Scene:
                 kw: Dict[str, Any] = {}
                 if mat.j0 is not None:
                     kw["j0"] = mat.j0
-                return fepr.NeoHookean(
-                    youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio, **kw
-                )
+                return fepr.NeoHookean(youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio, **kw)
             return fepr.StableNeoHookean(youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio)
         except ConfigError as exc:
             raise ConfigError(f"{self._where()}[material] {exc}") from None
@@ -300,9 +297,7 @@ class Scene:
         idx: List[int] = []
         for i in self.world.pinned:
             if not 0 <= i < m:
-                raise ConfigError(
-                    f"{where}[world] pinned: vertex index {i} out of range (mesh has {m} vertices)"
-                )
+                raise ConfigError(f"{where}[world] pinned: vertex index {i} out of range (mesh has {m} vertices)")
             idx.append(i)
         pb = self.world.pin_below
         if pb is not None:
@@ -675,9 +670,7 @@ def _parse_projection(t: _Table) -> ProjectionSettings:
 
 
 def _parse_world(t: _Table) -> WorldSettings:
-    w = WorldSettings(
-        gravity=t.vec3("gravity", (0.0, 0.0, 0.0)), damping=t.number("damping", 0.0, nonnegative=True)
-    )
+    w = WorldSettings(gravity=t.vec3("gravity", (0.0, 0.0, 0.0)), damping=t.number("damping", 0.0, nonnegative=True))
     if t.has("pinned"):
         raw = t.data["pinned"]
         ok = isinstance(raw, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in raw)
@@ -705,9 +698,7 @@ def _parse_world(t: _Table) -> WorldSettings:
     return w
 
 
-def scene_from_dict(
-    d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, source: Optional[str] = None
-) -> Scene:
+def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, source: Optional[str] = None) -> Scene:
     """Validate a scene given as a dict (the parsed TOML) into a :class:`Scene`.
 
     Parameters
@@ -762,9 +753,7 @@ def scene_from_dict(
         ),
         projection=_parse_projection(table("projection")),
         world=_parse_world(table("world")),
-        run=RunSettings(
-            steps=run.integer("steps", 100, minimum=0), threads=run.integer("threads", None, minimum=1)
-        ),
+        run=RunSettings(steps=run.integer("steps", 100, minimum=0), threads=run.integer("threads", None, minimum=1)),
         source=source,
         base_dir=base,
     )
@@ -845,11 +834,7 @@ class RunResult:
             if self.runaway
             else f"{self.steps_completed} steps"
         )
-        iters = (
-            "projection off"
-            if self.mean_iterations is None
-            else f"{self.mean_iterations:.2f} proj. iters/step"
-        )
+        iters = "projection off" if self.mean_iterations is None else f"{self.mean_iterations:.2f} proj. iters/step"
         energy = f"|H/H0-1| = {self.final_energy_error:.3g} (max {self.max_energy_error:.3g})"
         dp, dl = _fmt_opt(self.momentum_error), _fmt_opt(self.angular_momentum_error)
         fepr = "on" if self.projection else "off"

@@ -137,15 +137,21 @@ class History:
         return {c: self._data[:, i].copy() for i, c in enumerate(self.columns)}
 
     def to_csv(self, path: Union[str, Path]) -> None:
-        ints = {"step", "proj_iterations", "proj_converged", "proj_fallback", "proj_bound_hit", "inverted",
-                "runaway", "references_reset"}
+        ints = {
+            "step",
+            "proj_iterations",
+            "proj_converged",
+            "proj_fallback",
+            "proj_bound_hit",
+            "inverted",
+            "runaway",
+            "references_reset",
+        }
         with open(path, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(self.columns)
             for row in self._data:
-                w.writerow([
-                    str(int(v)) if c in ints else repr(float(v)) for c, v in zip(self.columns, row)
-                ])
+                w.writerow([str(int(v)) if c in ints else repr(float(v)) for c, v in zip(self.columns, row)])
 
     def __repr__(self) -> str:
         return f"History({len(self)} rows, columns={self.columns})"
@@ -223,9 +229,7 @@ class Simulation:
         if not isinstance(mesh, TetMesh):
             raise ConfigError(f"mesh must be a fepr.TetMesh, got {type(mesh).__name__}")
         if not isinstance(material, (NeoHookean, StableNeoHookean)):
-            raise ConfigError(
-                f"material must be fepr.NeoHookean(...) or fepr.StableNeoHookean(...), got {material!r}"
-            )
+            raise ConfigError(f"material must be fepr.NeoHookean(...) or fepr.StableNeoHookean(...), got {material!r}")
         m = mesh.num_vertices
         node_masses = None
         if (node_mass is None) == (density is None):
@@ -262,15 +266,29 @@ class Simulation:
         p = proj or Projection()
         try:
             self._sim = _core.Simulation(
-                mesh.vertices, mesh.tets,
-                material=material.model, youngs_modulus=material.youngs_modulus,
-                poisson_ratio=material.poisson_ratio, j0=material._j0,
-                mass_kind=mass_kind, mass_value=mass_value, node_masses=node_masses,
-                integrator=integrator, dt=dt, projection=proj is not None,
-                tolerance=float(p.tolerance), max_iterations=int(p.max_iterations), rows=p.rows,
-                c_eps=float(p.c_eps), regularization=float(p.regularization), max_halvings=int(p.max_halvings),
+                mesh.vertices,
+                mesh.tets,
+                material=material.model,
+                youngs_modulus=material.youngs_modulus,
+                poisson_ratio=material.poisson_ratio,
+                j0=material._j0,
+                mass_kind=mass_kind,
+                mass_value=mass_value,
+                node_masses=node_masses,
+                integrator=integrator,
+                dt=dt,
+                projection=proj is not None,
+                tolerance=float(p.tolerance),
+                max_iterations=int(p.max_iterations),
+                rows=p.rows,
+                c_eps=float(p.c_eps),
+                regularization=float(p.regularization),
+                max_halvings=int(p.max_halvings),
                 impact_bound=None if p.impact_bound is None else float(p.impact_bound),
-                gravity=gravity, pinned=pinned_idx, damping=float(damping), threads=threads,
+                gravity=gravity,
+                pinned=pinned_idx,
+                damping=float(damping),
+                threads=threads,
             )
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
@@ -393,7 +411,7 @@ class Simulation:
     def _check_runaway(self, before: int) -> None:
         if self._warned_runaway or self.num_steps == before:
             return
-        runaway = self.history["runaway"][before + 1:]
+        runaway = self.history["runaway"][before + 1 :]
         if np.any(runaway > 0):
             k = before + 1 + int(np.argmax(runaway > 0))
             self._warned_runaway = True

@@ -216,6 +216,17 @@ impl Simulation {
                 (None, inv, inv.total)
             }
         };
+        if !(inv.total.is_finite() && inv.momentum.iter().chain(&inv.angular_momentum).all(|c| c.is_finite())) {
+            std::mem::swap(&mut self.state, &mut self.previous);
+            return Err(FeprError::Simulation(format!(
+                "the energy or momentum became non-finite in step {step} (t = {:.6} s): the {} step of dt = {} s \
+                 is unstable for this material and mesh (runaway); use a smaller dt. The state was left at step {}.",
+                self.state.time + self.dt,
+                self.integrator.name(),
+                self.dt,
+                step - 1
+            )));
+        }
         let proj_ms = if projection.is_some() {
             t1.elapsed().as_secs_f64() * 1e3
         } else {

@@ -77,8 +77,7 @@ def read_arrays(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
         kind = "directory" if p.is_dir() else f"extension {p.suffix!r}" if p.suffix else "no extension"
         raise MeshError(f"{p}: unsupported mesh file ({kind}); supported: {_SUPPORTED_TEXT}")
     raise MeshError(
-        f"{p}: file not found (nor TetGen files {node_path.name} / {ele_path.name}); "
-        f"supported: {_SUPPORTED_TEXT}"
+        f"{p}: file not found (nor TetGen files {node_path.name} / {ele_path.name}); supported: {_SUPPORTED_TEXT}"
     )
 
 

@@ -57,9 +57,7 @@ def read_meshio(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
     try:
         import meshio
     except ImportError:  # pragma: no cover - meshio is a dependency of fepr
-        raise MeshError(
-            f"{p}: reading {description} files needs the meshio package (pip install meshio)"
-        ) from None
+        raise MeshError(f"{p}: reading {description} files needs the meshio package (pip install meshio)") from None
     # Call the format's reader directly: meshio.read() prints and calls sys.exit(1) when a reader raises
     # meshio.ReadError, which must never end the user's program.
     reader = getattr(meshio, file_format).read if file_format else meshio.read

@@ -52,8 +52,7 @@ def read_npz(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
             missing = [] if key else ["vertices (or rest_positions / positions)"]
             missing += [] if "tets" in names else ["tets"]
             raise MeshError(
-                f"{p}: missing array(s) {', '.join(missing)}; "
-                f"the archive holds: {', '.join(names) or 'nothing'}"
+                f"{p}: missing array(s) {', '.join(missing)}; the archive holds: {', '.join(names) or 'nothing'}"
             )
         try:
             vertices = archive[key]

@@ -93,18 +93,14 @@ def read_tetgen(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
             )
     else:
         if not node_exists and not ele_exists:
-            raise MeshError(
-                f"{given}: file not found (no TetGen files {node_path.name} / {ele_path.name} either)"
-            )
+            raise MeshError(f"{given}: file not found (no TetGen files {node_path.name} / {ele_path.name} either)")
         if not node_exists:
             raise MeshError(
-                f"{given}: TetGen node file {node_path} not found (found {ele_path.name}; "
-                "a TetGen mesh needs both)"
+                f"{given}: TetGen node file {node_path} not found (found {ele_path.name}; a TetGen mesh needs both)"
             )
         if not ele_exists:
             raise MeshError(
-                f"{given}: TetGen element file {ele_path} not found (found {node_path.name}; "
-                "a TetGen mesh needs both)"
+                f"{given}: TetGen element file {ele_path} not found (found {node_path.name}; a TetGen mesh needs both)"
             )
     vertices, numbers = _read_node(node_path)
     tets = _read_ele(ele_path, numbers)
@@ -154,24 +150,19 @@ def _float(path: Path, lineno: int, token: str, what: str) -> float:
     return value
 
 
-def _header(
-    path: Path, records: List[_Record], defaults: Tuple[int, ...], names: Tuple[str, ...]
-) -> Tuple[int, ...]:
+def _header(path: Path, records: List[_Record], defaults: Tuple[int, ...], names: Tuple[str, ...]) -> Tuple[int, ...]:
     if not records:
         raise MeshError(f"{path}: the file is empty (no header line; it holds only blank lines or comments)")
     lineno, tokens = records[0]
     if len(tokens) > len(names):
         raise MeshError(
-            f"{path} line {lineno}: header has {len(tokens)} values, expected at most {len(names)} "
-            f"({', '.join(names)})"
+            f"{path} line {lineno}: header has {len(tokens)} values, expected at most {len(names)} ({', '.join(names)})"
         )
     values = list(defaults)
     for i, token in enumerate(tokens):
         values[i] = _int(path, lineno, token, f"header value '{names[i]}'")
         if values[i] < 0:
-            raise MeshError(
-                f"{path} line {lineno}: header value '{names[i]}' must not be negative, got {values[i]}"
-            )
+            raise MeshError(f"{path} line {lineno}: header value '{names[i]}' must not be negative, got {values[i]}")
     return tuple(values)
 
 
@@ -224,16 +215,12 @@ def _read_node(path: Path) -> Tuple[np.ndarray, List[int]]:
             )
         number = _int(path, lineno, tokens[0], "node number")
         if number in first_line:
-            raise MeshError(
-                f"{path} line {lineno}: node {number} is listed twice (first on line {first_line[number]})"
-            )
+            raise MeshError(f"{path} line {lineno}: node {number} is listed twice (first on line {first_line[number]})")
         first_line[number] = lineno
         for axis, token in zip("xyz", tokens[1:4]):
             value = _float(path, lineno, token, f"coordinate {axis} of node {number}")
             if not math.isfinite(value):
-                raise MeshError(
-                    f"{path} line {lineno}: coordinate {axis} of node {number} is not finite ({token})"
-                )
+                raise MeshError(f"{path} line {lineno}: coordinate {axis} of node {number} is not finite ({token})")
             coords.append(value)
         for token in tokens[4 : 4 + nattr]:
             _float(path, lineno, token, f"attribute of node {number}")
@@ -284,8 +271,7 @@ def _read_ele(path: Path, numbers: List[int]) -> np.ndarray:
                 ok = row >= 0
             if not ok:
                 raise MeshError(
-                    f"{path} line {lineno}: element {number} refers to node {ref}, "
-                    f"but the .node file {numbering}"
+                    f"{path} line {lineno}: element {number} refers to node {ref}, but the .node file {numbering}"
                 )
             if i < 4:
                 rows.append(row)
