@@ -74,14 +74,11 @@ impl Integrator for SymplecticEuler {
             let d = model.damping;
             let kin = kinetic_energy(&model.masses, &state.v);
             let p = linear_momentum(&model.masses, &state.v);
-            let mut x_end = state.x.clone();
-            for (xi, vi) in x_end.iter_mut().zip(&state.v) {
-                for a in 0..3 {
-                    xi[a] += h * (1.0 - d) * vi[a];
-                }
-            }
-            let c = center_of_mass(&model.masses, model.total_mass, &x_end);
-            let l = angular_momentum(&model.masses, &x_end, &state.v, c);
+            // At the end positions x + h (1 - d) v, (x_i + h(1-d) v_i - c) x v_i = (x_i - c) x v_i: L about
+            // the end centre of mass needs no new positions.
+            let c0 = center_of_mass(&model.masses, model.total_mass, &state.x);
+            let c = [0, 1, 2].map(|a| c0[a] + h * (1.0 - d) * p[a] / model.total_mass);
+            let l = angular_momentum(&model.masses, &state.x, &state.v, c);
             for vi in state.v.iter_mut() {
                 *vi = scale(*vi, 1.0 - d);
             }

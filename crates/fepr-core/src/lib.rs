@@ -21,6 +21,9 @@
 //! assert!(((h - h0) / h0).abs() < 1e-8);
 //! ```
 
+// Index loops mirror the tensor formulas (P_ij, dP_ij/dF_kl) and read better than iterator chains here.
+#![allow(clippy::needless_range_loop)]
+
 pub mod elasticity;
 pub mod error;
 pub mod integrators;

@@ -243,7 +243,7 @@ pub fn eigen_least_squares(a: &[f64], b: &[f64], n: usize) -> Vec<f64> {
     let (w, v) = symmetric_eigen(a, n);
     let wmax = w.iter().fold(0.0f64, |acc, x| acc.max(x.abs()));
     let mut x = vec![0.0; n];
-    if !(wmax > 0.0) || !wmax.is_finite() {
+    if wmax.is_nan() || wmax <= 0.0 || !wmax.is_finite() {
         return x;
     }
     for k in 0..n {

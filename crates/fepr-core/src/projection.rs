@@ -182,6 +182,8 @@ pub struct ProjectionReport {
     pub halvings: usize,
     /// Number of active rows.
     pub active_rows: usize,
+    /// Total energy `H(x*, v*)` of the base step's state, J (measured by the first evaluation).
+    pub base_energy: f64,
 }
 
 /// Everything an evaluation of `c(q)` produces.
@@ -311,6 +313,7 @@ impl Projector {
         let mut report = ProjectionReport {
             active_rows: pb.active.iter().filter(|a| **a).count(),
             initial_residual: max_scaled(&pb, &cur.c),
+            base_energy: cur.kinetic + cur.el.energy + cur.gravitational,
             ..Default::default()
         };
         let mut cur_norm = norm_scaled(&pb, &cur.c);

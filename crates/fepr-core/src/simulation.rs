@@ -207,16 +207,21 @@ impl Simulation {
         let t1 = Instant::now();
         let (projection, inv, base_total) = match self.projector.as_mut() {
             Some(p) => {
-                let base = measure(&self.model, &self.state);
                 let (rep, inv) = p.project(&self.model, &mut self.state, self.dt, &targets);
-                (Some(rep), inv, base.total)
+                (Some(rep), inv, rep.base_energy)
             }
             None => {
                 let inv = measure(&self.model, &self.state);
                 (None, inv, inv.total)
             }
         };
-        if !(inv.total.is_finite() && inv.momentum.iter().chain(&inv.angular_momentum).all(|c| c.is_finite())) {
+        if !(inv.total.is_finite()
+            && inv
+                .momentum
+                .iter()
+                .chain(&inv.angular_momentum)
+                .all(|c| c.is_finite()))
+        {
             std::mem::swap(&mut self.state, &mut self.previous);
             return Err(FeprError::Simulation(format!(
                 "the energy or momentum became non-finite in step {step} (t = {:.6} s): the {} step of dt = {} s \
@@ -260,7 +265,8 @@ impl Simulation {
             base_energy_error,
             // The base step gained or lost more than 100% of the energy scale, and no converged projection
             // rescued the step.
-            runaway: !(base_energy_error <= 1.0) && !projection.is_some_and(|p| p.converged),
+            runaway: (base_energy_error.is_nan() || base_energy_error > 1.0)
+                && !projection.is_some_and(|p| p.converged),
             references_reset,
         });
         Ok(self.history.last().expect("just pushed"))

@@ -101,6 +101,13 @@ fn make_material(
     }
 }
 
+/// Energy densities (n,), stresses (n, 3, 3) and optional stress derivatives (n, 9, 9).
+type MaterialArrays<'py> = (
+    Bound<'py, PyArray1<f64>>,
+    Bound<'py, PyArray3<f64>>,
+    Option<Bound<'py, PyArray3<f64>>>,
+);
+
 /// Evaluate a material at deformation gradients `F` (n, 3, 3): returns energy densities (n,) J/m^3, first
 /// Piola stresses (n, 3, 3) Pa and stress derivatives (n, 9, 9) Pa (row-major flattening of F).
 #[pyfunction]
@@ -113,11 +120,7 @@ fn material_eval<'py>(
     j0: f64,
     f: PyReadonlyArray3<'py, f64>,
     derivative: bool,
-) -> PyResult<(
-    Bound<'py, PyArray1<f64>>,
-    Bound<'py, PyArray3<f64>>,
-    Option<Bound<'py, PyArray3<f64>>>,
-)> {
+) -> PyResult<MaterialArrays<'py>> {
     let mat = make_material(model, youngs_modulus, poisson_ratio, j0)?;
     let f = f.as_array();
     if f.shape()[1] != 3 || f.shape()[2] != 3 {
