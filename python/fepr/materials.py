@@ -7,29 +7,17 @@ analytic and gated by finite-difference tests.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from . import _core
-from .errors import ConfigError
+from ._validate import real
 
 
-def _check_elastic(youngs_modulus: float, poisson_ratio: float) -> None:
-    try:
-        e = float(youngs_modulus)
-        nu = float(poisson_ratio)
-    except (TypeError, ValueError):
-        raise ConfigError(
-            f"youngs_modulus and poisson_ratio must be numbers, got {youngs_modulus!r}, {poisson_ratio!r}"
-        ) from None
-    if not (math.isfinite(e) and e > 0):
-        raise ConfigError(f"youngs_modulus must be a positive finite number of pascals, got {youngs_modulus!r}")
-    if not (math.isfinite(nu) and -1.0 < nu < 0.5):
-        raise ConfigError(
-            f"poisson_ratio must satisfy -1 < nu < 0.5 (0.5 is incompressible, not supported), got {poisson_ratio!r}"
-        )
+def _check_elastic(youngs_modulus, poisson_ratio) -> None:
+    real(youngs_modulus, "youngs_modulus", unit="Pa", lo=0, lo_open=True)
+    real(poisson_ratio, "poisson_ratio", lo=-1, hi=0.5, lo_open=True, hi_open=True)
 
 
 class _Material:
@@ -98,8 +86,7 @@ class NeoHookean(_Material):
 
     def __post_init__(self):
         _check_elastic(self.youngs_modulus, self.poisson_ratio)
-        if not (isinstance(self.j0, (int, float)) and 0 < self.j0 <= 1):
-            raise ConfigError(f"j0 must satisfy 0 < j0 <= 1, got {self.j0!r}")
+        real(self.j0, "j0", lo=0, hi=1, lo_open=True)
         object.__setattr__(self, "youngs_modulus", float(self.youngs_modulus))
         object.__setattr__(self, "poisson_ratio", float(self.poisson_ratio))
         object.__setattr__(self, "j0", float(self.j0))

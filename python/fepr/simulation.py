@@ -7,7 +7,6 @@ velocities have shape ``(m, 3)``.
 from __future__ import annotations
 
 import csv
-import math
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Union
 import numpy as np
 
 from . import _core
+from ._validate import float_array, integer, real
 from .errors import ConfigError, SimulationError
 from .materials import NeoHookean, StableNeoHookean, _Material
 from .mesh import TetMesh
@@ -57,22 +57,15 @@ class Projection:
     impact_bound: Optional[float] = None
 
     def __post_init__(self):
-        if not (isinstance(self.tolerance, (int, float)) and 0 < self.tolerance < 1):
-            raise ConfigError(f"projection tolerance must satisfy 0 < tolerance < 1, got {self.tolerance!r}")
-        if not (isinstance(self.max_iterations, int) and 1 <= self.max_iterations <= 10000):
-            raise ConfigError(f"projection max_iterations must be an integer in 1..10000, got {self.max_iterations!r}")
+        real(self.tolerance, "projection tolerance", lo=0, hi=1, lo_open=True, hi_open=True)
+        integer(self.max_iterations, "projection max_iterations", lo=1, hi=10000)
         if self.rows not in ROWS:
             raise ConfigError(f"projection rows must be one of {', '.join(ROWS)}, got {self.rows!r}")
-        if not (isinstance(self.c_eps, (int, float)) and math.isfinite(self.c_eps) and self.c_eps > 0):
-            raise ConfigError(f"projection c_eps must be positive, got {self.c_eps!r}")
-        if not (isinstance(self.regularization, (int, float)) and 0 <= self.regularization < 1):
-            raise ConfigError(f"projection regularization must satisfy 0 <= delta < 1, got {self.regularization!r}")
-        if not (isinstance(self.max_halvings, int) and 0 <= self.max_halvings <= 60):
-            raise ConfigError(f"projection max_halvings must be an integer in 0..60, got {self.max_halvings!r}")
-        if self.impact_bound is not None and not (
-            isinstance(self.impact_bound, (int, float)) and math.isfinite(self.impact_bound) and self.impact_bound > 0
-        ):
-            raise ConfigError(f"projection impact_bound must be positive or None, got {self.impact_bound!r}")
+        real(self.c_eps, "projection c_eps", lo=0, lo_open=True)
+        real(self.regularization, "projection regularization", lo=0, hi=1, hi_open=True)
+        integer(self.max_halvings, "projection max_halvings", lo=0, hi=60)
+        if self.impact_bound is not None:
+            real(self.impact_bound, "projection impact_bound", lo=0, lo_open=True)
 
 
 class Energy(NamedTuple):
@@ -168,12 +161,7 @@ def _as_float3(value, name: str) -> tuple:
 
 
 def _positive(value, name: str, unit: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
-        raise ConfigError(f"{name} must be a number ({unit}), got {value!r}")
-    v = float(value)
-    if not (math.isfinite(v) and v > 0):
-        raise ConfigError(f"{name} must be a positive finite number ({unit}), got {value!r}")
-    return v
+    return real(value, name, unit=unit, lo=0, lo_open=True)
 
 
 class Simulation:
@@ -239,7 +227,7 @@ class Simulation:
         elif np.ndim(node_mass) == 0:
             mass_kind, mass_value = "node_mass", _positive(node_mass, "node_mass", "kg")
         else:
-            node_masses = np.ascontiguousarray(node_mass, dtype=np.float64)
+            node_masses = float_array(node_mass, "node_mass", f"({m},)")
             if node_masses.shape != (m,):
                 raise ConfigError(f"node_mass array must have shape ({m},), got {node_masses.shape}")
             bad = np.flatnonzero(~(np.isfinite(node_masses) & (node_masses > 0)))
@@ -259,10 +247,9 @@ class Simulation:
             raise ConfigError(f"projection must be True, False or fepr.Projection(...), got {projection!r}")
         gravity = _as_float3(gravity, "gravity")
         pinned_idx = self._pinned_indices(pinned, m)
-        if isinstance(damping, bool) or not isinstance(damping, (int, float)) or not (0 <= damping < 1):
-            raise ConfigError(f"damping must satisfy 0 <= damping < 1, got {damping!r}")
-        if threads is not None and (not isinstance(threads, int) or threads < 1):
-            raise ConfigError(f"threads must be a positive integer, got {threads!r}")
+        damping = real(damping, "damping", lo=0, hi=1, hi_open=True)
+        if threads is not None:
+            threads = integer(threads, "threads", lo=1, hi=4096)
         p = proj or Projection()
         try:
             self._sim = _core.Simulation(
@@ -337,7 +324,7 @@ class Simulation:
         self._set_state_array("velocities", v)
 
     def _set_state_array(self, name: str, value) -> None:
-        a = np.ascontiguousarray(value, dtype=np.float64)
+        a = float_array(value, name, "(m, 3)")
         m = self.mesh.num_vertices
         if a.shape != (m, 3):
             raise ConfigError(f"{name} must have shape ({m}, 3), got {a.shape}")
@@ -446,8 +433,11 @@ class Simulation:
 
     def elastic_energy_gradient(self, x=None):
         """Elastic energy (J) and its gradient ((m, 3) float64, J/m) at positions ``x`` (default: current)."""
-        x = self.positions if x is None else np.ascontiguousarray(x, dtype=np.float64)
-        return self._sim.elastic_energy_gradient(x)
+        x = self.positions if x is None else float_array(x, "x", "(m, 3)")
+        try:
+            return self._sim.elastic_energy_gradient(x)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
 
     @property
     def last_projection(self) -> Optional[ProjectionReport]:
