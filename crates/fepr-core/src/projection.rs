@@ -327,7 +327,7 @@ impl Projector {
 
         if base_finite {
             for _ in 0..self.settings.max_iterations {
-                if max_scaled(&pb, &cur.c) <= tol {
+                if max_scaled(&pb, &cur.c) <= tol && cur.el.inverted <= base_inverted {
                     report.converged = true;
                     break;
                 }
@@ -359,8 +359,10 @@ impl Projector {
                         &mut self.ws,
                         &mut self.grad_trial,
                     );
-                    let admissible =
-                        trial.c.iter().all(|c| c.is_finite()) && trial.el.inverted <= base_inverted;
+                    // Intermediate iterates may pass through states with more inverted tets (the
+                    // linearisation does not know about inversion); only the returned state must not have
+                    // more than the base step (checked below).
+                    let admissible = trial.c.iter().all(|c| c.is_finite());
                     let n = norm_scaled(&pb, &trial.c);
                     if admissible && (n < cur_norm || halving == self.settings.max_halvings) {
                         accepted = Some((trial, n, s_new, t_new));
@@ -382,7 +384,7 @@ impl Projector {
                 cur_norm = n;
                 s = s_new;
                 t = t_new;
-                if n < best_norm {
+                if n < best_norm && cur.el.inverted <= base_inverted {
                     best_norm = n;
                     best_is_base = false;
                     best_eval = cur;
@@ -394,7 +396,10 @@ impl Projector {
                     self.v_best.extend_from_slice(&self.v);
                 }
             }
-            if !report.converged && max_scaled(&pb, &cur.c) <= tol {
+            if !report.converged
+                && max_scaled(&pb, &cur.c) <= tol
+                && cur.el.inverted <= base_inverted
+            {
                 report.converged = true;
             }
         }
