@@ -132,9 +132,7 @@ def test_bunny2_loads_and_runs_100_projected_steps(shared_meshes):
 
 def _spinning_l(projection, dt, gravity=(0.0, 0.0, 0.0)):
     mesh = fepr.meshes.ell()
-    sim = fepr.Simulation(
-        mesh, material=SEED_MATERIAL, node_mass=5.0, dt=dt, projection=projection, gravity=gravity
-    )
+    sim = fepr.Simulation(mesh, material=SEED_MATERIAL, node_mass=5.0, dt=dt, projection=projection, gravity=gravity)
     c = sim.center_of_mass()
     x = c + 1.05 * (sim.rest_positions - c)
     w = np.array([0.0, 0.0, 1.0])
@@ -192,3 +190,35 @@ def test_stable_neo_hookean_conserves_energy_too():
     h = sim.history
     assert np.all(h["proj_converged"][1:] == 1)
     assert np.abs(h["total"] / h["total"][0] - 1).max() <= 1e-8
+
+
+def test_runaway_is_not_flagged_for_a_stable_drop_from_zero_energy():
+    """Regression: a body at rest with its centre of mass at the origin has H0 = 0; the runaway test must use a
+    physical energy scale (m |g| r), not H0, or every step of a stable run is flagged."""
+    mesh = fepr.meshes.box(size=(0.2, 0.2, 0.2), resolution=2)
+    for projection in (False, True):
+        sim = fepr.Simulation(
+            mesh,
+            material=fepr.NeoHookean(youngs_modulus=1e4, poisson_ratio=0.3),
+            density=1000.0,
+            dt=1 / 60,
+            gravity=(0, 0, -9.81),
+            projection=projection,
+        )
+        assert abs(sim.energy().total) < 1e-9
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            sim.step(60)
+        h = sim.history
+        assert not np.any(h["runaway"]), projection
+        assert h["base_energy_error"].max() < 0.2  # symplectic Euler's own drift, far from a runaway
+
+
+def test_energy_tolerance_is_not_loosened_by_a_wild_base_step(shared_meshes):
+    """Regression: the energy row's scale comes from the targets and the start-of-step state, so seed demo 3
+    (whose base step's energy error reaches 40x) still holds H to about the tolerance."""
+    sim = seed_sim(shared_meshes, "ellell.1", 1.5, 1 / 30)
+    sim.step(300)
+    h = sim.history
+    assert h["base_energy_error"].max() > 1.0  # the base step is wild here
+    assert np.abs(h["total"] / h["total"][0] - 1).max() <= 2e-10

@@ -17,4 +17,9 @@ class ConfigError(FeprError, ValueError):
 
 
 class SimulationError(FeprError, RuntimeError):
-    """A simulation cannot continue, e.g. the state became non-finite (runaway of an unstable step)."""
+    """A simulation cannot continue, e.g. the state became non-finite (runaway of an unstable step).
+
+    ``step`` (when set) is the number of the step that failed; the simulation stays at the step before it.
+    """
+
+    step: "int | None" = None

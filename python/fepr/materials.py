@@ -13,6 +13,7 @@ import numpy as np
 
 from . import _core
 from ._validate import real
+from .errors import ConfigError
 
 
 def _check_elastic(youngs_modulus, poisson_ratio) -> None:
@@ -42,11 +43,16 @@ class _Material:
 
     def _eval(self, F, derivative: bool):
         f = np.asarray(F, dtype=np.float64)
-        single = f.ndim == 2
-        f = np.ascontiguousarray(f.reshape(-1, 3, 3))
-        psi, p, d = _core.material_eval(self.model, self.youngs_modulus, self.poisson_ratio, self._j0, f, derivative)
-        if single:
-            return psi[0], p[0], (d[0] if d is not None else None)
+        if f.ndim < 2 or f.shape[-2:] != (3, 3):
+            raise ConfigError(f"F must have shape (..., 3, 3), got {f.shape}")
+        batch = f.shape[:-2]
+        flat = np.ascontiguousarray(f.reshape(-1, 3, 3))
+        psi, p, d = _core.material_eval(self.model, self.youngs_modulus, self.poisson_ratio, self._j0, flat, derivative)
+        psi = psi.reshape(batch)
+        p = p.reshape(batch + (3, 3))
+        d = None if d is None else d.reshape(batch + (9, 9))
+        if not batch:
+            return float(psi), p, d
         return psi, p, d
 
     def energy_density(self, F) -> np.ndarray:

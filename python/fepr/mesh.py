@@ -1,8 +1,9 @@
 """Tetrahedral meshes: :class:`TetMesh`, validated on construction.
 
 Validation runs in the Rust core (``fepr._core.validate_mesh``): index range, repeated vertices in a tet,
-non-finite coordinates, zero or near-zero volume (relative to the tet's own size), and orientation. Negatively
-oriented tets are repaired by swapping their last two vertices; the count is reported in a warning.
+non-finite coordinates, zero or near-zero volume (relative to the tet's own size), a tet tiny compared with the
+mesh, and orientation. Negatively oriented tets are repaired by swapping their last two vertices; the count is
+reported in a warning.
 """
 
 from __future__ import annotations

@@ -83,7 +83,16 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
     "mass": ("node_mass", "density"),
     "initial": ("scale", "scale_about", "velocity", "angular_velocity", "velocities", "alternating_velocity"),
     "integrator": ("name", "dt"),
-    "projection": ("enabled", "tolerance", "max_iterations", "rows", "c_eps", "impact_bound"),
+    "projection": (
+        "enabled",
+        "tolerance",
+        "max_iterations",
+        "rows",
+        "c_eps",
+        "regularization",
+        "max_halvings",
+        "impact_bound",
+    ),
     "world": ("gravity", "pinned", "pin_below", "damping"),
     "run": ("steps", "threads"),
 }
@@ -179,11 +188,13 @@ class ProjectionSettings:
     max_iterations: Optional[int] = None
     rows: Optional[str] = None
     c_eps: Optional[float] = None
+    regularization: Optional[float] = None
+    max_halvings: Optional[int] = None
     impact_bound: Optional[float] = None
 
     def options(self) -> Dict[str, Any]:
         """The options that were given, as keyword arguments for :class:`fepr.Projection`."""
-        names = ("tolerance", "max_iterations", "rows", "c_eps", "impact_bound")
+        names = ("tolerance", "max_iterations", "rows", "c_eps", "regularization", "max_halvings", "impact_bound")
         return {k: getattr(self, k) for k in names if getattr(self, k) is not None}
 
     def make(self):
@@ -665,6 +676,8 @@ def _parse_projection(t: _Table) -> ProjectionSettings:
         max_iterations=t.integer("max_iterations", None, minimum=1),
         rows=t.string("rows", None, choices=PROJECTION_ROWS),
         c_eps=t.number("c_eps", None, positive=True),
+        regularization=t.number("regularization", None),
+        max_halvings=t.integer("max_halvings", None, minimum=0),
         impact_bound=t.number("impact_bound", None, positive=True),
     )
 
@@ -900,7 +913,12 @@ def _measure(
     tot = _column(hist, "total")
     if tot is not None:
         totals[1:1] = list(tot[rows_before:])
-    e_scale = first.kinetic + abs(first.elastic) + abs(first.gravitational)
+    # A body that starts with zero energy (at rest, centre of mass at the origin) still has a physical energy
+    # scale under gravity: m_tot |g| r, lifting it by its half bounding-box diagonal.
+    rest = np.asarray(sim.rest_positions)
+    r_half = 0.5 * float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    lift = float(sim.total_mass) * float(np.linalg.norm(scene.world.gravity)) * r_half
+    e_scale = max(first.kinetic + abs(first.elastic) + abs(first.gravitational), lift)
     h_scale = abs(first.total)
     if h_scale < 1e-12 * e_scale or h_scale < tiny:
         h_scale = max(e_scale, tiny)
@@ -1011,7 +1029,11 @@ def run_scene(
             done = completed
     result.wall_s = time.perf_counter() - t_start
     result.warnings = [str(w.message) for w in caught]
-    flags = _column(sim.history, "runaway")
+    # The base step alone was unstable when its energy error exceeded 100% of the energy scale, whether or
+    # not a converged projection rescued the step.
+    flags = _column(sim.history, "base_energy_error")
+    if flags is not None:
+        flags = np.where(np.isfinite(flags), flags, np.inf) > 1.0
     if flags is not None and np.any(flags[rows_before:] > 0):
         first_flag = rows_before + int(np.argmax(flags[rows_before:] > 0))
         steps_col = _column(sim.history, "step")

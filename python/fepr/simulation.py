@@ -98,6 +98,7 @@ class ProjectionReport:
     least_squares_solves: int
     halvings: int
     active_rows: int
+    base_energy: float
 
 
 class History:
@@ -391,7 +392,9 @@ class Simulation:
         try:
             self._sim.step(int(n))
         except RuntimeError as exc:
-            raise SimulationError(str(exc)) from None
+            err = SimulationError(str(exc))
+            err.step = self.num_steps + 1  # the step that failed
+            raise err from None
         finally:
             self._check_runaway(before)
 

@@ -115,9 +115,9 @@ pub fn ddot(a: &Mat3, b: &Mat3) -> f64 {
     s
 }
 
-/// A dense symmetric positive semi-definite system of at most `N` unknowns, solved robustly.
+/// Solve a small dense symmetric positive semi-definite system `a x = b` (`a` row-major n x n) robustly.
 ///
-/// `solve_regularised` adds `delta * trace/n` to the diagonal and tries a Cholesky factorisation; if that
+/// Adds `delta * trace/n` to the diagonal and tries a Cholesky factorisation; if that
 /// fails (not positive definite in floating point) or yields a non-finite result, it falls back to the
 /// minimum-norm least-squares solution from a Jacobi eigen-decomposition (rank-revealing, cut-off relative
 /// to the largest eigenvalue). Returns the solution and whether the fallback was used.

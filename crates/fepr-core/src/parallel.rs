@@ -5,8 +5,6 @@
 use rayon::prelude::*;
 use std::ops::Range;
 
-/// Chunk length for per-vertex reductions.
-pub const VERTEX_CHUNK: usize = 4096;
 /// Chunk length for per-tet loops.
 pub const TET_CHUNK: usize = 1024;
 

@@ -154,6 +154,9 @@ pub struct Targets {
     pub angular_momentum: Vec3,
     /// `C_target`, m.
     pub center_of_mass: Vec3,
+    /// Energy scale of the start-of-step state, J: `K + |E_el| + |E_grav|` (or a larger physical floor).
+    /// With `|H_target|` it sets the energy row's tolerance scale, so a wild base step cannot loosen it.
+    pub energy_scale: f64,
 }
 
 /// What one projection did.
@@ -296,11 +299,9 @@ impl Projector {
         let (mut s, mut t) = (0.0, 0.0);
         let mut cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
         // Row scales (fepr-spec section 3): fixed at the base state so that residuals are comparable.
-        let h_scale = targets
-            .energy
-            .abs()
-            .max(cur.kinetic + cur.el.energy.abs() + cur.gravitational.abs())
-            .max(1e-300);
+        // Row scales (fepr-spec section 3), from the targets and the start-of-step state, not from the base
+        // step's result: a wild base step must not loosen the energy tolerance.
+        let h_scale = targets.energy.abs().max(targets.energy_scale).max(1e-300);
         pb.row_scale[0] = h_scale;
         for a in 0..3 {
             pb.row_scale[1 + a] = mt * r / h;
@@ -346,7 +347,6 @@ impl Projector {
                         &self.grad,
                         &lambda,
                         alpha,
-                        &cur,
                         &mut self.x_trial,
                         &mut self.v_trial,
                     );
@@ -451,7 +451,17 @@ impl Projector {
                 report.bound_hit = true;
                 report.correction = cap;
                 fin = evaluate(&pb, &state.x, &state.v, s, t, &mut self.ws, &mut self.grad);
+                if fin.el.inverted > base_inverted || !fin.c.iter().all(|c| c.is_finite()) {
+                    // The scaled-back state inverts tets the base step did not: keep the base state.
+                    state.x.copy_from_slice(&self.x_base);
+                    state.v.copy_from_slice(&self.v_base);
+                    s = 0.0;
+                    t = 0.0;
+                    report.correction = 0.0;
+                    fin = evaluate(&pb, &state.x, &state.v, s, t, &mut self.ws, &mut self.grad);
+                }
                 report.converged = max_scaled(&pb, &fin.c) <= tol;
+                report.fallback |= !report.converged;
             }
         }
         report.final_residual = max_scaled(&pb, &fin.c);
@@ -598,7 +608,7 @@ fn small_matrix(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
     };
     let tr_vv = e.vv[0][0] + e.vv[1][1] + e.vv[2][2];
     let tr_rr = e.rr[0][0] + e.rr[1][1] + e.rr[2][2];
-    s[0][0] = e.grad_sq_over_m + 2.0 * e.kinetic_free(pb) / h2;
+    s[0][0] = e.grad_sq_over_m + tr_vv / h2;
     for a in 0..3 {
         s[0][1 + a] = e.free_p[a] / h2;
         s[0][4 + a] = e.grad_cross_v[a] + e.free_l[a] / h2;
@@ -622,13 +632,6 @@ fn small_matrix(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
         }
     }
     s
-}
-
-impl Eval {
-    /// Kinetic energy of the free vertices: `1/2 tr(sum m v v^T)`.
-    fn kinetic_free(&self, _pb: &Problem) -> f64 {
-        0.5 * (self.vv[0][0] + self.vv[1][1] + self.vv[2][2])
-    }
 }
 
 /// Solve the scaled, regularised small system for the multipliers (zero for inactive rows).
@@ -663,7 +666,6 @@ fn apply_step(
     grad: &[Vec3],
     lambda: &[f64; ROWS],
     alpha: f64,
-    _e: &Eval,
     x_out: &mut [Vec3],
     v_out: &mut [Vec3],
 ) -> (f64, f64) {
@@ -745,6 +747,7 @@ mod tests {
             momentum: [0.1, 0.2, -0.3],
             angular_momentum: [0.05, -0.1, 0.2],
             center_of_mass: [0.4, 0.6, 0.5],
+            energy_scale: 1.0,
         };
         for pinned in [false, true] {
             model.pinned = vec![false; m];
@@ -834,9 +837,7 @@ mod tests {
             let lambda = [0.3, -0.2, 0.1, 0.05, 0.02, -0.04, 0.03, 0.2, -0.1, 0.07];
             let mut xo = vec![[0.0; 3]; m];
             let mut vo = vec![[0.0; 3]; m];
-            let (s1, t1) = apply_step(
-                &pb, &x, &v, s0, t0, &grad, &lambda, 1.0, &e, &mut xo, &mut vo,
-            );
+            let (s1, t1) = apply_step(&pb, &x, &v, s0, t0, &grad, &lambda, 1.0, &mut xo, &mut vo);
             for k in 0..n {
                 let dq: f64 = dinv(k) * (0..ROWS).map(|r| g[k][r] * lambda[r]).sum::<f64>();
                 let got = if k < 3 * m {

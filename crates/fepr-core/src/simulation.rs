@@ -162,6 +162,21 @@ impl Simulation {
         self.history.last().map_or(0, |d| d.step)
     }
 
+    /// Energy scale of a step (J), for the energy row's tolerance and for runaway detection: the largest of
+    /// the initial state's and the start-of-step state's `K + |E_el| + |E_grav|`, and `m_tot |g| r` (the
+    /// potential energy of lifting the body by its size), so that a body starting with zero energy (at rest,
+    /// centre of mass at the origin) still has a physical scale.
+    fn step_energy_scale(&self) -> f64 {
+        let last = self.history.last().map(|d| d.invariants);
+        let current = last.map_or(0.0, |i| i.kinetic + i.elastic.abs() + i.gravitational.abs());
+        let g = crate::linalg::norm(self.model.gravity);
+        let lift = self.model.total_mass * g * self.model.length_scale;
+        self.energy_scale
+            .max(current)
+            .max(lift)
+            .max(f64::MIN_POSITIVE)
+    }
+
     fn targets(&self, report: &StepReport) -> Targets {
         let r = &self.references;
         let h = self.dt;
@@ -176,6 +191,7 @@ impl Simulation {
             )
         };
         Targets {
+            energy_scale: self.step_energy_scale(),
             energy: r.energy + report.energy_budget,
             momentum: add(r.momentum, report.impulse),
             angular_momentum: add(r.angular_momentum, report.angular_impulse),
@@ -237,7 +253,7 @@ impl Simulation {
         } else {
             0.0
         };
-        let scale_h = targets.energy.abs().max(self.energy_scale);
+        let scale_h = targets.energy.abs().max(targets.energy_scale);
         let base_energy_error = (base_total - targets.energy).abs() / scale_h;
         let mut references_reset = false;
         match &projection {

@@ -184,6 +184,7 @@ fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py
     d.set_item("least_squares_solves", r.least_squares_solves)?;
     d.set_item("halvings", r.halvings)?;
     d.set_item("active_rows", r.active_rows)?;
+    d.set_item("base_energy", r.base_energy)?;
     Ok(d)
 }
 
