@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import shared_meshes_dir
 from fepr.errors import ConfigError, MeshError
 from fepr.io import SUPPORTED_EXTENSIONS, load_mesh, read_meshio, read_npz, read_tetgen
 from fepr.mesh import TetMesh
@@ -20,17 +21,7 @@ from fepr.mesh import TetMesh
 # shared test meshes
 
 
-def _shared_meshes() -> Path | None:
-    default = Path(__file__).resolve().parents[2] / "shared" / "meshes"
-    if default.is_dir():
-        return default
-    env = os.environ.get("FEPR_SHARED_MESHES")
-    if env and Path(env).is_dir():
-        return Path(env)
-    return None
-
-
-SHARED = _shared_meshes()
+SHARED = shared_meshes_dir()
 needs_shared = pytest.mark.skipif(
     SHARED is None,
     reason="shared test meshes not found: expected ../shared/meshes next to the repository, "

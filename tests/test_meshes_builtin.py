@@ -2,31 +2,19 @@
 
 from __future__ import annotations
 
-import os
 import time
 import warnings
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import shared_meshes_dir
 from fepr import meshes
 from fepr.errors import ConfigError
 from fepr.mesh import TetMesh
 
-
-def _shared_meshes() -> Path | None:
-    default = Path(__file__).resolve().parents[2] / "shared" / "meshes"
-    if default.is_dir():
-        return default
-    env = os.environ.get("FEPR_SHARED_MESHES")
-    if env and Path(env).is_dir():
-        return Path(env)
-    return None
-
-
-SHARED = _shared_meshes()
+SHARED = shared_meshes_dir()
 
 
 def _build(func, **kwargs) -> TetMesh:

@@ -25,6 +25,7 @@ from typing import Callable, Dict, Sequence, Tuple, Union
 
 import numpy as np
 
+from ._validate import real
 from .errors import ConfigError
 from .mesh import TetMesh
 
@@ -82,12 +83,7 @@ def _check_tets_budget(name: str, ntets: int) -> None:
 
 
 def _positive_float(value, param: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ConfigError(f"{param} must be a positive number (metres), got {value!r}")
-    out = float(value)
-    if not (math.isfinite(out) and out > 0):
-        raise ConfigError(f"{param} must be a positive finite number (metres), got {value!r}")
-    return out
+    return real(value, param, unit="metres", lo=0, lo_open=True)
 
 
 def _positive_int(value, param: str) -> int:

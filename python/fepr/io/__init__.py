@@ -27,14 +27,13 @@ Every failure is a :class:`~fepr.errors.MeshError` that names the file (and, for
 
 from __future__ import annotations
 
-import math
-import numbers
 import os
 from pathlib import Path
 from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from .._validate import real
 from ..errors import ConfigError, MeshError
 from ..mesh import TetMesh
 from .meshio_formats import MESHIO_FORMATS, read_meshio
@@ -123,14 +122,7 @@ def load_mesh(
 
 
 def _check_scale(scale) -> Optional[float]:
-    if scale is None:
-        return None
-    if isinstance(scale, bool) or not isinstance(scale, numbers.Real):
-        raise ConfigError(f"scale must be a positive number, got {scale!r}")
-    value = float(scale)
-    if not (math.isfinite(value) and value > 0):
-        raise ConfigError(f"scale must be a positive finite number, got {scale!r}")
-    return value
+    return None if scale is None else real(scale, "scale", lo=0, lo_open=True)
 
 
 def _check_translate(translate) -> Optional[np.ndarray]:
