@@ -16,9 +16,12 @@ from ._validate import real
 from .errors import ConfigError
 
 
-def _check_elastic(youngs_modulus, poisson_ratio) -> None:
-    real(youngs_modulus, "youngs_modulus", unit="Pa", lo=0, lo_open=True)
-    real(poisson_ratio, "poisson_ratio", lo=-1, hi=0.5, lo_open=True, hi_open=True)
+def _set_elastic(material, youngs_modulus, poisson_ratio) -> None:
+    """Validate E and nu and store them as floats on a frozen material dataclass."""
+    e = real(youngs_modulus, "youngs_modulus", unit="Pa", lo=0, lo_open=True)
+    nu = real(poisson_ratio, "poisson_ratio", lo=-1, hi=0.5, lo_open=True, hi_open=True)
+    object.__setattr__(material, "youngs_modulus", e)
+    object.__setattr__(material, "poisson_ratio", nu)
 
 
 class _Material:
@@ -91,11 +94,8 @@ class NeoHookean(_Material):
     model = "neo_hookean"
 
     def __post_init__(self):
-        _check_elastic(self.youngs_modulus, self.poisson_ratio)
-        real(self.j0, "j0", lo=0, hi=1, lo_open=True)
-        object.__setattr__(self, "youngs_modulus", float(self.youngs_modulus))
-        object.__setattr__(self, "poisson_ratio", float(self.poisson_ratio))
-        object.__setattr__(self, "j0", float(self.j0))
+        _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
+        object.__setattr__(self, "j0", real(self.j0, "j0", lo=0, hi=1, lo_open=True))
 
     @property
     def _j0(self) -> float:
@@ -122,9 +122,7 @@ class StableNeoHookean(_Material):
     model = "stable_neo_hookean"
 
     def __post_init__(self):
-        _check_elastic(self.youngs_modulus, self.poisson_ratio)
-        object.__setattr__(self, "youngs_modulus", float(self.youngs_modulus))
-        object.__setattr__(self, "poisson_ratio", float(self.poisson_ratio))
+        _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
 
 
 Material = _Material
