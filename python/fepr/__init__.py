@@ -15,28 +15,37 @@ Quick example::
     print(sim.energy().total, sim.last_projection)
 """
 
-from . import meshes
+from . import export, meshes
 from ._core import __version__
-from .errors import ConfigError, FeprError, MeshError, SimulationError
+from .errors import ConfigError, FeprError, MeshError, MissingDependencyError, SimulationError
 from .io import load_mesh
 from .materials import NeoHookean, StableNeoHookean
 from .mesh import TetMesh
-from .simulation import Energy, History, Projection, ProjectionReport, Simulation
+from .mesh_info import MeshInfo, mesh_info
+from .simulation import Energy, History, ImplicitEuler, Projection, ProjectionReport, Simulation, SymplecticEuler
+from .tetrahedralize import tetrahedralize
 
 __all__ = [
     "ConfigError",
     "Energy",
     "FeprError",
     "History",
+    "ImplicitEuler",
     "MeshError",
+    "MeshInfo",
+    "MissingDependencyError",
     "NeoHookean",
     "Projection",
     "ProjectionReport",
     "Simulation",
     "SimulationError",
     "StableNeoHookean",
+    "SymplecticEuler",
     "TetMesh",
     "__version__",
+    "export",
     "load_mesh",
+    "mesh_info",
     "meshes",
+    "tetrahedralize",
 ]

@@ -54,6 +54,9 @@ class Simulation:
         pinned: List[int],
         damping: float,
         threads: Optional[int],
+        slack: str = "auto",
+        newton_tolerance: float = 1e-6,
+        newton_max_iterations: int = 20,
     ) -> None: ...
     def step(self, n: int) -> int: ...
     positions: npt.NDArray[np.float64]

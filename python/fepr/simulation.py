@@ -46,6 +46,10 @@ class Projection:
     impact_bound : float or None
         Optional cap on the D-norm of the total correction as a fraction of ``sqrt(m_tot) * r`` (the seed's
         "upper bound on FEPR impact"). When it bites, conservation is not exact and the report says so.
+    slack : str
+        When the slack variables s and t may move: ``"auto"`` (only in steps with impulsive events whose
+        impulses are uncertain, such as contact), ``"on"`` or ``"off"``. With slack the projection may keep part
+        of the base step's own momentum change instead of the target.
     """
 
     tolerance: float = 1e-10
@@ -55,6 +59,7 @@ class Projection:
     regularization: float = 1e-12
     max_halvings: int = 4
     impact_bound: Optional[float] = None
+    slack: str = "auto"
 
     def __post_init__(self):
         real(self.tolerance, "projection tolerance", lo=0, hi=1, lo_open=True, hi_open=True)
@@ -66,6 +71,46 @@ class Projection:
         integer(self.max_halvings, "projection max_halvings", lo=0, hi=60)
         if self.impact_bound is not None:
             real(self.impact_bound, "projection impact_bound", lo=0, lo_open=True)
+        if self.slack not in ("auto", "on", "off"):
+            raise ConfigError(f"projection slack must be 'auto', 'on' or 'off', got {self.slack!r}")
+
+
+@dataclass(frozen=True)
+class SymplecticEuler:
+    """Symplectic (semi-implicit) Euler, the seed's integrator: ``v += h M^-1 f(x)``, ``x += h v``.
+
+    Conditionally stable: a step size above the stability limit runs away (and FEPR does not change that).
+    """
+
+    name = "symplectic_euler"
+
+
+@dataclass(frozen=True)
+class ImplicitEuler:
+    """Backward Euler as minimisation of ``1/(2h^2)|x - x_n - h v_n|_M^2 + U(x)`` by Newton's method.
+
+    Element Hessians are projected to positive semi-definite, the sparse Cholesky symbolic analysis is done once
+    per simulation, and a backtracking line search keeps every step a descent. Unconditionally stable but
+    numerically dissipative; FEPR on top restores the energy.
+
+    Parameters
+    ----------
+    tolerance : float
+        Stop when the Newton decrement falls below this fraction of its first value (default 1e-6).
+    max_iterations : int
+        Newton iterations per step (default 20).
+    """
+
+    tolerance: float = 1e-6
+    max_iterations: int = 20
+    name = "implicit_euler"
+
+    def __post_init__(self):
+        real(self.tolerance, "implicit Euler tolerance", lo=0, hi=1, lo_open=True, hi_open=True)
+        integer(self.max_iterations, "implicit Euler max_iterations", lo=1, hi=1000)
+
+
+INTEGRATOR_TYPES = {"symplectic_euler": SymplecticEuler, "implicit_euler": ImplicitEuler}
 
 
 class Energy(NamedTuple):
@@ -178,8 +223,9 @@ class Simulation:
         Mass per vertex, kg (as the seed used). Exactly one of ``node_mass`` and ``density``.
     density : float, optional
         Density, kg/m^3, lumped: a quarter of each tet's mass to each of its vertices.
-    integrator : str
-        Base integrator (``"symplectic_euler"``).
+    integrator : str or SymplecticEuler or ImplicitEuler
+        Base integrator: a name (``"symplectic_euler"``, ``"implicit_euler"``) or an integrator object with
+        settings, e.g. ``fepr.ImplicitEuler(tolerance=1e-8)``.
     dt : float
         Time step, s (> 0).
     projection : bool or Projection
@@ -207,7 +253,7 @@ class Simulation:
         material: _Material,
         node_mass=None,
         density: Optional[float] = None,
-        integrator: str = "symplectic_euler",
+        integrator: Union[str, SymplecticEuler, ImplicitEuler] = "symplectic_euler",
         dt: float,
         projection: Union[bool, Projection] = True,
         gravity=(0.0, 0.0, 0.0),
@@ -236,8 +282,13 @@ class Simulation:
                 raise ConfigError(f"node_mass of vertex {bad[0]} is {node_masses[bad[0]]}; masses must be positive")
             mass_kind, mass_value = "node_mass", 0.0
         dt = _positive(dt, "dt", "seconds")
-        if integrator not in _core.INTEGRATORS:
-            raise ConfigError(f"unknown integrator {integrator!r} (known: {', '.join(_core.INTEGRATORS)})")
+        if isinstance(integrator, str):
+            if integrator not in _core.INTEGRATORS or integrator not in INTEGRATOR_TYPES:
+                raise ConfigError(f"unknown integrator {integrator!r} (known: {', '.join(_core.INTEGRATORS)})")
+            integrator = INTEGRATOR_TYPES[integrator]()
+        elif not isinstance(integrator, tuple(INTEGRATOR_TYPES.values())):
+            raise ConfigError(f"integrator must be a name or an integrator object, got {integrator!r}")
+        newton = integrator if isinstance(integrator, ImplicitEuler) else ImplicitEuler()
         if projection is True:
             proj = Projection()
         elif projection is False or projection is None:
@@ -263,7 +314,7 @@ class Simulation:
                 mass_kind=mass_kind,
                 mass_value=mass_value,
                 node_masses=node_masses,
-                integrator=integrator,
+                integrator=integrator.name,
                 dt=dt,
                 projection=proj is not None,
                 tolerance=float(p.tolerance),
@@ -277,12 +328,16 @@ class Simulation:
                 pinned=pinned_idx,
                 damping=float(damping),
                 threads=threads,
+                slack=p.slack,
+                newton_tolerance=float(newton.tolerance),
+                newton_max_iterations=int(newton.max_iterations),
             )
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         self.mesh = mesh
         self.material = material
         self.projection: Optional[Projection] = proj
+        self.integrator_settings = integrator
         self.gravity = np.array(gravity)
         self.damping = float(damping)
         self._warned_runaway = False

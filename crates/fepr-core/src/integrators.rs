@@ -19,6 +19,12 @@ pub struct StepReport {
     /// True when the step contained an impulsive event (then the projection keeps the base step's centre
     /// of mass instead of the smooth-force target).
     pub impulsive: bool,
+    /// Solver iterations of the base step (Newton or local/global iterations; 0 for explicit steps).
+    pub iterations: usize,
+    /// Final relative residual of the base step's solver (0 for explicit steps).
+    pub residual: f64,
+    /// Line-search step halvings taken by the base step's solver.
+    pub line_search_steps: usize,
 }
 
 /// A base time integrator.
@@ -101,12 +107,13 @@ impl Integrator for SymplecticEuler {
 }
 
 /// Integrator names known to [`integrator_by_name`].
-pub const INTEGRATOR_NAMES: &[&str] = &["symplectic_euler"];
+pub const INTEGRATOR_NAMES: &[&str] = &["symplectic_euler", "implicit_euler"];
 
-/// Make an integrator from its scene-file name.
+/// Make an integrator from its scene-file name, with default settings.
 pub fn integrator_by_name(name: &str) -> Option<Box<dyn Integrator>> {
     match name {
         "symplectic_euler" => Some(Box::new(SymplecticEuler::new())),
+        "implicit_euler" => Some(Box::new(crate::implicit::ImplicitEuler::default())),
         _ => None,
     }
 }

@@ -26,6 +26,8 @@
 
 pub mod elasticity;
 pub mod error;
+pub mod hessian;
+pub mod implicit;
 pub mod integrators;
 pub mod invariants;
 pub mod linalg;
@@ -35,5 +37,6 @@ pub mod model;
 pub mod parallel;
 pub mod projection;
 pub mod simulation;
+pub mod sparse;
 
 pub use error::{FeprError, Result};

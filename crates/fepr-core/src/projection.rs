@@ -86,6 +86,35 @@ pub struct ProjectionSettings {
     /// Optional cap on the D-norm of the total correction, as a fraction of `sqrt(m_tot) r` (the correction
     /// may move the body by at most this fraction of its size, mass-weighted RMS). `None`: no cap.
     pub impact_bound: Option<f64>,
+    /// When the slack variables s and t may move (default `Auto`).
+    pub slack: Slack,
+}
+
+/// When the slack variables s and t of fepr-spec section 2 are free to move.
+///
+/// With slack, the projection may keep part of the base step's own momentum change (at cost
+/// `eps s^2 / 2`) instead of the target: right for steps whose impulses are known only approximately
+/// (contact), wrong for a closed system, where the base integrator's momentum error (backward Euler does
+/// not conserve angular momentum) would then leak into the result.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Slack {
+    /// Free only in steps that report an impulsive event with uncertain impulses.
+    Auto,
+    /// Always free.
+    On,
+    /// Never: s = t = 0, the momenta are held exactly at their targets.
+    Off,
+}
+
+impl Slack {
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "auto" => Some(Self::Auto),
+            "on" => Some(Self::On),
+            "off" => Some(Self::Off),
+            _ => None,
+        }
+    }
 }
 
 impl Default for ProjectionSettings {
@@ -98,6 +127,7 @@ impl Default for ProjectionSettings {
             max_halvings: 4,
             rows: ActiveRows::Auto,
             impact_bound: None,
+            slack: Slack::Auto,
         }
     }
 }
@@ -157,6 +187,8 @@ pub struct Targets {
     /// Energy scale of the start-of-step state, J: `K + |E_el| + |E_grav|` (or a larger physical floor).
     /// With `|H_target|` it sets the energy row's tolerance scale, so a wild base step cannot loosen it.
     pub energy_scale: f64,
+    /// The step's impulses are known only approximately (an impulsive event): enables the slack in `Auto`.
+    pub uncertain_impulses: bool,
 }
 
 /// What one projection did.
@@ -286,12 +318,26 @@ impl Projector {
             &state.v,
             targets.center_of_mass,
         );
+        let slack = match self.settings.slack {
+            Slack::On => true,
+            Slack::Off => false,
+            Slack::Auto => targets.uncertain_impulses,
+        };
+        // Without slack the s and t columns vanish (their gradients are -(P* - P_t) and -(L* - L_t)).
+        let (dp_star, dl_star) = if slack {
+            (
+                sub(p_star, targets.momentum),
+                sub(l_star, targets.angular_momentum),
+            )
+        } else {
+            ([0.0; 3], [0.0; 3])
+        };
         let mut pb = Problem {
             model,
             h,
             targets,
-            dp_star: sub(p_star, targets.momentum),
-            dl_star: sub(l_star, targets.angular_momentum),
+            dp_star,
+            dl_star,
             active: self.settings.rows.mask(model.num_pinned() > 0),
             row_scale: [1.0; ROWS],
             eps: self.settings.c_eps * mt * r * r,
@@ -748,6 +794,7 @@ mod tests {
             angular_momentum: [0.05, -0.1, 0.2],
             center_of_mass: [0.4, 0.6, 0.5],
             energy_scale: 1.0,
+            uncertain_impulses: true,
         };
         for pinned in [false, true] {
             model.pinned = vec![false; m];

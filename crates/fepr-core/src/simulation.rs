@@ -21,6 +21,8 @@ pub struct StepDiagnostics {
     pub projection: Option<ProjectionReport>,
     /// Energy budget of the step (J) that the integrator and world reported.
     pub energy_budget: f64,
+    /// The base integrator's report (solver iterations, residual, line-search steps, impulses).
+    pub base: StepReport,
     /// Wall time of the base step and of the projection, ms.
     pub base_ms: f64,
     pub proj_ms: f64,
@@ -120,6 +122,7 @@ impl Simulation {
             invariants: inv,
             projection: None,
             energy_budget: 0.0,
+            base: StepReport::default(),
             base_ms: 0.0,
             proj_ms: 0.0,
             base_energy_error: 0.0,
@@ -192,6 +195,7 @@ impl Simulation {
         };
         Targets {
             energy_scale: self.step_energy_scale(),
+            uncertain_impulses: report.impulsive,
             energy: r.energy + report.energy_budget,
             momentum: add(r.momentum, report.impulse),
             angular_momentum: add(r.angular_momentum, report.angular_impulse),
@@ -276,6 +280,7 @@ impl Simulation {
             invariants: inv,
             projection,
             energy_budget: report.energy_budget,
+            base: report,
             base_ms,
             proj_ms,
             base_energy_error,

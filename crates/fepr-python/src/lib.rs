@@ -10,13 +10,14 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
+use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
 use fepr_core::integrators::{integrator_by_name, INTEGRATOR_NAMES};
 use fepr_core::invariants::measure;
 use fepr_core::linalg::Vec3;
 use fepr_core::material::{Hyperelastic, Material, NeoHookean, StableNeoHookean};
 use fepr_core::mesh::{MassSpec, TetMesh};
 use fepr_core::model::{ModelBuilder, State};
-use fepr_core::projection::{ActiveRows, ProjectionReport, ProjectionSettings, Projector};
+use fepr_core::projection::{ActiveRows, ProjectionReport, ProjectionSettings, Projector, Slack};
 use fepr_core::simulation::{Simulation as CoreSimulation, StepDiagnostics};
 use fepr_core::FeprError;
 
@@ -190,6 +191,9 @@ fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py
 
 /// Column names of `history()`, in order.
 const HISTORY_COLUMNS: &[&str] = &[
+    "base_iterations",
+    "base_residual",
+    "base_line_search",
     "step",
     "time",
     "kinetic",
@@ -224,12 +228,15 @@ const HISTORY_COLUMNS: &[&str] = &[
     "references_reset",
 ];
 
-fn history_row(d: &StepDiagnostics) -> [f64; 32] {
+fn history_row(d: &StepDiagnostics) -> [f64; 35] {
     let i = &d.invariants;
     let p = d.projection.unwrap_or_default();
     let has = d.projection.is_some();
     let nan_if = |x: f64| if has { x } else { f64::NAN };
     [
+        d.base.iterations as f64,
+        d.base.residual,
+        d.base.line_search_steps as f64,
         d.step as f64,
         d.time,
         i.kinetic,
@@ -271,7 +278,8 @@ impl Simulation {
     #[pyo3(signature = (
         vertices, tets, *, material, youngs_modulus, poisson_ratio, j0, mass_kind, mass_value, node_masses,
         integrator, dt, projection, tolerance, max_iterations, rows, c_eps, regularization, max_halvings,
-        impact_bound, gravity, pinned, damping, threads
+        impact_bound, gravity, pinned, damping, threads, slack = "auto", newton_tolerance = 1e-6,
+        newton_max_iterations = 20
     ))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -298,6 +306,9 @@ impl Simulation {
         pinned: Vec<usize>,
         damping: f64,
         threads: Option<usize>,
+        slack: &str,
+        newton_tolerance: f64,
+        newton_max_iterations: usize,
     ) -> PyResult<Self> {
         let (mesh, _) = build_mesh(&vertices, &tets)?;
         let mat = make_material(material, youngs_modulus, poisson_ratio, j0)?;
@@ -318,12 +329,22 @@ impl Simulation {
             .damping(damping)
             .build()
             .map_err(value_error)?;
-        let integ = integrator_by_name(integrator).ok_or_else(|| {
-            PyValueError::new_err(format!(
-                "integrator: unknown '{integrator}' (known: {})",
-                INTEGRATOR_NAMES.join(", ")
-            ))
-        })?;
+        let integ: Box<dyn fepr_core::integrators::Integrator> = match integrator {
+            "implicit_euler" => Box::new(
+                ImplicitEuler::new(NewtonSettings {
+                    tolerance: newton_tolerance,
+                    max_iterations: newton_max_iterations,
+                    project_psd: true,
+                })
+                .map_err(value_error)?,
+            ),
+            other => integrator_by_name(other).ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "integrator: unknown '{other}' (known: {})",
+                    INTEGRATOR_NAMES.join(", ")
+                ))
+            })?,
+        };
         let projector = if projection {
             let rows = ActiveRows::from_name(rows).ok_or_else(|| {
                 PyValueError::new_err(format!(
@@ -338,6 +359,11 @@ impl Simulation {
                 max_halvings,
                 rows,
                 impact_bound,
+                slack: Slack::from_name(slack).ok_or_else(|| {
+                    PyValueError::new_err(format!(
+                        "slack: unknown '{slack}' (known: auto, on, off)"
+                    ))
+                })?,
             };
             Some(Projector::new(settings).map_err(value_error)?)
         } else {

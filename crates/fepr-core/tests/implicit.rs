@@ -1,0 +1,136 @@
+//! Backward Euler: Newton convergence, symbolic-once factorisation, dissipation and FEPR on top.
+
+mod common;
+use common::*;
+use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
+use fepr_core::integrators::Integrator;
+use fepr_core::model::State;
+use fepr_core::projection::{ProjectionSettings, Projector};
+use fepr_core::simulation::Simulation;
+
+#[test]
+fn newton_converges_quadratically_near_the_solution() {
+    let model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0, 0.0, -9.81]);
+    let mut state = State::at_rest(&model);
+    scaled(&mut state, 1.3, [0.5, 0.5, 1.0]);
+    let mut ie = ImplicitEuler::new(NewtonSettings {
+        tolerance: 1e-14,
+        max_iterations: 50,
+        project_psd: true,
+    })
+    .unwrap();
+    let report = ie.step(&model, &mut state, 0.05);
+    let d = &ie.last_decrements;
+    eprintln!("Newton decrements: {d:?}");
+    assert!(
+        report.iterations >= 3 && report.iterations < 50,
+        "{report:?}"
+    );
+    // Quadratic convergence: once in the asymptotic regime, lambda_{k+1} <= C lambda_k^2 (normalised by lambda_0)
+    // and the ratio lambda_{k+1}/lambda_k goes to zero.
+    let k = d.len();
+    let (a, b, c) = (d[k - 3] / d[0], d[k - 2] / d[0], d[k - 1] / d[0]);
+    assert!(b / a < 0.1 && c / b < b / a, "ratios {} {}", b / a, c / b);
+    assert!(
+        c <= 10.0 * b * b,
+        "lambda_k+1 / lambda_k^2 = {}",
+        c / (b * b)
+    );
+}
+
+#[test]
+fn symbolic_factorisation_is_done_once_per_run() {
+    let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0; 3]);
+    let mut state = State::at_rest(&model);
+    scaled(&mut state, 1.2, [0.0; 3]);
+    let mut ie = ImplicitEuler::default();
+    for _ in 0..30 {
+        ie.step(&model, &mut state, 1.0 / 30.0);
+    }
+    assert_eq!(ie.symbolic_analyses, 1);
+}
+
+#[test]
+fn backward_euler_dissipates_and_fepr_restores_energy_and_momenta() {
+    let run = |project: bool| {
+        let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0; 3]);
+        let mut state = State::at_rest(&model);
+        let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+        scaled(&mut state, 1.3, c);
+        for (x, v) in state.x.iter().zip(state.v.iter_mut()) {
+            *v = [0.5 - (x[1] - c[1]), 0.2 + (x[0] - c[0]), 0.1];
+        }
+        let proj = project.then(|| Projector::new(ProjectionSettings::default()).unwrap());
+        let mut sim = Simulation::new(
+            model,
+            state,
+            Box::new(ImplicitEuler::default()),
+            1.0 / 30.0,
+            proj,
+        )
+        .unwrap();
+        let d0 = sim.history()[0].invariants;
+        for _ in 0..150 {
+            sim.step().unwrap();
+        }
+        let hist = sim.history().to_vec();
+        (d0, hist)
+    };
+    let (d0, plain) = run(false);
+    let last = plain.last().unwrap().invariants;
+    let kept = (last.total - 0.0) / d0.total;
+    eprintln!(
+        "backward Euler alone keeps {:.1}% of H after 5 s",
+        100.0 * kept
+    );
+    assert!(kept < 0.5, "backward Euler should dissipate: kept {kept}");
+    let (d0, projected) = run(true);
+    let mut worst: f64 = 0.0;
+    let (mut wp, mut wl): (f64, f64) = (0.0, 0.0);
+    for d in &projected[1..] {
+        worst = worst.max(rel(d.invariants.total, d0.total));
+        wp = wp.max(
+            norm([
+                d.invariants.momentum[0] - d0.momentum[0],
+                d.invariants.momentum[1] - d0.momentum[1],
+                d.invariants.momentum[2] - d0.momentum[2],
+            ]) / norm(d0.momentum),
+        );
+        wl = wl.max(
+            norm([
+                d.invariants.angular_momentum[0] - d0.angular_momentum[0],
+                d.invariants.angular_momentum[1] - d0.angular_momentum[1],
+                d.invariants.angular_momentum[2] - d0.angular_momentum[2],
+            ]) / norm(d0.angular_momentum),
+        );
+        assert!(d.projection.unwrap().converged, "step {}", d.step);
+    }
+    eprintln!(
+        "backward Euler + FEPR: max |H/H0-1| = {worst:.2e}, |dP|/P0 = {wp:.2e}, |dL|/L0 = {wl:.2e}"
+    );
+    assert!(worst <= 1e-8 && wp <= 1e-10 && wl <= 1e-10);
+}
+
+#[test]
+fn pinned_vertices_stay_put_under_gravity() {
+    let mut m = model(ell_mesh(), neo_hookean(1e4, 0.3), 1.0, [0.0, 0.0, -9.81]);
+    let pinned: Vec<usize> = (0..m.num_vertices())
+        .filter(|&i| m.mesh.vertices()[i][2] == 0.0)
+        .collect();
+    for &p in &pinned {
+        m.pinned[p] = true;
+    }
+    let mut state = State::at_rest(&m);
+    let x0 = state.x.clone();
+    let mut ie = ImplicitEuler::default();
+    for _ in 0..20 {
+        ie.step(&m, &mut state, 0.02);
+    }
+    for &p in &pinned {
+        assert_eq!(state.x[p], x0[p]);
+        assert_eq!(state.v[p], [0.0; 3]);
+    }
+    // The free top sags.
+    let top = (0..m.num_vertices()).find(|&i| x0[i][2] == 3.0).unwrap();
+    assert!(state.x[top][2] < 3.0);
+}
