@@ -38,8 +38,36 @@ fn shape_gradients(model: &Model, e: usize) -> [Vec3; 4] {
     ]
 }
 
+/// True when a symmetric 9 x 9 matrix is positive definite (a Cholesky factorisation succeeds): the cheap
+/// test that lets most elements skip the eigen-decomposition.
+fn is_positive_definite(d: &StressDerivative) -> bool {
+    let mut l = [[0.0f64; 9]; 9];
+    for j in 0..9 {
+        let mut diag = d[j][j];
+        for k in 0..j {
+            diag -= l[j][k] * l[j][k];
+        }
+        if diag.is_nan() || diag <= 0.0 {
+            return false;
+        }
+        let djj = diag.sqrt();
+        l[j][j] = djj;
+        for i in (j + 1)..9 {
+            let mut s = d[i][j];
+            for k in 0..j {
+                s -= l[i][k] * l[j][k];
+            }
+            l[i][j] = s / djj;
+        }
+    }
+    true
+}
+
 /// Clamp the negative eigenvalues of a symmetric 9 x 9 matrix to zero.
 pub fn project_psd(d: &StressDerivative) -> StressDerivative {
+    if is_positive_definite(d) {
+        return *d;
+    }
     let flat: Vec<f64> = d.iter().flatten().copied().collect();
     let (w, v) = symmetric_eigen(&flat, 9);
     if w.iter().all(|x| *x >= 0.0) {

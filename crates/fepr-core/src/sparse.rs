@@ -3,8 +3,9 @@
 //! (symbolic once, numeric many). The matrix is given by its lower triangle in compressed sparse column
 //! form; values are updated in place between factorisations.
 //!
-//! Factorisation and solves run with faer's sequential kernels so that results are bit-identical for any
-//! thread count (the element work around them is parallel).
+//! Factorisation and solves use faer's parallel kernels on the current rayon pool. faer splits dense blocks
+//! over output rows and columns, never over the summation index, so results are bit-identical for any
+//! thread count (gated by `tests/implicit.rs`).
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
@@ -15,6 +16,14 @@ use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Conj, MatMut, Par, Side};
 
 use crate::error::{FeprError, Result};
+
+/// faer parallelism for the current rayon pool.
+fn parallelism() -> Par {
+    match rayon::current_num_threads() {
+        0 | 1 => Par::Seq,
+        n => Par::rayon(n),
+    }
+}
 
 /// The lower triangle (row >= column) sparsity pattern of a symmetric n x n matrix, in CSC form.
 #[derive(Clone, Debug)]
@@ -97,7 +106,7 @@ impl SparseCholesky {
             Default::default(),
         )
         .map_err(|e| FeprError::Simulation(format!("sparse symbolic analysis failed: {e:?}")))?;
-        let par = Par::Seq;
+        let par = parallelism();
         let factor_mem =
             MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()));
         let solve_mem =
@@ -136,7 +145,7 @@ impl SparseCholesky {
                 a,
                 Side::Lower,
                 LltRegularization::default(),
-                Par::Seq,
+                parallelism(),
                 stack,
                 Default::default(),
             )

@@ -134,3 +134,83 @@ fn pinned_vertices_stay_put_under_gravity() {
     let top = (0..m.num_vertices()).find(|&i| x0[i][2] == 3.0).unwrap();
     assert!(state.x[top][2] < 3.0);
 }
+
+/// Timing breakdown of one Newton iteration on a 16^3-cube grid (24,576 tets); run with
+/// `cargo test --release --test implicit -- --ignored --nocapture`. A report, not a gate.
+#[test]
+#[ignore]
+fn newton_iteration_cost_breakdown() {
+    use fepr_core::hessian::HessianAssembler;
+    use fepr_core::sparse::SparseCholesky;
+    use std::time::Instant;
+    let n = 16;
+    let cells: Vec<[i64; 3]> = (0..n)
+        .flat_map(|i| (0..n).flat_map(move |j| (0..n).map(move |k| [i, j, k])))
+        .collect();
+    let model = model(
+        cubes_mesh(&cells, 0.5 / n as f64),
+        neo_hookean(1e5, 0.3),
+        0.01,
+        [0.0; 3],
+    );
+    let mut state = State::at_rest(&model);
+    scaled(&mut state, 1.1, [0.25; 3]);
+    let t = Instant::now();
+    let mut asm = HessianAssembler::new(&model);
+    let t_pattern = t.elapsed();
+    let t = Instant::now();
+    let mut chol = SparseCholesky::analyse(&asm.pattern, 1).unwrap();
+    let t_symbolic = t.elapsed();
+    let mut values = Vec::new();
+    let t = Instant::now();
+    asm.assemble(&model, &state.x, 900.0, true, &mut values);
+    let t_assemble = t.elapsed();
+    let t = Instant::now();
+    chol.factorize(&values).unwrap();
+    let t_factor = t.elapsed();
+    let mut rhs = vec![1.0; asm.ndof()];
+    let t = Instant::now();
+    chol.solve_in_place(&mut rhs, 1);
+    let t_solve = t.elapsed();
+    eprintln!(
+        "{} tets, {} dofs, nnz(A) {}, nnz(L) {}: pattern {:?}, symbolic {:?}, assemble {:?}, factorize {:?}, solve {:?}",
+        model.num_tets(), asm.ndof(), asm.pattern.nnz(), chol.factor_nnz(), t_pattern, t_symbolic, t_assemble, t_factor, t_solve
+    );
+}
+
+#[test]
+fn implicit_euler_is_bit_identical_for_any_thread_count() {
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let cells: Vec<[i64; 3]> = (0..8)
+                    .flat_map(|i| (0..8).flat_map(move |j| (0..8).map(move |k| [i, j, k])))
+                    .collect();
+                let model = model(
+                    cubes_mesh(&cells, 0.05),
+                    neo_hookean(1e5, 0.3),
+                    0.01,
+                    [0.0, 0.0, -9.81],
+                );
+                let mut state = State::at_rest(&model);
+                scaled(&mut state, 1.1, [0.2; 3]);
+                let mut ie = ImplicitEuler::default();
+                for _ in 0..3 {
+                    ie.step(&model, &mut state, 1.0 / 30.0);
+                }
+                state
+                    .x
+                    .iter()
+                    .chain(&state.v)
+                    .flatten()
+                    .map(|c| c.to_bits())
+                    .collect::<Vec<u64>>()
+            })
+    };
+    let one = run(1);
+    assert_eq!(one, run(2));
+    assert_eq!(one, run(3));
+}
