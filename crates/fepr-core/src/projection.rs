@@ -383,33 +383,31 @@ impl Projector {
                 report.least_squares_solves += used_lstsq as usize;
                 let mut alpha = 1.0;
                 let mut accepted = None;
+                let mut cand = self.trial(&pb, s, t, &lambda, 1.0);
+                // Curvature-aware step length: along the step, P and C are linear in alpha, L is quadratic,
+                // so c(alpha) = (1 - alpha) c(0) + alpha^2 e with e = c(1) holds for them exactly and models H's
+                // curvature. Where the full step overshoots (stiff materials), take the model's best alpha.
+                if cand.0.c.iter().all(|c| c.is_finite()) {
+                    let a_star = model_step_length(&pb, &cur.c, &cand.0.c);
+                    if a_star < 0.95 {
+                        let alt = self.trial(&pb, s, t, &lambda, a_star);
+                        if alt.0.c.iter().all(|c| c.is_finite()) && alt.1 < cand.1 {
+                            cand = alt;
+                            alpha = a_star;
+                        } else {
+                            cand = self.trial(&pb, s, t, &lambda, 1.0);
+                        }
+                    }
+                }
                 for halving in 0..=self.settings.max_halvings {
-                    let (s_new, t_new) = apply_step(
-                        &pb,
-                        &self.x,
-                        &self.v,
-                        s,
-                        t,
-                        &self.grad,
-                        &lambda,
-                        alpha,
-                        &mut self.x_trial,
-                        &mut self.v_trial,
-                    );
-                    let trial = evaluate(
-                        &pb,
-                        &self.x_trial,
-                        &self.v_trial,
-                        s_new,
-                        t_new,
-                        &mut self.ws,
-                        &mut self.grad_trial,
-                    );
+                    if halving > 0 {
+                        cand = self.trial(&pb, s, t, &lambda, alpha);
+                    }
+                    let (trial, n, s_new, t_new) = cand;
                     // Intermediate iterates may pass through states with more inverted tets (the
                     // linearisation does not know about inversion); only the returned state must not have
                     // more than the base step (checked below).
                     let admissible = trial.c.iter().all(|c| c.is_finite());
-                    let n = norm_scaled(&pb, &trial.c);
                     if admissible && (n < cur_norm || halving == self.settings.max_halvings) {
                         accepted = Some((trial, n, s_new, t_new));
                         break;
@@ -531,6 +529,82 @@ impl Projector {
             inverted: fin.el.inverted,
         };
         (report, inv)
+    }
+}
+
+impl Projector {
+    /// Evaluate the trial point `q - alpha D^-1 G lambda` (into the trial buffers): returns its evaluation,
+    /// scaled residual norm and slack values.
+    fn trial(
+        &mut self,
+        pb: &Problem,
+        s: f64,
+        t: f64,
+        lambda: &[f64; ROWS],
+        alpha: f64,
+    ) -> (Eval, f64, f64, f64) {
+        let (s_new, t_new) = apply_step(
+            pb,
+            &self.x,
+            &self.v,
+            s,
+            t,
+            &self.grad,
+            lambda,
+            alpha,
+            &mut self.x_trial,
+            &mut self.v_trial,
+        );
+        let e = evaluate(
+            pb,
+            &self.x_trial,
+            &self.v_trial,
+            s_new,
+            t_new,
+            &mut self.ws,
+            &mut self.grad_trial,
+        );
+        let n = norm_scaled(pb, &e.c);
+        (e, n, s_new, t_new)
+    }
+}
+
+/// Step length minimising the scaled residual norm of the model `c(alpha) = (1 - alpha) c0 + alpha^2 e`,
+/// `e = c1` (the residual after the full step), over `alpha` in [1/64, 1].
+fn model_step_length(pb: &Problem, c0: &[f64; ROWS], c1: &[f64; ROWS]) -> f64 {
+    let norm2 = |a: f64| -> f64 {
+        (0..ROWS)
+            .filter(|&i| pb.active[i])
+            .map(|i| (((1.0 - a) * c0[i] + a * a * c1[i]) / pb.row_scale[i]).powi(2))
+            .sum()
+    };
+    let mut best = (1.0, norm2(1.0));
+    for k in 1..64 {
+        let a = k as f64 / 64.0;
+        let v = norm2(a);
+        if v < best.1 {
+            best = (a, v);
+        }
+    }
+    // Refine around the best sample by golden-section search.
+    let (mut lo, mut hi) = (
+        (best.0 - 1.0 / 64.0).max(1.0 / 64.0),
+        (best.0 + 1.0 / 64.0).min(1.0),
+    );
+    for _ in 0..30 {
+        let m1 = lo + 0.382 * (hi - lo);
+        let m2 = lo + 0.618 * (hi - lo);
+        if norm2(m1) < norm2(m2) {
+            hi = m2;
+        } else {
+            lo = m1;
+        }
+    }
+    let a = 0.5 * (lo + hi);
+    if norm2(a) < best.1 {
+        a
+    } else {
+        best.0
     }
 }
 
