@@ -33,6 +33,10 @@ pub trait Integrator: Send + Sync {
     fn name(&self) -> &'static str;
     /// Advance `state` by `dt` seconds.
     fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport;
+    /// Check that this integrator can run on `model` (called once when a simulation is built).
+    fn check(&self, _model: &Model) -> crate::error::Result<()> {
+        Ok(())
+    }
 }
 
 /// Symplectic (semi-implicit) Euler, the seed's integrator:
@@ -107,13 +111,15 @@ impl Integrator for SymplecticEuler {
 }
 
 /// Integrator names known to [`integrator_by_name`].
-pub const INTEGRATOR_NAMES: &[&str] = &["symplectic_euler", "implicit_euler"];
+pub const INTEGRATOR_NAMES: &[&str] =
+    &["symplectic_euler", "implicit_euler", "projective_dynamics"];
 
 /// Make an integrator from its scene-file name, with default settings.
 pub fn integrator_by_name(name: &str) -> Option<Box<dyn Integrator>> {
     match name {
         "symplectic_euler" => Some(Box::new(SymplecticEuler::new())),
         "implicit_euler" => Some(Box::new(crate::implicit::ImplicitEuler::default())),
+        "projective_dynamics" => Some(Box::new(crate::pd::ProjectiveDynamics::default())),
         _ => None,
     }
 }

@@ -35,6 +35,7 @@ pub mod material;
 pub mod mesh;
 pub mod model;
 pub mod parallel;
+pub mod pd;
 pub mod projection;
 pub mod simulation;
 pub mod sparse;

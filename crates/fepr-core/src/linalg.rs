@@ -311,3 +311,98 @@ mod tests {
         }
     }
 }
+
+/// Polar decomposition `F = R S` with `R` a rotation (det +1) and `S` symmetric, via the eigen-decomposition
+/// of `F^T F` (`F = U Sigma V^T`, `R = U V^T`). For inverted `F` (det < 0) the smallest singular value takes
+/// the sign, so that `R` stays a rotation (the closest rotation in the Frobenius norm). Returns `(R, S)`.
+pub fn polar_rotation(f: &Mat3) -> (Mat3, Mat3) {
+    let ftf = matmul(&transpose(f), f);
+    let flat: Vec<f64> = ftf.iter().flatten().copied().collect();
+    let (w, vflat) = symmetric_eigen(&flat, 3);
+    // Sort eigenpairs by decreasing eigenvalue.
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| w[b].partial_cmp(&w[a]).unwrap_or(std::cmp::Ordering::Equal));
+    let mut v = [[0.0; 3]; 3];
+    let mut sigma = [0.0; 3];
+    for (c, &k) in order.iter().enumerate() {
+        sigma[c] = w[k].max(0.0).sqrt();
+        for r in 0..3 {
+            v[r][c] = vflat[r * 3 + k];
+        }
+    }
+    if det(&v) < 0.0 {
+        for r in 0..3 {
+            v[r][2] = -v[r][2];
+        }
+    }
+    // U columns: F v_c / sigma_c for the two largest; the third completes a right-handed frame.
+    let fv = matmul(f, &v);
+    let col = |m: &Mat3, c: usize| [m[0][c], m[1][c], m[2][c]];
+    let mut u0 = col(&fv, 0);
+    let n0 = norm(u0);
+    u0 = if n0 > 0.0 {
+        scale(u0, 1.0 / n0)
+    } else {
+        [1.0, 0.0, 0.0]
+    };
+    let mut u1 = col(&fv, 1);
+    u1 = sub(u1, scale(u0, dot(u0, u1)));
+    let n1 = norm(u1);
+    u1 = if n1 > 1e-300 {
+        scale(u1, 1.0 / n1)
+    } else {
+        // Any unit vector orthogonal to u0.
+        let t = if u0[0].abs() < 0.9 {
+            [1.0, 0.0, 0.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
+        let p = sub(t, scale(u0, dot(u0, t)));
+        scale(p, 1.0 / norm(p))
+    };
+    let u2 = cross(u0, u1);
+    // det F < 0: the third singular value is negative in the rotation-variant SVD.
+    let s2 = dot(u2, col(&fv, 2));
+    sigma[2] = s2;
+    let u = [
+        [u0[0], u1[0], u2[0]],
+        [u0[1], u1[1], u2[1]],
+        [u0[2], u1[2], u2[2]],
+    ];
+    let r = matmul(&u, &transpose(&v));
+    let mut s = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            s[i][j] = (0..3).map(|k| v[i][k] * sigma[k] * v[j][k]).sum();
+        }
+    }
+    (r, s)
+}
+
+#[cfg(test)]
+mod polar_tests {
+    use super::*;
+
+    #[test]
+    fn polar_decomposition_reconstructs_f_with_a_rotation() {
+        let cases: [Mat3; 4] = [
+            [[1.2, 0.3, -0.1], [0.1, 0.8, 0.2], [-0.2, 0.1, 1.1]],
+            [[-0.9, 0.1, 0.0], [0.05, 1.0, 0.1], [0.0, 0.2, 0.9]],
+            [[2.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 1e-9]],
+            [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
+        ];
+        for f in cases {
+            let (r, s) = polar_rotation(&f);
+            let rs = matmul(&r, &s);
+            let rtr = matmul(&transpose(&r), &r);
+            assert!((det(&r) - 1.0).abs() < 1e-12, "{f:?}");
+            for i in 0..3 {
+                for j in 0..3 {
+                    assert!((rs[i][j] - f[i][j]).abs() < 1e-10, "{f:?}: RS = {rs:?}");
+                    assert!((rtr[i][j] - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12);
+                    assert!((s[i][j] - s[j][i]).abs() < 1e-12);
+                }
+            }
+        }
+    }
+}

@@ -7,7 +7,7 @@
 //! Every material is gated by finite-difference tests of its stress and stress derivative (see `tests`).
 
 use crate::error::{invalid, Result};
-use crate::linalg::{cofactor, ddot, det, Mat3};
+use crate::linalg::{cofactor, ddot, det, inverse, matmul, polar_rotation, transpose, Mat3};
 
 /// A 9x9 stress derivative `dP_ij / dF_kl` at `[3*i + j][3*k + l]`.
 pub type StressDerivative = [[f64; 9]; 9];
@@ -260,11 +260,86 @@ impl Hyperelastic for StableNeoHookean {
     }
 }
 
+/// The Projective Dynamics strain energy (as-rigid-as-possible, Bouaziz et al. 2014):
+/// `Psi = mu |F - R(F)|_F^2`, with `R(F)` the closest rotation (polar decomposition). Its stress is
+/// `P = 2 mu (F - R)` (R is optimal, so its variation does not contribute), and
+/// `dP = 2 mu (dF - R Omega)`, where the skew `Omega` has axial vector
+/// `omega = (tr(S) I - S)^-1 axial(R^T dF - dF^T R)` for `F = R S`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Arap {
+    /// Shear modulus `mu`, Pa.
+    pub mu: f64,
+}
+
+impl Arap {
+    /// From Young's modulus (Pa) and Poisson ratio (only `mu` is used: the PD strain energy has no volume term).
+    pub fn new(youngs_modulus: f64, poisson_ratio: f64) -> Result<Self> {
+        let (mu, _) = lame_parameters(youngs_modulus, poisson_ratio)?;
+        Ok(Self { mu })
+    }
+}
+
+impl Hyperelastic for Arap {
+    fn energy_density(&self, f: &Mat3) -> f64 {
+        self.energy_and_stress(f).0
+    }
+
+    fn energy_and_stress(&self, f: &Mat3) -> (f64, Mat3) {
+        let (r, _) = polar_rotation(f);
+        let mut p = [[0.0; 3]; 3];
+        let mut psi = 0.0;
+        for i in 0..3 {
+            for j in 0..3 {
+                let d = f[i][j] - r[i][j];
+                psi += d * d;
+                p[i][j] = 2.0 * self.mu * d;
+            }
+        }
+        (self.mu * psi, p)
+    }
+
+    fn stress_derivative(&self, f: &Mat3) -> StressDerivative {
+        let (r, s) = polar_rotation(f);
+        let tr = s[0][0] + s[1][1] + s[2][2];
+        let mut a = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                a[i][j] = (if i == j { tr } else { 0.0 }) - s[i][j];
+            }
+        }
+        let a_inv = inverse(&a).unwrap_or([[0.0; 3]; 3]);
+        let rt = transpose(&r);
+        let mut d = [[0.0; 9]; 9];
+        for col in 0..9 {
+            let mut df = [[0.0; 3]; 3];
+            df[col / 3][col % 3] = 1.0;
+            // K = R^T dF - dF^T R (skew); axial vector (K21, K02, K10).
+            let rtdf = matmul(&rt, &df);
+            let k = [
+                [0.0, rtdf[0][1] - rtdf[1][0], rtdf[0][2] - rtdf[2][0]],
+                [rtdf[1][0] - rtdf[0][1], 0.0, rtdf[1][2] - rtdf[2][1]],
+                [rtdf[2][0] - rtdf[0][2], rtdf[2][1] - rtdf[1][2], 0.0],
+            ];
+            let ax = [k[2][1], k[0][2], k[1][0]];
+            let w =
+                [0, 1, 2].map(|i| a_inv[i][0] * ax[0] + a_inv[i][1] * ax[1] + a_inv[i][2] * ax[2]);
+            let omega = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]];
+            let dr = matmul(&r, &omega);
+            for row in 0..9 {
+                d[row][col] = 2.0 * self.mu * (df[row / 3][row % 3] - dr[row / 3][row % 3]);
+            }
+        }
+        d
+    }
+}
+
 /// The materials fepr-core knows, as one enum so that the per-tet loops dispatch statically.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Material {
     NeoHookean(NeoHookean),
     StableNeoHookean(StableNeoHookean),
+    /// The Projective Dynamics strain energy (used with the `projective_dynamics` integrator).
+    Arap(Arap),
 }
 
 impl Hyperelastic for Material {
@@ -273,6 +348,7 @@ impl Hyperelastic for Material {
         match self {
             Material::NeoHookean(m) => m.energy_density(f),
             Material::StableNeoHookean(m) => m.energy_density(f),
+            Material::Arap(m) => m.energy_density(f),
         }
     }
     #[inline]
@@ -280,12 +356,14 @@ impl Hyperelastic for Material {
         match self {
             Material::NeoHookean(m) => m.energy_and_stress(f),
             Material::StableNeoHookean(m) => m.energy_and_stress(f),
+            Material::Arap(m) => m.energy_and_stress(f),
         }
     }
     fn stress_derivative(&self, f: &Mat3) -> StressDerivative {
         match self {
             Material::NeoHookean(m) => m.stress_derivative(f),
             Material::StableNeoHookean(m) => m.stress_derivative(f),
+            Material::Arap(m) => m.stress_derivative(f),
         }
     }
 }
@@ -314,6 +392,7 @@ mod tests {
             Material::NeoHookean(NeoHookean::with_j0(5e4, 0.45, 0.3).unwrap()),
             Material::StableNeoHookean(StableNeoHookean::new(1e3, 0.3).unwrap()),
             Material::StableNeoHookean(StableNeoHookean::new(2e5, -0.2).unwrap()),
+            Material::Arap(Arap::new(1e3, 0.3).unwrap()),
         ]
     }
 
@@ -348,6 +427,7 @@ mod tests {
         match m {
             Material::NeoHookean(n) => n.mu + n.lambda.abs(),
             Material::StableNeoHookean(s) => s.mu + s.lambda,
+            Material::Arap(a) => a.mu,
         }
     }
 

@@ -97,6 +97,7 @@ impl Simulation {
                 "positions and velocities must be finite",
             ));
         }
+        integrator.check(&model)?;
         let previous = state.clone();
         let mut sim = Self {
             model,

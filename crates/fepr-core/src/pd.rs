@@ -1,0 +1,308 @@
+//! Projective Dynamics (Bouaziz, Martin, Liu, Kavan, Pauly 2014) for tets, with the strain constraint of
+//! every element (projection of F onto rotations, weight `w_e = 2 mu V_e`):
+//!
+//! ```text
+//! minimise  1/(2 h^2) |x - y|_M^2 + sum_e w_e/2 |F_e(x) - R_e|^2 - sum_i m_i g . x_i,   y = x_n + h v_n
+//! ```
+//!
+//! alternating a local step (`R_e` = rotation of the polar decomposition of `F_e`, parallel over tets) and a
+//! global step: one constant m x m matrix `M/h^2 + sum_e w_e G_e G_e^T` (G_e: the shape-function gradients),
+//! factorised once per run, solved for the x, y and z coordinates together. Pinned vertices are eliminated.
+//! The energy this minimises is the ARAP energy `Psi = mu |F - R|^2` ([`crate::material::Arap`]); with FEPR,
+//! the model's material must be that energy so that H is the PD energy (fepr-spec section 5).
+
+use rayon::prelude::*;
+
+use crate::elasticity::deformation_gradient;
+use crate::error::{invalid, FeprError, Result};
+use crate::integrators::{Integrator, StepReport};
+use crate::linalg::{polar_rotation, scale, Vec3};
+use crate::material::Material;
+use crate::model::{Model, State};
+use crate::sparse::{LowerPattern, SparseCholesky};
+
+/// Projective Dynamics settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PdSettings {
+    /// Local/global iterations per step (default 10).
+    pub iterations: usize,
+    /// Optional early stop: relative change of positions below this (default None: fixed count).
+    pub tolerance: Option<f64>,
+}
+
+impl Default for PdSettings {
+    fn default() -> Self {
+        Self {
+            iterations: 10,
+            tolerance: None,
+        }
+    }
+}
+
+struct Prefactored {
+    free_index: Vec<usize>,
+    free_vertices: Vec<usize>,
+    chol: SparseCholesky,
+    /// Coupling of free rows to pinned vertices: (free row, pinned vertex, coefficient).
+    pinned_coupling: Vec<(usize, usize, f64)>,
+    weights: Vec<f64>,
+    grads: Vec<[Vec3; 4]>,
+}
+
+/// Projective Dynamics integrator (prefactored global matrix, 3 right-hand sides per solve).
+#[derive(Default)]
+pub struct ProjectiveDynamics {
+    pub settings: PdSettings,
+    pre: Option<Prefactored>,
+    /// Symbolic analyses and numeric factorisations performed (one each per run).
+    pub factorizations: usize,
+    rotations: Vec<[[f64; 3]; 3]>,
+    rhs: Vec<f64>,
+}
+
+impl std::fmt::Debug for ProjectiveDynamics {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ProjectiveDynamics")
+            .field("settings", &self.settings)
+            .finish()
+    }
+}
+
+fn shape_gradients(model: &Model, e: usize) -> [Vec3; 4] {
+    let d = &model.rest.dm_inv[e];
+    [
+        [
+            -(d[0][0] + d[1][0] + d[2][0]),
+            -(d[0][1] + d[1][1] + d[2][1]),
+            -(d[0][2] + d[1][2] + d[2][2]),
+        ],
+        d[0],
+        d[1],
+        d[2],
+    ]
+}
+
+impl ProjectiveDynamics {
+    pub fn new(settings: PdSettings) -> Result<Self> {
+        if settings.iterations == 0 || settings.iterations > 10_000 {
+            return Err(invalid(
+                "pd_iterations",
+                format!("must be in 1..=10000, got {}", settings.iterations),
+            ));
+        }
+        if let Some(t) = settings.tolerance {
+            if !(t.is_finite() && t > 0.0) {
+                return Err(invalid(
+                    "pd_tolerance",
+                    format!("must be positive, got {t}"),
+                ));
+            }
+        }
+        Ok(Self {
+            settings,
+            ..Default::default()
+        })
+    }
+
+    fn prefactor(model: &Model, h: f64) -> Result<Prefactored> {
+        let mu = match model.material {
+            Material::Arap(a) => a.mu,
+            _ => {
+                return Err(FeprError::Simulation(
+                    "projective_dynamics needs the PD (ARAP) material so that FEPR conserves the energy the solver \
+                     minimises"
+                        .into(),
+                ))
+            }
+        };
+        let m = model.num_vertices();
+        let mut free_index = vec![usize::MAX; m];
+        let mut free_vertices = Vec::new();
+        for i in 0..m {
+            if !model.pinned[i] {
+                free_index[i] = free_vertices.len();
+                free_vertices.push(i);
+            }
+        }
+        let n = free_vertices.len();
+        let grads: Vec<[Vec3; 4]> = (0..model.num_tets())
+            .map(|e| shape_gradients(model, e))
+            .collect();
+        let weights: Vec<f64> = model.rest.volume.iter().map(|v| 2.0 * mu * v).collect();
+        let mut columns = vec![Vec::new(); n];
+        for t in model.mesh.tets() {
+            for &p in t {
+                for &q in t {
+                    let (r, c) = (free_index[p], free_index[q]);
+                    if r != usize::MAX && c != usize::MAX && r >= c {
+                        columns[c].push(r);
+                    }
+                }
+            }
+        }
+        let pattern = LowerPattern::from_columns(n, columns);
+        let mut values = vec![0.0; pattern.nnz()];
+        let mut pinned_coupling = Vec::new();
+        let inv_h2 = 1.0 / (h * h);
+        for (c, &v) in free_vertices.iter().enumerate() {
+            values[pattern.position(c, c).expect("diagonal")] += model.masses[v] * inv_h2;
+        }
+        for (e, t) in model.mesh.tets().iter().enumerate() {
+            let g = &grads[e];
+            for a in 0..4 {
+                for b in 0..4 {
+                    let coef =
+                        weights[e] * (g[a][0] * g[b][0] + g[a][1] * g[b][1] + g[a][2] * g[b][2]);
+                    let (r, c) = (free_index[t[a]], free_index[t[b]]);
+                    match (r != usize::MAX, c != usize::MAX) {
+                        (true, true) if r >= c => {
+                            values[pattern.position(r, c).expect("entry")] += coef
+                        }
+                        (true, false) => pinned_coupling.push((r, t[b], coef)),
+                        _ => {}
+                    }
+                }
+            }
+        }
+        let mut chol = SparseCholesky::analyse(&pattern, 3)?;
+        chol.factorize(&values)?;
+        Ok(Prefactored {
+            free_index,
+            free_vertices,
+            chol,
+            pinned_coupling,
+            weights,
+            grads,
+        })
+    }
+}
+
+impl Integrator for ProjectiveDynamics {
+    fn name(&self) -> &'static str {
+        "projective_dynamics"
+    }
+
+    fn check(&self, model: &Model) -> Result<()> {
+        match model.material {
+            Material::Arap(_) => Ok(()),
+            _ => Err(invalid(
+                "material",
+                "projective_dynamics minimises the PD (ARAP) energy; give the Arap material so that FEPR conserves \
+                 that energy",
+            )),
+        }
+    }
+
+    fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
+        if self.pre.is_none() {
+            match Self::prefactor(model, h) {
+                Ok(p) => {
+                    self.pre = Some(p);
+                    self.factorizations += 1;
+                }
+                Err(_) => {
+                    // Only reachable without `check` (wrong material) or a singular matrix: poison the state
+                    // so that the simulation reports it instead of silently standing still.
+                    state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
+                    return StepReport::default();
+                }
+            }
+        }
+        let pre = self.pre.as_mut().expect("prefactored");
+        let m = model.num_vertices();
+        let n = pre.free_vertices.len();
+        let inv_h2 = 1.0 / (h * h);
+        let x_n = state.x.clone();
+        // Inertial prediction with gravity as the initial guess.
+        let mut x: Vec<Vec3> = (0..m)
+            .map(|i| {
+                if model.pinned[i] {
+                    state.x[i]
+                } else {
+                    [0, 1, 2].map(|a| state.x[i][a] + h * state.v[i][a] + h * h * model.gravity[a])
+                }
+            })
+            .collect();
+        let y: Vec<Vec3> = (0..m)
+            .map(|i| {
+                if model.pinned[i] {
+                    state.x[i]
+                } else {
+                    [0, 1, 2].map(|a| state.x[i][a] + h * state.v[i][a])
+                }
+            })
+            .collect();
+        let mut report = StepReport {
+            impulse: scale(model.gravity, h * model.free_mass()),
+            ..Default::default()
+        };
+        self.rotations.resize(model.num_tets(), [[0.0; 3]; 3]);
+        for it in 0..self.settings.iterations {
+            // Local step: closest rotations, in parallel.
+            self.rotations
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(e, r)| *r = polar_rotation(&deformation_gradient(model, &x, e)).0);
+            // Global step right-hand side (column-major n x 3), assembled in tet order (deterministic).
+            self.rhs.clear();
+            self.rhs.resize(3 * n, 0.0);
+            for (c, &v) in pre.free_vertices.iter().enumerate() {
+                for a in 0..3 {
+                    self.rhs[a * n + c] = model.masses[v] * (inv_h2 * y[v][a] + model.gravity[a]);
+                }
+            }
+            for (e, t) in model.mesh.tets().iter().enumerate() {
+                let g = &pre.grads[e];
+                let r = &self.rotations[e];
+                let w = pre.weights[e];
+                for k in 0..4 {
+                    let row = pre.free_index[t[k]];
+                    if row == usize::MAX {
+                        continue;
+                    }
+                    for a in 0..3 {
+                        // (row a of R) . g_k
+                        self.rhs[a * n + row] +=
+                            w * (r[a][0] * g[k][0] + r[a][1] * g[k][1] + r[a][2] * g[k][2]);
+                    }
+                }
+            }
+            for &(row, p, coef) in &pre.pinned_coupling {
+                for a in 0..3 {
+                    self.rhs[a * n + row] -= coef * x[p][a];
+                }
+            }
+            pre.chol.solve_in_place(&mut self.rhs, 3);
+            let mut change: f64 = 0.0;
+            let mut size: f64 = 0.0;
+            for (c, &v) in pre.free_vertices.iter().enumerate() {
+                for a in 0..3 {
+                    let new = self.rhs[a * n + c];
+                    change = change.max((new - x[v][a]).abs());
+                    size = size.max((new - x_n[v][a]).abs());
+                    x[v][a] = new;
+                }
+            }
+            report.iterations = it + 1;
+            report.residual = if size > 0.0 { change / size } else { 0.0 };
+            if let Some(tol) = self.settings.tolerance {
+                if report.residual <= tol {
+                    break;
+                }
+            }
+        }
+        let inv_h = 1.0 / h;
+        for i in 0..m {
+            if model.pinned[i] {
+                state.v[i] = [0.0; 3];
+                continue;
+            }
+            for a in 0..3 {
+                state.v[i][a] = (x[i][a] - x_n[i][a]) * inv_h;
+            }
+            state.x[i] = x[i];
+        }
+        state.time += h;
+        report
+    }
+}
