@@ -57,6 +57,7 @@ class Simulation:
         slack: str = "auto",
         newton_tolerance: float = 1e-6,
         newton_max_iterations: int = 20,
+        pd_iterations: int = 10,
     ) -> None: ...
     def step(self, n: int) -> int: ...
     positions: npt.NDArray[np.float64]

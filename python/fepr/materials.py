@@ -125,4 +125,28 @@ class StableNeoHookean(_Material):
         _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
 
 
+@dataclass(frozen=True)
+class Arap(_Material):
+    """The Projective Dynamics strain energy (as-rigid-as-possible): ``Psi = mu |F - R(F)|_F^2``.
+
+    ``R(F)`` is the rotation of the polar decomposition. This is the energy the ``"projective_dynamics"``
+    integrator minimises (Bouaziz et al. 2014), so with FEPR it is the energy that is conserved. Only the shear
+    modulus ``mu = E / (2 (1 + nu))`` enters; the energy has no volume term.
+
+    Parameters
+    ----------
+    youngs_modulus : float
+        Young's modulus E, Pa (> 0).
+    poisson_ratio : float
+        Poisson ratio nu, -1 < nu < 0.5.
+    """
+
+    youngs_modulus: float
+    poisson_ratio: float
+    model = "arap"
+
+    def __post_init__(self):
+        _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
+
+
 Material = _Material

@@ -14,9 +14,10 @@ use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
 use fepr_core::integrators::{integrator_by_name, INTEGRATOR_NAMES};
 use fepr_core::invariants::measure;
 use fepr_core::linalg::Vec3;
-use fepr_core::material::{Hyperelastic, Material, NeoHookean, StableNeoHookean};
+use fepr_core::material::{Arap, Hyperelastic, Material, NeoHookean, StableNeoHookean};
 use fepr_core::mesh::{MassSpec, TetMesh};
 use fepr_core::model::{ModelBuilder, State};
+use fepr_core::pd::{PdSettings, ProjectiveDynamics};
 use fepr_core::projection::{ActiveRows, ProjectionReport, ProjectionSettings, Projector, Slack};
 use fepr_core::simulation::{Simulation as CoreSimulation, StepDiagnostics};
 use fepr_core::FeprError;
@@ -96,8 +97,11 @@ fn make_material(
         "stable_neo_hookean" => Ok(Material::StableNeoHookean(
             StableNeoHookean::new(youngs_modulus, poisson_ratio).map_err(value_error)?,
         )),
+        "arap" => Ok(Material::Arap(
+            Arap::new(youngs_modulus, poisson_ratio).map_err(value_error)?,
+        )),
         other => Err(PyValueError::new_err(format!(
-            "material: unknown model '{other}' (known: neo_hookean, stable_neo_hookean)"
+            "material: unknown model '{other}' (known: neo_hookean, stable_neo_hookean, arap)"
         ))),
     }
 }
@@ -279,7 +283,7 @@ impl Simulation {
         vertices, tets, *, material, youngs_modulus, poisson_ratio, j0, mass_kind, mass_value, node_masses,
         integrator, dt, projection, tolerance, max_iterations, rows, c_eps, regularization, max_halvings,
         impact_bound, gravity, pinned, damping, threads, slack = "auto", newton_tolerance = 1e-6,
-        newton_max_iterations = 20
+        newton_max_iterations = 20, pd_iterations = 10
     ))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -309,6 +313,7 @@ impl Simulation {
         slack: &str,
         newton_tolerance: f64,
         newton_max_iterations: usize,
+        pd_iterations: usize,
     ) -> PyResult<Self> {
         let (mesh, _) = build_mesh(&vertices, &tets)?;
         let mat = make_material(material, youngs_modulus, poisson_ratio, j0)?;
@@ -335,6 +340,13 @@ impl Simulation {
                     tolerance: newton_tolerance,
                     max_iterations: newton_max_iterations,
                     project_psd: true,
+                })
+                .map_err(value_error)?,
+            ),
+            "projective_dynamics" => Box::new(
+                ProjectiveDynamics::new(PdSettings {
+                    iterations: pd_iterations,
+                    tolerance: None,
                 })
                 .map_err(value_error)?,
             ),
