@@ -508,10 +508,12 @@ def test_meshio_mixed_cells_keep_only_tets(tmp_path, name, kwargs):
         cells.append(("vertex", np.array([[0], [5]])))
     path = tmp_path / name
     _meshio_write(path, v, cells, **kwargs)
-    rv, rt = read_meshio(path)
+    with pytest.warns(UserWarning, match=r"kept 48 tetra cells; dropped 7 triangle, 3 line"):
+        rv, rt = read_meshio(path)
     np.testing.assert_array_equal(rv, v)
     np.testing.assert_array_equal(rt, t)  # both tet blocks, in order
-    assert load_mesh(path).num_tets == len(t)
+    with pytest.warns(UserWarning, match="dropped"):
+        assert load_mesh(path).num_tets == len(t)
 
 
 def test_meshio_tetra10_keeps_corners(tmp_path):
@@ -733,3 +735,128 @@ def test_invalid_scale_or_translate_is_config_error(tmp_path, kwargs, pattern):
     base = _write(tmp_path, NODE0, ELE0)
     with pytest.raises(ConfigError, match=pattern):
         load_mesh(base, **kwargs)
+
+
+# ----------------------------------------------------------------------------------------------------
+# TetGen .face files, appended VTU, mixed cells, writers
+
+
+@needs_shared
+def test_tetgen_face_file_is_allowed_and_ignored():
+    base = SHARED / "seed" / "bunny2.1"
+    via_face = load_mesh(f"{base}.face")
+    np.testing.assert_array_equal(via_face.tets, load_mesh(base).tets)
+    assert f"{base}.face" == via_face.source
+
+
+def test_tetgen_face_path_without_node_file(tmp_path):
+    (tmp_path / "x.1.face").write_text("0 0\n")
+    with pytest.raises(MeshError, match=r"x\.1: file not found"):
+        load_mesh(tmp_path / "x.1.face")
+
+
+def _appended_vtu(points: np.ndarray, tets: np.ndarray, encoding: str, header: str) -> bytes:
+    """A VTU file with all arrays in one <AppendedData> block (what ParaView writes), made by hand."""
+    import base64
+
+    htype = {"UInt32": "<u4", "UInt64": "<u8"}[header]
+    arrays = [
+        ("Float64", "Points", 3, points.astype("<f8")),
+        ("Int64", "connectivity", 1, tets.astype("<i8").ravel()),
+        ("Int64", "offsets", 1, (4 * np.arange(1, len(tets) + 1)).astype("<i8")),
+        ("UInt8", "types", 1, np.full(len(tets), 10, dtype="u1")),
+    ]
+    blob, xml, offset = b"", [], 0
+    for dtype, name, ncomp, data in arrays:
+        raw = data.tobytes()
+        chunk = np.array([len(raw)], dtype=htype).tobytes() + raw
+        if encoding == "base64":
+            chunk = base64.b64encode(np.array([len(raw)], dtype=htype).tobytes()) + base64.b64encode(raw)
+        comps = f' NumberOfComponents="{ncomp}"' if ncomp > 1 else ""
+        xml.append(f'<DataArray type="{dtype}" Name="{name}"{comps} format="appended" offset="{offset}"/>')
+        blob += chunk
+        offset += len(chunk)
+    head = (
+        f'<?xml version="1.0"?>\n<VTKFile type="UnstructuredGrid" version="1.0" byte_order="LittleEndian" '
+        f'header_type="{header}">\n<UnstructuredGrid>\n'
+        f'<Piece NumberOfPoints="{len(points)}" NumberOfCells="{len(tets)}">\n'
+        f"<Points>\n{xml[0]}\n</Points>\n<Cells>\n" + "\n".join(xml[1:]) + "\n</Cells>\n</Piece>\n"
+        f'</UnstructuredGrid>\n<AppendedData encoding="{encoding}">\n_'
+    )
+    return head.encode() + blob + b"\n</AppendedData>\n</VTKFile>\n"
+
+
+@pytest.mark.parametrize("encoding", ["raw", "base64"])
+@pytest.mark.parametrize("header", ["UInt32", "UInt64"])
+def test_vtu_appended_data_round_trip(tmp_path, encoding, header):
+    v, t = _box_arrays()
+    path = tmp_path / "appended.vtu"
+    path.write_bytes(_appended_vtu(v, t, encoding, header))
+    rv, rt = read_meshio(path)
+    np.testing.assert_array_equal(rv, v)
+    np.testing.assert_array_equal(rt, t)
+
+
+@pytest.mark.parametrize("compression", [None, "zlib", "lzma"])
+def test_vtu_binary_compressions_round_trip(tmp_path, compression):
+    v, t = _box_arrays()
+    path = tmp_path / "c.vtu"
+    _meshio_write(path, v, [("tetra", t)], binary=True, compression=compression)
+    rv, rt = read_meshio(path)
+    np.testing.assert_array_equal(rv, v)
+    np.testing.assert_array_equal(rt, t)
+
+
+def test_mixed_cells_warning_lists_dropped_types_and_counts(tmp_path):
+    v, t = _box_arrays()
+    cells = [("triangle", t[:7, :3]), ("tetra", t[:20]), ("line", t[:3, :2]), ("tetra", t[20:])]
+    cells.append(("triangle", t[:2, :3]))
+    path = tmp_path / "mixed.msh"
+    _meshio_write(path, v, cells, file_format="gmsh22", binary=False)
+    with pytest.warns(UserWarning, match=r"mixed\.msh: kept 48 tetra cells; dropped 9 triangle, 3 line cells"):
+        load_mesh(path)
+
+
+def test_only_tets_no_warning(tmp_path):
+    v, t = _box_arrays()
+    path = tmp_path / "pure.vtu"
+    _meshio_write(path, v, [("tetra", t)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mesh(path)
+
+
+@pytest.mark.parametrize("name", ["w.msh", "w.vtu", "w.vtk", "w.mesh", "w.meshb", "w.npz", "w.1.node", "w.1.ele"])
+def test_write_mesh_round_trip_is_exact(tmp_path, name):
+    from fepr.io import read_arrays, write_mesh
+
+    v, t = _box_arrays()
+    written = write_mesh((v, t), tmp_path / name)
+    assert all(p.is_file() for p in written)
+    rv, rt = read_arrays(tmp_path / name)
+    np.testing.assert_array_equal(rv, v)
+    np.testing.assert_array_equal(rt, t)
+    mesh = load_mesh(tmp_path / name)
+    np.testing.assert_array_equal(mesh.vertices, v)
+
+
+def test_write_mesh_errors(tmp_path):
+    from fepr.io import write_mesh
+
+    with pytest.raises(ConfigError, match=r"cannot write extension '\.obj'"):
+        write_mesh(load_mesh_box(), tmp_path / "x.obj")
+    with pytest.raises(ConfigError, match="TetMesh or a"):
+        write_mesh(42, tmp_path / "x.msh")
+
+
+def load_mesh_box():
+    from fepr import meshes
+
+    return meshes.box()
+
+
+def test_surface_file_given_to_load_mesh_says_tetrahedralize(tmp_path):
+    path = tmp_path / "ball.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=r"ball\.obj: '\.obj' is a surface format .*fepr\.tetrahedralize"):
+        load_mesh(path)

@@ -249,8 +249,9 @@ def test_huge_resolution_is_refused_before_allocating(func, kwargs):
 
 
 def test_builtin_registry():
-    assert set(meshes.BUILTIN) == {"box", "ell"}
+    assert set(meshes.BUILTIN) == {"box", "ell", "sphere", "cylinder"}
     assert meshes.BUILTIN["box"] is meshes.box and meshes.BUILTIN["ell"] is meshes.ell
+    assert meshes.BUILTIN["sphere"] is meshes.sphere and meshes.BUILTIN["cylinder"] is meshes.cylinder
     a = meshes.builtin("box", size=(1.0, 2.0, 3.0), resolution=2)
     b = meshes.box(size=(1.0, 2.0, 3.0), resolution=2)
     np.testing.assert_array_equal(a.vertices, b.vertices)
@@ -260,9 +261,9 @@ def test_builtin_registry():
 
 def test_builtin_unknown_name_lists_known_ones():
     with pytest.raises(ConfigError) as info:
-        meshes.builtin("sphere")
+        meshes.builtin("torus")
     msg = str(info.value)
-    assert "'sphere'" in msg and "box" in msg and "ell" in msg
+    assert "'torus'" in msg and "box" in msg and "ell" in msg and "sphere" in msg and "cylinder" in msg
 
 
 def test_builtin_unknown_parameter():
@@ -270,3 +271,99 @@ def test_builtin_unknown_parameter():
         meshes.builtin("ell", radius=1.0)
     with pytest.raises(ConfigError, match="resolution"):
         meshes.builtin("box", resolution=0)
+
+
+# ----------------------------------------------------------------------------------------------------
+# sphere and cylinder (procedural: no mesher needed)
+
+
+def _closed_manifold_boundary(mesh: TetMesh) -> np.ndarray:
+    """Boundary triangles, asserting that the boundary is closed, consistently outward and genus 0."""
+    tri = _boundary(mesh)
+    directed = Counter()
+    for a, b, c in tri.tolist():
+        directed[(a, b)] += 1
+        directed[(b, c)] += 1
+        directed[(c, a)] += 1
+    assert all(n == 1 for n in directed.values())
+    assert all((b, a) in directed for (a, b) in directed)
+    nverts = len(np.unique(tri))
+    assert nverts - len(directed) // 2 + len(tri) == 2
+    return tri
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 8])
+def test_sphere_counts_orientation_and_surface(n):
+    mesh = _build(meshes.sphere, radius=0.5, resolution=n)
+    assert (mesh.num_vertices, mesh.num_tets) == ((n + 1) ** 3, 6 * n**3)
+    _check_vertices(mesh)
+    assert np.all(_signed_volumes(mesh) > 0)
+    tri = _closed_manifold_boundary(mesh)
+    on_surface = np.unique(tri)
+    np.testing.assert_allclose(np.linalg.norm(mesh.vertices[on_surface], axis=1), 0.5, rtol=1e-12)
+    inside = np.setdiff1d(np.arange(mesh.num_vertices), on_surface)
+    assert np.all(np.linalg.norm(mesh.vertices[inside], axis=1) < 0.5 - 1e-9)
+
+
+def test_sphere_volume_quality_and_symmetry():
+    mesh = _build(meshes.sphere, radius=2.0, resolution=8, center=(1.0, -1.0, 0.5))
+    exact = 4.0 / 3.0 * np.pi * 2.0**3
+    assert mesh.volumes().sum() == pytest.approx(exact, rel=0.02)  # inscribed polyhedron: a little smaller
+    assert mesh.volumes().sum() < exact
+    np.testing.assert_allclose(mesh.vertices.mean(axis=0), [1.0, -1.0, 0.5], atol=1e-12)
+    from fepr.mesh_report import mesh_info
+
+    info = mesh_info(mesh)
+    assert info.quality_min > 0.15 and info.quality_median > 0.4 and info.degenerate == 0
+    # the octant-mirrored split is symmetric under x -> -x
+    v = mesh.vertices - [1.0, -1.0, 0.5]
+    keys = {tuple(np.round(p, 12)) for p in v.tolist()}
+    assert {(-x, y, z) for x, y, z in keys} == keys
+
+
+@pytest.mark.parametrize("n, radius, height", [(1, 0.25, 1.0), (4, 0.25, 1.0), (8, 0.5, 0.2), (3, 1.0, 3.0)])
+def test_cylinder(n, radius, height):
+    mesh = _build(meshes.cylinder, radius=radius, height=height, resolution=n)
+    nz = max(1, round(n * height / (2 * radius)))
+    assert (mesh.num_vertices, mesh.num_tets) == ((n + 1) ** 2 * (nz + 1), 6 * n * n * nz)
+    _check_vertices(mesh)
+    assert np.all(_signed_volumes(mesh) > 0)
+    _closed_manifold_boundary(mesh)
+    lo, hi = mesh.bounding_box()
+    assert lo[2] == pytest.approx(-height / 2) and hi[2] == pytest.approx(height / 2)
+    assert np.linalg.norm(mesh.vertices[:, :2], axis=1).max() == pytest.approx(radius)
+    exact = np.pi * radius**2 * height
+    assert mesh.volumes().sum() <= exact
+    if n >= 4:
+        assert mesh.volumes().sum() == pytest.approx(exact, rel=0.03)
+
+
+@pytest.mark.parametrize(
+    "func, kwargs, param",
+    [
+        (meshes.sphere, dict(radius=0.0), "radius"),
+        (meshes.sphere, dict(radius="1"), "radius"),
+        (meshes.sphere, dict(resolution=0), "resolution"),
+        (meshes.sphere, dict(resolution=2.5), "resolution"),
+        (meshes.sphere, dict(center=(0, 0)), "center"),
+        (meshes.sphere, dict(resolution=10_000), "resolution too large"),
+        (meshes.cylinder, dict(radius=-1.0), "radius"),
+        (meshes.cylinder, dict(height=float("nan")), "height"),
+        (meshes.cylinder, dict(resolution=True), "resolution"),
+        (meshes.cylinder, dict(height=1e12, radius=1e-12), "too large"),
+    ],
+)
+def test_sphere_cylinder_invalid_arguments(func, kwargs, param):
+    start = time.perf_counter()
+    with pytest.raises(ConfigError, match=param):
+        func(**kwargs)
+    assert time.perf_counter() - start < 1.0
+
+
+def test_sphere_and_cylinder_through_the_registry():
+    a = meshes.builtin("sphere", radius=0.3, resolution=3)
+    np.testing.assert_array_equal(a.vertices, meshes.sphere(radius=0.3, resolution=3).vertices)
+    b = meshes.builtin("cylinder", height=2.0)
+    assert b.source == "builtin:cylinder"
+    with pytest.raises(ConfigError, match="'size'"):
+        meshes.builtin("sphere", size=1.0)

@@ -337,7 +337,8 @@ def test_builtin_option_that_does_not_apply():
 def test_unknown_builtin_lists_the_known_ones():
     d = minimal()
     d["mesh"] = {"builtin": "teapot"}
-    with pytest.raises(ConfigError, match=r"\[mesh\] builtin: unknown built-in mesh 'teapot' \(known: box, ell"):
+    known = r"\(known: box, cylinder, ell, sphere\)"
+    with pytest.raises(ConfigError, match=r"\[mesh\] builtin: unknown built-in mesh 'teapot' " + known):
         scene_from_dict(d, ".")
 
 

@@ -19,13 +19,24 @@ from . import export, meshes
 from ._core import __version__
 from .errors import ConfigError, FeprError, MeshError, MissingDependencyError, SimulationError
 from .io import load_mesh
-from .materials import NeoHookean, StableNeoHookean
+from .materials import Arap, NeoHookean, StableNeoHookean
 from .mesh import TetMesh
-from .mesh_info import MeshInfo, mesh_info
-from .simulation import Energy, History, ImplicitEuler, Projection, ProjectionReport, Simulation, SymplecticEuler
-from .tetrahedralize import tetrahedralize
+from .mesh_report import MeshInfo, mesh_info
+from .mesher import tetrahedralize
+from .simulation import (
+    Energy,
+    History,
+    ImplicitEuler,
+    Projection,
+    ProjectionReport,
+    ProjectiveDynamics,
+    Simulation,
+    SymplecticEuler,
+)
 
 __all__ = [
+    "Arap",
+    "ProjectiveDynamics",
     "ConfigError",
     "Energy",
     "FeprError",

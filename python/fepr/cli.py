@@ -2,8 +2,9 @@
 
 Commands::
 
-    fepr run SCENE.toml [--steps N] [--out DIR] [--no-projection] [--quiet]
+    fepr run SCENE.toml [--steps N] [--out DIR] [--no-projection] [--export FORMATS] [--export-every K] [--quiet]
     fepr demo [--steps N] [--out DIR] [--quiet]
+    fepr mesh INPUT [-o OUTPUT] [--max-volume V | --edge-length L] [--quality Q] [--mesher M] [--info]
     fepr --version | --help
 
 Exit status: 0 success; 1 an output file could not be written; 2 invalid command line, scene or mesh;
@@ -53,6 +54,16 @@ def _positive_int(text: str) -> int:
     return n
 
 
+def _every(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of steps, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"--export-every must be >= 1, got {n}")
+    return n
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``fepr`` command (subcommands ``run`` and ``demo``)."""
     parser = argparse.ArgumentParser(
@@ -89,6 +100,20 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="turn FEPR off (base integrator only), whatever the scene says",
     )
+    run.add_argument(
+        "--export",
+        default=None,
+        metavar="FORMATS",
+        help="also write the animation to DIR/export/ in these comma-separated formats: vtu (+ .pvd, ParaView), "
+        "obj, ply, glb (Blender), usd (needs usd-core) (default: [export] formats)",
+    )
+    run.add_argument(
+        "--export-every",
+        type=_every,
+        default=None,
+        metavar="K",
+        help="export every K-th step (default: [export] every, or 1)",
+    )
     run.add_argument("--quiet", "-q", action="store_true", help="print only the final summary line")
 
     demo = sub.add_parser(
@@ -108,7 +133,48 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=Path, default=None, metavar="DIR", help="also write each run's diagnostics under DIR"
     )
     demo.add_argument("--quiet", "-q", action="store_true", help="print only the table")
+    _add_mesh_parser(sub)
     return parser
+
+
+def _positive_float(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not (x > 0 and x < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return x
+
+
+def _add_mesh_parser(sub) -> None:
+    mesh = sub.add_parser(
+        "mesh",
+        help="tetrahedralize a surface, convert a tet mesh, or print a mesh report",
+        description="Tetrahedralize a surface (.obj, .off, .stl, .ply) or convert a tet mesh, writing OUTPUT "
+        "(.msh, .vtu, .vtk, .mesh, .meshb, .npz, .node/.ele); with --info print a report of INPUT (or of "
+        'OUTPUT when -o is given). Tetrahedralizing needs the mesh extra: pip install "fepr[mesh]".',
+    )
+    mesh.add_argument("input", metavar="INPUT", help="surface or tet mesh file (a TetGen basename works too)")
+    mesh.add_argument("-o", "--output", type=Path, default=None, metavar="OUTPUT", help="file to write")
+    size = mesh.add_mutually_exclusive_group()
+    size.add_argument(
+        "--max-volume", type=_positive_float, default=None, metavar="V", help="largest tet volume (input units^3)"
+    )
+    size.add_argument(
+        "--edge-length", type=_positive_float, default=None, metavar="L", help="target edge length (input units)"
+    )
+    mesh.add_argument(
+        "--quality",
+        type=_positive_float,
+        default=None,
+        metavar="Q",
+        help="TetGen radius-edge ratio bound, > 1 (default 2.0; smaller: better shaped, more tets)",
+    )
+    mesh.add_argument(
+        "--mesher", choices=("tetgen", "ftetwild"), default="tetgen", help="mesher for surfaces (default tetgen)"
+    )
+    mesh.add_argument("--info", action="store_true", help="print the mesh report (counts, volume, quality, ...)")
 
 
 def _err(msg: str) -> None:
@@ -141,7 +207,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
             last[0] = now
             print(f"  step {done}/{total}  t={float(sim.time):.4g} s", flush=True)
 
-    result = run_scene(scene, steps=steps, out_dir=out, projection=projection, progress=progress)
+    result = run_scene(
+        scene,
+        steps=steps,
+        out_dir=out,
+        projection=projection,
+        progress=progress,
+        export=args.export,
+        export_every=args.export_every,
+    )
     if not args.quiet:
         for w in result.warnings:
             _err(f"warning: {w}")
@@ -150,7 +224,51 @@ def _cmd_run(args: argparse.Namespace) -> int:
     print(result.summary(), flush=True)
     if not args.quiet:
         print(f"wrote {result.diagnostics_path} and {result.state_path}", flush=True)
+        if result.export_dir is not None:
+            print(
+                f"exported {result.export_frames} frames ({', '.join(result.export_formats)}), "
+                f"{result.export_fps:.6g} frames per simulated second, to {result.export_dir}",
+                flush=True,
+            )
     return EXIT_RUNAWAY if result.runaway else EXIT_OK
+
+
+def _cmd_mesh(args: argparse.Namespace) -> int:
+    from .errors import ConfigError
+    from .io import SURFACE_EXTENSIONS, load_mesh, write_mesh
+    from .mesh_report import mesh_info
+
+    src = Path(args.input)
+    surface = src.suffix.lower() in SURFACE_EXTENSIONS
+    sizing = args.max_volume is not None or args.edge_length is not None or args.quality is not None
+    if args.output is None:
+        if not args.info:
+            raise ConfigError("fepr mesh: give -o OUTPUT (a file to write) and/or --info (print a report)")
+        if sizing:
+            raise ConfigError("fepr mesh: --max-volume, --edge-length and --quality need -o OUTPUT")
+        print(mesh_info(src), flush=True)
+        return EXIT_OK
+    if surface:
+        from .mesher import tetrahedralize
+
+        start = time.perf_counter()
+        mesh = tetrahedralize(
+            src, max_volume=args.max_volume, edge_length=args.edge_length, quality=args.quality, mesher=args.mesher
+        )
+        elapsed = time.perf_counter() - start
+        print(f"{src}: {mesh.num_vertices} vertices, {mesh.num_tets} tets ({args.mesher}, {elapsed:.2f} s)", flush=True)
+    else:
+        if sizing:
+            raise ConfigError(
+                f"fepr mesh: {src} is a tet mesh; --max-volume, --edge-length and --quality apply to surfaces "
+                f"({', '.join(SURFACE_EXTENSIONS)})"
+            )
+        mesh = load_mesh(src)
+    written = write_mesh(mesh, args.output)
+    print("wrote " + ", ".join(str(w) for w in written), flush=True)
+    if args.info:
+        print(mesh_info(written[0]), flush=True)
+    return EXIT_OK
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -173,6 +291,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if args.command == "run":
             return _cmd_run(args)
+        if args.command == "mesh":
+            return _cmd_mesh(args)
         return _cmd_demo(args)
     except FeprError as exc:
         _err(f"error: {exc}")

@@ -23,3 +23,10 @@ class SimulationError(FeprError, RuntimeError):
     """
 
     step: "int | None" = None
+
+
+class MissingDependencyError(FeprError, ImportError):
+    """An optional package that a feature needs is not installed (the message says what to install).
+
+    For example :func:`fepr.tetrahedralize` needs the ``mesh`` extra: ``pip install "fepr[mesh]"``.
+    """

@@ -39,6 +39,7 @@ Units are SI throughout: metres, kilograms, seconds, pascals.
 from __future__ import annotations
 
 import math
+import re
 import sys
 import time
 import warnings
@@ -65,6 +66,7 @@ __all__ = [
     "PinBelow",
     "ProjectionSettings",
     "RunResult",
+    "ExportSettings",
     "RunSettings",
     "Scene",
     "WorldSettings",
@@ -78,7 +80,20 @@ Vec3 = Tuple[float, float, float]
 #: Sections of a scene file and the keys each accepts (in documentation order).
 SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
     "scene": ("name", "description"),
-    "mesh": ("path", "builtin", "scale", "translate", "size", "resolution", "center"),
+    "mesh": (
+        "path",
+        "builtin",
+        "scale",
+        "translate",
+        "fit",
+        "rotate",
+        "up_axis",
+        "center",
+        "size",
+        "resolution",
+        "radius",
+        "height",
+    ),
     "material": ("model", "youngs_modulus", "poisson_ratio", "j0"),
     "mass": ("node_mass", "density"),
     "initial": ("scale", "scale_about", "velocity", "angular_velocity", "velocities", "alternating_velocity"),
@@ -95,13 +110,19 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
     ),
     "world": ("gravity", "pinned", "pin_below", "damping"),
     "run": ("steps", "threads"),
+    "export": ("formats", "every"),
 }
 
 MATERIAL_MODELS = ("neo_hookean", "stable_neo_hookean")
 #: Integrator names planned by the design; the ones actually accepted come from the compiled core.
 INTEGRATORS = ("symplectic_euler", "implicit_euler", "projective_dynamics", "xpbd")
 PROJECTION_ROWS = ("auto", "energy", "energy_momentum", "all")
-_BUILTIN_OPTIONS = {"box": ("size", "resolution", "center"), "ell": ("size", "resolution")}
+_BUILTIN_OPTIONS = {
+    "box": ("size", "resolution", "center"),
+    "ell": ("size", "resolution"),
+    "sphere": ("radius", "resolution", "center"),
+    "cylinder": ("radius", "height", "resolution", "center"),
+}
 _AXES = {"x": 0, "y": 1, "z": 2}
 _MISSING = object()
 
@@ -116,8 +137,10 @@ class MeshSettings:
     """``[mesh]``: where the rest shape comes from.
 
     Exactly one of ``path`` (a mesh file, resolved relative to the scene file) and ``builtin`` (a name for
-    :func:`fepr.meshes.builtin`). ``scale`` and ``translate`` map the vertices to ``scale * x + translate``
-    (metres). ``builtin_options`` holds ``size``, ``resolution`` and ``center`` for a builtin mesh.
+    :func:`fepr.meshes.builtin`). The load options ``up_axis``, ``rotate``, ``scale`` or ``fit``, ``center``
+    (``"bbox"`` / ``"centroid"``) and ``translate`` are applied in that order, as by :func:`fepr.load_mesh`.
+    ``builtin_options`` holds ``size``, ``radius``, ``height``, ``resolution`` and ``center`` (a point) for
+    a builtin mesh.
     """
 
     path: Optional[Path] = None
@@ -125,6 +148,15 @@ class MeshSettings:
     builtin_options: Dict[str, Any] = field(default_factory=dict)
     scale: Optional[float] = None
     translate: Optional[Vec3] = None
+    fit: Optional[float] = None
+    rotate: Any = None
+    up_axis: Optional[str] = None
+    center: Optional[str] = None
+
+    def load_options(self) -> Dict[str, Any]:
+        """The load options that were given, as keyword arguments for :func:`fepr.load_mesh`."""
+        names = ("scale", "translate", "fit", "rotate", "up_axis", "center")
+        return {k: getattr(self, k) for k in names if getattr(self, k) is not None}
 
 
 @dataclass
@@ -233,6 +265,15 @@ class RunSettings:
 
 
 @dataclass
+class ExportSettings:
+    """``[export]``: formats written by :func:`run_scene` into ``out_dir/export`` (none by default), every
+    ``every``-th step (see :class:`fepr.export.Recorder`)."""
+
+    formats: Tuple[str, ...] = ()
+    every: int = 1
+
+
+@dataclass
 class Scene:
     """A validated scene. Build a simulation with :meth:`build`; run it with :func:`run_scene`.
 
@@ -249,6 +290,7 @@ class Scene:
     projection: ProjectionSettings = field(default_factory=ProjectionSettings)
     world: WorldSettings = field(default_factory=WorldSettings)
     run: RunSettings = field(default_factory=RunSettings)
+    export: ExportSettings = field(default_factory=ExportSettings)
     description: str = ""
     source: Optional[str] = None
     base_dir: Path = field(default_factory=Path.cwd)
@@ -259,14 +301,14 @@ class Scene:
         return f"{self.source}: " if self.source else ""
 
     def load_mesh(self):
-        """The rest mesh (:class:`fepr.TetMesh`) after ``[mesh] scale`` and ``translate``."""
+        """The rest mesh (:class:`fepr.TetMesh`) after the ``[mesh]`` load options."""
         import fepr
 
         m = self.mesh
         where = self._where()
         if m.path is not None:
             try:
-                return fepr.load_mesh(str(m.path), scale=m.scale, translate=m.translate)
+                return fepr.load_mesh(str(m.path), **m.load_options())
             except MeshError as exc:
                 msg = str(exc)
                 if str(m.path) not in msg and m.path.name not in msg:
@@ -279,11 +321,13 @@ class Scene:
             mesh = meshes.builtin(m.builtin, **m.builtin_options)
         except (ConfigError, MeshError, ValueError, KeyError, TypeError) as exc:
             raise ConfigError(f"{where}[mesh] builtin {m.builtin!r}: {exc}") from None
-        if m.scale is not None or m.translate is not None:
-            mesh = mesh.transformed(
-                scale=1.0 if m.scale is None else m.scale,
-                translate=(0.0, 0.0, 0.0) if m.translate is None else m.translate,
-            )
+        if m.load_options():
+            from .io import transform_mesh
+
+            try:
+                mesh = transform_mesh(mesh, **m.load_options())
+            except ConfigError as exc:
+                raise ConfigError(f"{where}[mesh] {exc}") from None
         return mesh
 
     def make_material(self):
@@ -538,6 +582,10 @@ class _Table:
         return p if p.is_absolute() else (base_dir / p)
 
 
+def _is_number(c: Any) -> bool:
+    return not isinstance(c, bool) and isinstance(c, (int, float)) and math.isfinite(c)
+
+
 def _as_vec3(value: Any, err: Callable[[], ConfigError]) -> Vec3:
     if not isinstance(value, (list, tuple)) or len(value) != 3:
         raise err()
@@ -574,11 +622,46 @@ def _parse_mesh(t: _Table, base_dir: Path) -> MeshSettings:
     ms = MeshSettings(
         scale=t.number("scale", None, positive=True),
         translate=t.vec3("translate", None),
+        fit=t.number("fit", None, positive=True),
+        up_axis=t.string("up_axis", None, choices=("y", "z")),
     )
+    if t.has("rotate"):
+        raw = t.data["rotate"]
+        ok = isinstance(raw, list) and len(raw) == 3
+        if ok and all(isinstance(r, list) for r in raw):
+            ok = all(len(r) == 3 and all(_is_number(c) for c in r) for r in raw)
+            value: Any = tuple(tuple(float(c) for c in r) for r in raw)
+        else:
+            ok = ok and all(_is_number(c) for c in raw)
+            value = tuple(float(c) for c in raw) if ok else None
+        if not ok:
+            raise t.error(f"rotate must be [ax, ay, az] (degrees about x, y, z) or a 3x3 rotation matrix, got {raw!r}")
+        ms.rotate = value
+    center_point = t.has("center") and isinstance(t.data["center"], list)
+    if t.has("center") and not center_point:
+        raw = t.data["center"]
+        if raw is True:
+            raw = "bbox"
+        if raw is False:
+            raw = None
+        if raw is not None and raw not in ("bbox", "centroid"):
+            raise t.error(f'center must be "bbox", "centroid", true, false or (builtins) [x, y, z], got {raw!r}')
+        ms.center = raw
+    from .io.transform import check_load_options
+
+    try:
+        check_load_options(**ms.load_options())
+    except ConfigError as exc:
+        raise t.error(str(exc)) from None
     if has_path:
-        for opt in ("size", "resolution", "center"):
+        for opt in ("size", "resolution", "radius", "height"):
             if t.has(opt):
                 raise t.error(f"{opt} applies to builtin meshes only (this scene gives 'path')")
+        if center_point:
+            raise t.error(
+                'center = [x, y, z] applies to builtin meshes only; for a file use center = "bbox" or '
+                '"centroid" (and translate)'
+            )
         p = t.path("path", base_dir)
         if not _mesh_file_exists(p):
             raise t.error(f"path: mesh file not found: {p}")
@@ -593,8 +676,8 @@ def _parse_mesh(t: _Table, base_dir: Path) -> MeshSettings:
     ms.builtin = name
     allowed = _BUILTIN_OPTIONS.get(name)
     opts: Dict[str, Any] = {}
-    for opt in ("size", "resolution", "center"):
-        if not t.has(opt):
+    for opt in ("size", "radius", "height", "resolution", "center"):
+        if not t.has(opt) or (opt == "center" and not center_point):
             continue
         if allowed is not None and opt not in allowed:
             raise t.error(f"{opt} does not apply to builtin {name!r} (options: {', '.join(allowed)})")
@@ -711,6 +794,21 @@ def _parse_world(t: _Table) -> WorldSettings:
     return w
 
 
+def _parse_export(t: _Table) -> ExportSettings:
+    ex = ExportSettings(every=t.integer("every", 1, minimum=1))
+    if t.has("formats"):
+        raw = t.data["formats"]
+        if not isinstance(raw, list) or not all(isinstance(f, str) for f in raw):
+            raise t.error(f'formats must be a list of format names such as ["vtu", "glb"], got {raw!r}')
+        from .export import parse_formats
+
+        try:
+            ex.formats = parse_formats(raw) if raw else ()
+        except ConfigError as exc:
+            raise t.error(f"formats: {exc}") from None
+    return ex
+
+
 def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, source: Optional[str] = None) -> Scene:
     """Validate a scene given as a dict (the parsed TOML) into a :class:`Scene`.
 
@@ -767,6 +865,7 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
         projection=_parse_projection(table("projection")),
         world=_parse_world(table("world")),
         run=RunSettings(steps=run.integer("steps", 100, minimum=0), threads=run.integer("threads", None, minimum=1)),
+        export=_parse_export(table("export")),
         source=source,
         base_dir=base,
     )
@@ -809,7 +908,9 @@ class RunResult:
     Momentum errors are ``None`` when vertices are pinned (the supports exchange momentum with the body).
     ``base_unstable_step`` is the first step the simulation flagged as a runaway of the base integrator
     (its own energy error above 100%; with FEPR on, the projection may still keep the state bounded), and
-    ``warnings`` the messages of the warnings issued while stepping.
+    ``warnings`` the messages of the warnings issued while stepping. With exports, ``export_dir``,
+    ``export_frames``, ``export_formats`` and ``export_fps`` (frames per simulated second) say what was
+    written; ``wall_s`` leaves out the time spent writing them.
     """
 
     scene: str
@@ -830,6 +931,10 @@ class RunResult:
     diagnostics_path: Optional[Path] = None
     state_path: Optional[Path] = None
     simulation: Any = None
+    export_dir: Optional[Path] = None
+    export_frames: int = 0
+    export_formats: Tuple[str, ...] = ()
+    export_fps: Optional[float] = None
 
     @property
     def ms_per_step(self) -> float:
@@ -958,6 +1063,26 @@ def _projection_on(scene: Scene, override) -> bool:
     return scene.projection.enabled
 
 
+def _export_recorder(scene: Scene, sim, out_dir, export, export_every):
+    """The :class:`fepr.export.Recorder` for ``out_dir/export``, or ``None`` when nothing is exported."""
+    from .export import parse_formats
+
+    formats = scene.export.formats if export is None else parse_formats(export)
+    every = scene.export.every if export_every is None else export_every
+    if not formats:
+        if export_every is not None:
+            raise ConfigError("export_every needs export formats (--export or [export] formats)")
+        return None
+    if out_dir is None:
+        if export is None:
+            return None
+        raise ConfigError("export needs an output folder (out_dir)")
+    from .export import Recorder
+
+    name = re.sub(r"[^A-Za-z0-9_.\-]", "_", scene.name).strip(".") or "frame"
+    return Recorder(sim, Path(out_dir) / "export", formats, every=every, name=name)
+
+
 def run_scene(
     scene: Scene,
     *,
@@ -965,6 +1090,8 @@ def run_scene(
     out_dir: Union[str, Path, None] = None,
     projection=None,
     progress: Optional[Callable[[int, int, Any], None]] = None,
+    export: Union[str, Sequence[str], None] = None,
+    export_every: Optional[int] = None,
 ) -> RunResult:
     """Build and run a scene; optionally write ``diagnostics.csv`` and ``final_state.npz`` to ``out_dir``.
 
@@ -982,6 +1109,13 @@ def run_scene(
     progress : callable, optional
         Called as ``progress(steps_done, steps_total, sim)`` before the first step and after every tenth
         of the run.
+    export : str or sequence of str, optional
+        Export formats (``"vtu,glb"``; :data:`fepr.export.FORMATS`), overriding ``[export] formats``. With
+        formats from either and an ``out_dir``, every ``every``-th step (the initial state first) is written
+        to ``out_dir/export`` by a :class:`fepr.export.Recorder` named after the scene; without ``out_dir``
+        nothing is exported (an explicit ``export`` then raises :class:`fepr.ConfigError`).
+    export_every : int, optional
+        Overrides ``[export] every``.
 
     Returns
     -------
@@ -1009,17 +1143,26 @@ def run_scene(
     chunk = max(1, n // 10)
     done = 0
     start_steps = int(sim.num_steps)
+    recorder = _export_recorder(scene, sim, out_dir, export, export_every)
+    next_report = chunk
     if progress is not None:
         progress(0, n, sim)
     t_start = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
+            if recorder is not None:
+                recorder.record()
             while done < n:
                 k = min(chunk, n - done)
+                if recorder is not None:  # stop at every frame to export
+                    k = min(k, recorder.steps_to_next())
                 sim.step(k)
                 done += k
-                if progress is not None:
+                if recorder is not None:
+                    recorder.record()
+                if progress is not None and (done >= next_report or done == n):
+                    next_report = (done // chunk + 1) * chunk
                     progress(done, n, sim)
         except SimulationError as exc:
             completed = int(sim.num_steps) - start_steps
@@ -1027,7 +1170,16 @@ def run_scene(
             result.runaway_step = int(step_attr) if isinstance(step_attr, int) else int(sim.num_steps) + 1
             result.runaway_message = str(exc)
             done = completed
+        finally:
+            if recorder is not None:
+                recorder.close()
     result.wall_s = time.perf_counter() - t_start
+    if recorder is not None:  # the time spent writing exports is not simulation time
+        result.wall_s = max(result.wall_s - recorder.write_s, 0.0)
+        result.export_dir = recorder.out_dir
+        result.export_frames = recorder.num_frames
+        result.export_formats = recorder.formats
+        result.export_fps = recorder.fps
     result.warnings = [str(w.message) for w in caught]
     # The base step alone was unstable when its energy error exceeded 100% of the energy scale, whether or
     # not a converged projection rescued the step.

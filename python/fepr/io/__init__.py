@@ -1,4 +1,4 @@
-"""Reading tetrahedral meshes from files.
+"""Reading and writing meshes.
 
 :func:`load_mesh` picks the reader from the file extension and returns a validated
 :class:`~fepr.mesh.TetMesh`:
@@ -7,22 +7,27 @@
 extension                       format and reader
 ==============================  ==========================================================================
 ``.node`` / ``.ele`` / basename TetGen, read natively (:func:`read_tetgen`); ``"ellell.1"`` means
-                                ``ellell.1.node`` + ``ellell.1.ele``
+                                ``ellell.1.node`` + ``ellell.1.ele`` (a ``.face`` file beside them is
+                                ignored; its path may be given too)
 ``.msh``                        Gmsh 2.2 or 4.1, ASCII or binary (meshio, :func:`read_meshio`)
-``.vtk`` / ``.vtu``             VTK legacy / VTK XML unstructured grid (meshio)
+``.vtk`` / ``.vtu``             VTK legacy / VTK XML unstructured grid (ASCII, binary, appended) (meshio)
 ``.mesh`` / ``.meshb``          Medit (meshio)
 ``.npz``                        NumPy archive with ``vertices`` (or ``rest_positions`` / ``positions``) and
                                 ``tets`` (:func:`read_npz`)
 ==============================  ==========================================================================
 
+Surfaces (``.obj``, ``.off``, ``.stl``, ``.ply``) are read by :func:`read_surface`; turn them into tets with
+:func:`fepr.tetrahedralize`. :func:`write_mesh` writes tet meshes.
+
 Example
 -------
 >>> from fepr.io import load_mesh
->>> mesh = load_mesh("meshes/bunny.msh", scale=0.1)        # doctest: +SKIP
->>> mesh.num_vertices, mesh.num_tets                       # doctest: +SKIP
+>>> mesh = load_mesh("meshes/bunny.msh", fit=0.3, center="bbox")   # doctest: +SKIP
+>>> mesh.num_vertices, mesh.num_tets                               # doctest: +SKIP
 (4670, 19379)
 
-Every failure is a :class:`~fepr.errors.MeshError` that names the file (and, for TetGen files, the line).
+Every failure is a :class:`~fepr.errors.MeshError` that names the file (and, for line-based formats, the
+line); invalid load options are :class:`~fepr.errors.ConfigError` naming the option.
 """
 
 from __future__ import annotations
@@ -33,19 +38,34 @@ from typing import Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .._validate import real
-from ..errors import ConfigError, MeshError
+from ..errors import MeshError
 from ..mesh import TetMesh
 from .meshio_formats import MESHIO_FORMATS, read_meshio
 from .npz import read_npz
+from .surface import SURFACE_EXTENSIONS, read_surface
 from .tetgen import read_tetgen, tetgen_paths
+from .transform import LoadOptions, apply_load_options, check_load_options
+from .writers import WRITE_EXTENSIONS, write_mesh
 
-__all__ = ["SUPPORTED_EXTENSIONS", "load_mesh", "read_meshio", "read_npz", "read_tetgen", "read_arrays"]
+__all__ = [
+    "SUPPORTED_EXTENSIONS",
+    "SURFACE_EXTENSIONS",
+    "WRITE_EXTENSIONS",
+    "LoadOptions",
+    "load_mesh",
+    "read_arrays",
+    "read_meshio",
+    "read_npz",
+    "read_surface",
+    "read_tetgen",
+    "transform_mesh",
+    "write_mesh",
+]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
 #: Extensions :func:`load_mesh` understands (lower case); a TetGen basename without extension works too.
-SUPPORTED_EXTENSIONS: Tuple[str, ...] = (".node", ".ele", *MESHIO_FORMATS, ".npz")
+SUPPORTED_EXTENSIONS: Tuple[str, ...] = (".node", ".ele", ".face", *MESHIO_FORMATS, ".npz")
 
 _SUPPORTED_TEXT = (
     ".node/.ele (TetGen; or their basename without extension), .msh (Gmsh 2.2/4.1), .vtk, .vtu (VTK), "
@@ -63,7 +83,7 @@ def read_arrays(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
     except TypeError:
         raise MeshError(f"mesh path must be a string or os.PathLike, got {type(path).__name__}") from None
     suffix = p.suffix.lower()
-    if suffix in (".node", ".ele"):
+    if suffix in (".node", ".ele", ".face"):
         return read_tetgen(p)
     if suffix in MESHIO_FORMATS:
         return read_meshio(p)
@@ -72,6 +92,12 @@ def read_arrays(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
     node_path, ele_path = tetgen_paths(p)
     if node_path.is_file() or ele_path.is_file():
         return read_tetgen(p)
+    if p.exists() and suffix in SURFACE_EXTENSIONS:
+        raise MeshError(
+            f"{p}: {p.suffix!r} is a surface format (triangles, no tetrahedra); tetrahedralize it first with "
+            f'fepr.tetrahedralize("{p.name}") or `fepr mesh {p.name} -o {p.stem}.msh`. Tet mesh formats: '
+            f"{_SUPPORTED_TEXT}"
+        )
     if p.exists():
         kind = "directory" if p.is_dir() else f"extension {p.suffix!r}" if p.suffix else "no extension"
         raise MeshError(f"{p}: unsupported mesh file ({kind}); supported: {_SUPPORTED_TEXT}")
@@ -85,8 +111,12 @@ def load_mesh(
     *,
     scale: Optional[float] = None,
     translate: Optional[Sequence[float]] = None,
+    fit: Optional[float] = None,
+    rotate=None,
+    up_axis: Optional[str] = None,
+    center: Union[str, bool, None] = None,
 ) -> TetMesh:
-    """Load a tetrahedral mesh from a file and validate it.
+    """Load a tetrahedral mesh from a file, place it in fepr's frame and validate it.
 
     Parameters
     ----------
@@ -94,9 +124,22 @@ def load_mesh(
         The mesh file; the format is chosen by extension (see the module docs). For TetGen, the ``.node``
         file, the ``.ele`` file or their common basename.
     scale : float, optional
-        Uniform scale factor (> 0) applied to the file's coordinates, e.g. to convert to metres.
+        Uniform scale factor (> 0) applied to the file's coordinates, e.g. 0.01 for a file in centimetres.
     translate : sequence of 3 floats, optional
-        Offset in metres added after scaling: the vertices are ``scale * x + translate``.
+        Offset in metres, added last.
+    fit : float, optional
+        Target size in metres: the mesh is scaled so that the largest extent of its bounding box is ``fit``
+        (instead of ``scale``; at most one of the two).
+    rotate : 3 floats or 3x3 array, optional
+        Angles in degrees about x, then y, then z (``R = Rz @ Ry @ Rx``), or a rotation matrix.
+    up_axis : {"y", "z"}, optional
+        The file's up axis: ``"y"`` turns a Y-up file (OBJ, glTF, many game assets) into fepr's Z-up frame.
+    center : {"bbox", "centroid"} or bool, optional
+        Move the bounding-box centre (``"bbox"`` or ``True``) or the volume centroid (``"centroid"``) to the
+        origin.
+
+    The options are applied in this order: ``up_axis``, ``rotate``, ``scale`` / ``fit``, ``center``,
+    ``translate`` (see :mod:`fepr.io.transform`).
 
     Returns
     -------
@@ -109,31 +152,31 @@ def load_mesh(
         The file is missing, unsupported or malformed, or the mesh is invalid (the message names the file
         and the problem).
     ConfigError
-        ``scale`` or ``translate`` is invalid.
+        A load option is invalid (the message names it).
     """
-    factor = _check_scale(scale)
-    offset = _check_translate(translate)
+    options = check_load_options(
+        scale=scale, translate=translate, fit=fit, rotate=rotate, up_axis=up_axis, center=center
+    )
     vertices, tets = read_arrays(path)
-    if factor is not None:
-        vertices = vertices * factor
-    if offset is not None:
-        vertices = vertices + offset
+    vertices = apply_load_options(vertices, tets, options)
     return TetMesh(vertices, tets, source=os.fspath(path))
 
 
-def _check_scale(scale) -> Optional[float]:
-    return None if scale is None else real(scale, "scale", lo=0, lo_open=True)
-
-
-def _check_translate(translate) -> Optional[np.ndarray]:
-    if translate is None:
-        return None
-    try:
-        offset = np.asarray(translate, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ConfigError(f"translate must be 3 numbers (metres), got {translate!r}") from None
-    if offset.shape != (3,):
-        raise ConfigError(f"translate must be 3 numbers (metres), got shape {offset.shape}")
-    if not np.all(np.isfinite(offset)):
-        raise ConfigError(f"translate must be finite, got {translate!r}")
-    return offset
+def transform_mesh(
+    mesh: TetMesh,
+    *,
+    scale: Optional[float] = None,
+    translate: Optional[Sequence[float]] = None,
+    fit: Optional[float] = None,
+    rotate=None,
+    up_axis: Optional[str] = None,
+    center: Union[str, bool, None] = None,
+) -> TetMesh:
+    """A copy of ``mesh`` with the load options of :func:`load_mesh` applied (same meaning and order)."""
+    options = check_load_options(
+        scale=scale, translate=translate, fit=fit, rotate=rotate, up_axis=up_axis, center=center
+    )
+    if options.is_identity():
+        return mesh
+    vertices = apply_load_options(np.asarray(mesh.vertices), np.asarray(mesh.tets), options)
+    return TetMesh(vertices, mesh.tets, source=mesh.source)

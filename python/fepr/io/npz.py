@@ -14,6 +14,7 @@ from typing import Tuple, Union
 import numpy as np
 
 from ..errors import MeshError
+from ._checks import check_duplicate_tets
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -67,4 +68,6 @@ def read_npz(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
         raise MeshError(f"{p}: array 'tets' must have shape (k, 4), got {tets.shape}")
     if not np.issubdtype(tets.dtype, np.integer):
         raise MeshError(f"{p}: array 'tets' must hold integer vertex indices, got dtype {tets.dtype}")
-    return np.ascontiguousarray(vertices, dtype=np.float64), np.ascontiguousarray(tets, dtype=np.int64)
+    tets = np.ascontiguousarray(tets, dtype=np.int64)
+    check_duplicate_tets(p, tets)
+    return np.ascontiguousarray(vertices, dtype=np.float64), tets

@@ -30,6 +30,7 @@ from typing import Dict, List, Tuple, Union
 import numpy as np
 
 from ..errors import MeshError
+from ._checks import check_duplicate_tets
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -43,6 +44,10 @@ def tetgen_paths(path: PathLike) -> Tuple[Path, Path]:
     """
     p = Path(os.fspath(path))
     suffix = p.suffix
+    if suffix.lower() == ".face":  # the boundary file written beside them: read and ignored
+        return p.with_suffix(".node" if suffix.islower() else ".NODE"), p.with_suffix(
+            ".ele" if suffix.islower() else ".ELE"
+        )
     if suffix.lower() == ".node":
         return p, p.with_suffix(".ele" if suffix.islower() else ".ELE")
     if suffix.lower() == ".ele":
@@ -56,8 +61,9 @@ def read_tetgen(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
     Parameters
     ----------
     path : str or os.PathLike
-        The ``.node`` file, the ``.ele`` file, or the common basename without extension (e.g. ``"ellell.1"``);
-        both files must exist.
+        The ``.node`` file, the ``.ele`` file, the ``.face`` file, or the common basename without extension
+        (e.g. ``"ellell.1"``); the ``.node`` and ``.ele`` files must exist. A ``.face`` file (the boundary
+        triangles TetGen writes) is allowed beside them and ignored: the boundary follows from the tets.
 
     Returns
     -------
@@ -69,11 +75,15 @@ def read_tetgen(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
     Raises
     ------
     MeshError
-        If a file is missing, empty, truncated or malformed; the message names the file and line.
+        If a file is missing, empty, truncated or malformed, or two tets use the same four nodes; the message
+        names the file and line.
     """
     given = Path(os.fspath(path))
     node_path, ele_path = tetgen_paths(given)
     suffix = given.suffix.lower()
+    if suffix == ".face":
+        suffix = ""
+        given = given.with_suffix("")
     node_exists, ele_exists = node_path.is_file(), ele_path.is_file()
     if suffix == ".node":
         if not node_exists:
@@ -254,7 +264,9 @@ def _read_ele(path: Path, numbers: List[int]) -> np.ndarray:
 
     ntok = 1 + npt + nattr
     rows: List[int] = []
+    lines: List[int] = []
     for lineno, tokens in data:
+        lines.append(lineno)
         if len(tokens) != ntok:
             raise MeshError(
                 f"{path} line {lineno}: expected {ntok} values (element number, {npt} node numbers"
@@ -277,4 +289,6 @@ def _read_ele(path: Path, numbers: List[int]) -> np.ndarray:
                 rows.append(row)
         for token in tokens[1 + npt :]:
             _float(path, lineno, token, f"attribute of element {number}")
-    return np.array(rows, dtype=np.int64).reshape(k, 4)
+    tets = np.array(rows, dtype=np.int64).reshape(k, 4)
+    check_duplicate_tets(path, tets, lines)
+    return tets
