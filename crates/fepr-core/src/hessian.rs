@@ -20,8 +20,8 @@ use crate::sparse::LowerPattern;
 /// A 12 x 12 element matrix, row-major, index `3 * corner + axis`.
 pub type ElementMatrix = [f64; 144];
 
-/// Shape-function gradients `g_0..g_3` of tet `e` in its rest configuration.
-fn shape_gradients(model: &Model, e: usize) -> [Vec3; 4] {
+/// Shape-function gradients `g_0..g_3` of tet `e` in its rest configuration (`dF/dx_a = g_a`).
+pub fn shape_gradients(model: &Model, e: usize) -> [Vec3; 4] {
     let d = &model.rest.dm_inv[e];
     let g1 = d[0];
     let g2 = d[1];

@@ -13,7 +13,7 @@
 use crate::elasticity::{elastic_energy, elastic_energy_gradient, ElasticWorkspace};
 use crate::error::{invalid, Result};
 use crate::hessian::HessianAssembler;
-use crate::integrators::{Integrator, StepReport};
+use crate::integrators::{finish_positional_step, Integrator, StepReport};
 use crate::linalg::{dot, scale, Vec3};
 use crate::model::{Model, State};
 use crate::sparse::SparseCholesky;
@@ -241,18 +241,7 @@ impl Integrator for ImplicitEuler {
             }
             std::mem::swap(&mut x, &mut self.x_trial);
         }
-        let inv_h = 1.0 / h;
-        for i in 0..m {
-            if model.pinned[i] {
-                state.v[i] = [0.0; 3];
-                continue;
-            }
-            for a in 0..3 {
-                state.v[i][a] = (x[i][a] - x_n[i][a]) * inv_h;
-            }
-            state.x[i] = x[i];
-        }
-        state.time += h;
+        finish_positional_step(model, state, &x, &x_n, h);
         report
     }
 }

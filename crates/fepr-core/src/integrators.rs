@@ -110,6 +110,23 @@ impl Integrator for SymplecticEuler {
     }
 }
 
+/// End a step of a position-based integrator (backward Euler, Projective Dynamics): the new positions
+/// `x`, velocities `(x - x_n) / h`; pinned vertices keep their position and zero velocity; time advances.
+pub fn finish_positional_step(model: &Model, state: &mut State, x: &[Vec3], x_n: &[Vec3], h: f64) {
+    let inv_h = 1.0 / h;
+    for i in 0..model.num_vertices() {
+        if model.pinned[i] {
+            state.v[i] = [0.0; 3];
+            continue;
+        }
+        for a in 0..3 {
+            state.v[i][a] = (x[i][a] - x_n[i][a]) * inv_h;
+        }
+        state.x[i] = x[i];
+    }
+    state.time += h;
+}
+
 /// Integrator names known to [`integrator_by_name`].
 pub const INTEGRATOR_NAMES: &[&str] =
     &["symplectic_euler", "implicit_euler", "projective_dynamics"];

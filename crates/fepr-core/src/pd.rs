@@ -15,7 +15,8 @@ use rayon::prelude::*;
 
 use crate::elasticity::deformation_gradient;
 use crate::error::{invalid, FeprError, Result};
-use crate::integrators::{Integrator, StepReport};
+use crate::hessian::shape_gradients;
+use crate::integrators::{finish_positional_step, Integrator, StepReport};
 use crate::linalg::{polar_rotation, scale, Vec3};
 use crate::material::Material;
 use crate::model::{Model, State};
@@ -66,20 +67,6 @@ impl std::fmt::Debug for ProjectiveDynamics {
             .field("settings", &self.settings)
             .finish()
     }
-}
-
-fn shape_gradients(model: &Model, e: usize) -> [Vec3; 4] {
-    let d = &model.rest.dm_inv[e];
-    [
-        [
-            -(d[0][0] + d[1][0] + d[2][0]),
-            -(d[0][1] + d[1][1] + d[2][1]),
-            -(d[0][2] + d[1][2] + d[2][2]),
-        ],
-        d[0],
-        d[1],
-        d[2],
-    ]
 }
 
 impl ProjectiveDynamics {
@@ -291,18 +278,7 @@ impl Integrator for ProjectiveDynamics {
                 }
             }
         }
-        let inv_h = 1.0 / h;
-        for i in 0..m {
-            if model.pinned[i] {
-                state.v[i] = [0.0; 3];
-                continue;
-            }
-            for a in 0..3 {
-                state.v[i][a] = (x[i][a] - x_n[i][a]) * inv_h;
-            }
-            state.x[i] = x[i];
-        }
-        state.time += h;
+        finish_positional_step(model, state, &x, &x_n, h);
         report
     }
 }

@@ -84,3 +84,52 @@ pub fn rel(a: f64, b: f64) -> f64 {
 pub fn norm(v: [f64; 3]) -> f64 {
     (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
 }
+
+/// The procedural L stretched 1.3x about its centre of mass, spinning at 1 rad/s about z and drifting at
+/// (0.5, 0.2, 0.1) m/s, run for `steps` steps of 1/30 s with `integrator`; returns the initial invariants and
+/// the history.
+pub fn spinning_ell_run(
+    material: Material,
+    integrator: Box<dyn fepr_core::integrators::Integrator>,
+    project: bool,
+    steps: usize,
+) -> (
+    fepr_core::invariants::Invariants,
+    Vec<fepr_core::simulation::StepDiagnostics>,
+) {
+    let model = model(ell_mesh(), material, 5.0, [0.0; 3]);
+    let mut state = State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+    scaled(&mut state, 1.3, c);
+    for (x, v) in state.x.iter().zip(state.v.iter_mut()) {
+        *v = [0.5 - (x[1] - c[1]), 0.2 + (x[0] - c[0]), 0.1];
+    }
+    let proj = project.then(|| Projector::new(ProjectionSettings::default()).unwrap());
+    let mut sim = Simulation::new(model, state, integrator, 1.0 / 30.0, proj).unwrap();
+    let d0 = sim.history()[0].invariants;
+    for _ in 0..steps {
+        sim.step().unwrap();
+    }
+    (d0, sim.history().to_vec())
+}
+
+/// Largest relative drifts of H, P and L over a history, asserting that every projection converged.
+pub fn max_drifts(
+    d0: &fepr_core::invariants::Invariants,
+    hist: &[fepr_core::simulation::StepDiagnostics],
+) -> (f64, f64, f64) {
+    let (mut dh, mut dp, mut dl): (f64, f64, f64) = (0.0, 0.0, 0.0);
+    for d in &hist[1..] {
+        if let Some(p) = d.projection {
+            assert!(p.converged, "step {}: {p:?}", d.step);
+        }
+        let i = &d.invariants;
+        dh = dh.max(rel(i.total, d0.total));
+        dp = dp.max(norm([0, 1, 2].map(|a| i.momentum[a] - d0.momentum[a])) / norm(d0.momentum));
+        dl = dl.max(
+            norm([0, 1, 2].map(|a| i.angular_momentum[a] - d0.angular_momentum[a]))
+                / norm(d0.angular_momentum),
+        );
+    }
+    (dh, dp, dl)
+}
