@@ -58,6 +58,7 @@ class Simulation:
         newton_tolerance: float = 1e-6,
         newton_max_iterations: int = 20,
         pd_iterations: int = 10,
+        warm_start_threshold: float = ...,
     ) -> None: ...
     def step(self, n: int) -> int: ...
     positions: npt.NDArray[np.float64]

@@ -50,6 +50,11 @@ class Projection:
         When the slack variables s and t may move: ``"auto"`` (only in steps with impulsive events whose
         impulses are uncertain, such as contact), ``"on"`` or ``"off"``. With slack the projection may keep part
         of the base step's own momentum change instead of the target.
+    warm_start : float or None
+        Opt-in (default None: off). Scaled energy error above which the projection first rescales the velocities
+        relative to the centre-of-mass velocity to meet the energy (the closest point with positions fixed), then
+        iterates. It helps when a dissipative step at a large dt removed most of H in one step; the result is then a
+        nearby point on the constraint manifold rather than the closest one.
     """
 
     tolerance: float = 1e-10
@@ -60,6 +65,7 @@ class Projection:
     max_halvings: int = 4
     impact_bound: Optional[float] = None
     slack: str = "auto"
+    warm_start: Optional[float] = None
 
     def __post_init__(self):
         real(self.tolerance, "projection tolerance", lo=0, hi=1, lo_open=True, hi_open=True)
@@ -71,6 +77,8 @@ class Projection:
         integer(self.max_halvings, "projection max_halvings", lo=0, hi=60)
         if self.impact_bound is not None:
             real(self.impact_bound, "projection impact_bound", lo=0, lo_open=True)
+        if self.warm_start is not None:
+            real(self.warm_start, "projection warm_start", lo=0, lo_open=True)
         if self.slack not in ("auto", "on", "off"):
             raise ConfigError(f"projection slack must be 'auto', 'on' or 'off', got {self.slack!r}")
 
@@ -169,6 +177,7 @@ class ProjectionReport:
     halvings: int
     active_rows: int
     base_energy: float
+    warm_start: bool
 
 
 class History:
@@ -362,6 +371,7 @@ class Simulation:
                 newton_tolerance=float(newton.tolerance),
                 newton_max_iterations=int(newton.max_iterations),
                 pd_iterations=int(pd.iterations),
+                warm_start_threshold=float("inf") if p.warm_start is None else float(p.warm_start),
             )
         except ValueError as exc:
             raise ConfigError(str(exc)) from None

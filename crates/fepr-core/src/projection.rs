@@ -88,6 +88,10 @@ pub struct ProjectionSettings {
     pub impact_bound: Option<f64>,
     /// When the slack variables s and t may move (default `Auto`).
     pub slack: Slack,
+    /// Scaled energy error above which the iterations start from the velocity warm start (default: infinity,
+    /// i.e. off, so that the result is the closest point of fepr-spec section 3). An opt-in for dissipative
+    /// base steps at large dt that lose most of H in one step.
+    pub warm_start_threshold: f64,
 }
 
 /// When the slack variables s and t of fepr-spec section 2 are free to move.
@@ -128,6 +132,7 @@ impl Default for ProjectionSettings {
             rows: ActiveRows::Auto,
             impact_bound: None,
             slack: Slack::Auto,
+            warm_start_threshold: f64::INFINITY,
         }
     }
 }
@@ -159,6 +164,15 @@ impl ProjectionSettings {
             return Err(invalid(
                 "regularization",
                 format!("must satisfy 0 <= delta < 1, got {}", self.regularization),
+            ));
+        }
+        if self.warm_start_threshold.is_nan() || self.warm_start_threshold <= 0.0 {
+            return Err(invalid(
+                "warm_start_threshold",
+                format!(
+                    "must be positive and finite, got {}",
+                    self.warm_start_threshold
+                ),
             ));
         }
         if let Some(b) = self.impact_bound {
@@ -219,6 +233,8 @@ pub struct ProjectionReport {
     pub active_rows: usize,
     /// Total energy `H(x*, v*)` of the base step's state, J (measured by the first evaluation).
     pub base_energy: f64,
+    /// The velocity warm start was used (energy error above `warm_start_threshold`).
+    pub warm_start: bool,
 }
 
 /// Everything an evaluation of `c(q)` produces.
@@ -344,7 +360,6 @@ impl Projector {
         };
         let (mut s, mut t) = (0.0, 0.0);
         let mut cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
-        // Row scales (fepr-spec section 3): fixed at the base state so that residuals are comparable.
         // Row scales (fepr-spec section 3), from the targets and the start-of-step state, not from the base
         // step's result: a wild base step must not loosen the energy tolerance.
         let h_scale = targets.energy.abs().max(targets.energy_scale).max(1e-300);
@@ -371,6 +386,27 @@ impl Projector {
         let (mut best_s, mut best_t) = (0.0, 0.0);
         self.x_best.clear();
         self.v_best.clear();
+
+        // Opt-in warm start for large energy errors (a dissipative base step at a large dt can lose most of H
+        // in one step): scale the deformational velocities, which meets the energy row and keeps P and L; the
+        // iterations then fix the rest from nearby instead of linearising a stiff position correction far
+        // from the manifold.
+        if base_finite
+            && pb.active[0]
+            && (cur.c[0] / pb.row_scale[0]).abs() > self.settings.warm_start_threshold
+            && warm_start_velocities(&pb, &self.x, &mut self.v, cur.c[0])
+        {
+            cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+            cur_norm = norm_scaled(&pb, &cur.c);
+            report.warm_start = true;
+            if cur_norm < best_norm && cur.c.iter().all(|c| c.is_finite()) {
+                best_norm = cur_norm;
+                best_is_base = false;
+                best_eval = cur;
+                self.x_best.extend_from_slice(&self.x);
+                self.v_best.extend_from_slice(&self.v);
+            }
+        }
 
         if base_finite {
             for _ in 0..self.settings.max_iterations {
@@ -606,6 +642,81 @@ fn model_step_length(pb: &Problem, c0: &[f64; ROWS], c1: &[f64; ROWS]) -> f64 {
     } else {
         best.0
     }
+}
+
+/// Split the free vertices' velocities into a rigid part `V + omega x (x - c)` (carrying all of P and L, with
+/// `omega = I^-1 L` about the free centre of mass `c`) and a deformational rest `u` with zero momenta.
+/// Returns `(V, omega, c)`.
+fn rigid_velocity(pb: &Problem, x: &[Vec3], v: &[Vec3]) -> (Vec3, Vec3, Vec3) {
+    let (mut mf, mut mv, mut mx) = (0.0, [0.0; 3], [0.0; 3]);
+    for i in 0..v.len() {
+        if !pb.model.pinned[i] {
+            let m = pb.model.masses[i];
+            mf += m;
+            for a in 0..3 {
+                mv[a] += m * v[i][a];
+                mx[a] += m * x[i][a];
+            }
+        }
+    }
+    if mf <= 0.0 {
+        return ([0.0; 3], [0.0; 3], [0.0; 3]);
+    }
+    let vc = [mv[0] / mf, mv[1] / mf, mv[2] / mf];
+    let c = [mx[0] / mf, mx[1] / mf, mx[2] / mf];
+    let mut inertia = [[0.0; 3]; 3];
+    let mut l = [0.0; 3];
+    for i in 0..v.len() {
+        if !pb.model.pinned[i] {
+            let m = pb.model.masses[i];
+            let r = sub(x[i], c);
+            let rr = dot(r, r);
+            for a in 0..3 {
+                for b in 0..3 {
+                    inertia[a][b] += m * ((if a == b { rr } else { 0.0 }) - r[a] * r[b]);
+                }
+            }
+            let lv = cross(r, sub(v[i], vc));
+            for a in 0..3 {
+                l[a] += m * lv[a];
+            }
+        }
+    }
+    let omega = crate::linalg::inverse(&inertia)
+        .map(|inv| [0, 1, 2].map(|a| inv[a][0] * l[0] + inv[a][1] * l[1] + inv[a][2] * l[2]))
+        .unwrap_or([0.0; 3]);
+    (vc, omega, c)
+}
+
+/// Warm start: scale the deformational velocities `u` (see [`rigid_velocity`]) by the factor that changes the
+/// kinetic energy by `-c_h`, which meets the energy row and keeps P and L exactly (u carries no momentum and
+/// the kinetic energy splits into rigid + deformational parts). False if that energy cannot be reached.
+fn warm_start_velocities(pb: &Problem, x: &[Vec3], v: &mut [Vec3], c_h: f64) -> bool {
+    let (vc, omega, c) = rigid_velocity(pb, x, v);
+    let rigid = |i: usize| {
+        let w = cross(omega, sub(x[i], c));
+        [vc[0] + w[0], vc[1] + w[1], vc[2] + w[2]]
+    };
+    let mut k_u = 0.0;
+    for i in 0..v.len() {
+        if !pb.model.pinned[i] {
+            let u = sub(v[i], rigid(i));
+            k_u += 0.5 * pb.model.masses[i] * dot(u, u);
+        }
+    }
+    let target = k_u - c_h;
+    // A (nearly) rigid motion has no deformational energy to scale: a huge factor would only amplify round-off.
+    if !(target > 0.0 && target.is_finite() && k_u > 1e-6 * target) {
+        return false;
+    }
+    let beta = (target / k_u).sqrt();
+    for i in 0..v.len() {
+        if !pb.model.pinned[i] {
+            let r = rigid(i);
+            v[i] = [0, 1, 2].map(|a| r[a] + beta * (v[i][a] - r[a]));
+        }
+    }
+    true
 }
 
 fn max_scaled(pb: &Problem, c: &[f64; ROWS]) -> f64 {

@@ -247,3 +247,46 @@ fn projected_run_is_bit_identical_for_any_thread_count() {
     assert_eq!(one, run(2));
     assert_eq!(one, run(3));
 }
+
+#[test]
+fn warm_start_restores_a_large_energy_deficit_and_keeps_the_momenta() {
+    use fepr_core::invariants::measure;
+    use fepr_core::projection::{ProjectionSettings, Projector, Targets};
+    let model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0; 3]);
+    let mut state = State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+    scaled(&mut state, 1.02, c);
+    for (x, v) in state.x.iter().zip(state.v.iter_mut()) {
+        // spin + drift + a breathing (deformational) part 0.2 (x - c), which carries no momentum
+        *v = [0, 1, 2].map(|a| 0.2 * (x[a] - c[a]));
+        v[0] += 0.3 - (x[1] - c[1]);
+        v[1] += 0.1 + (x[0] - c[0]);
+        v[2] += 0.05;
+    }
+    let inv = measure(&model, &state);
+    // Ask for three times the energy (a base step that lost two thirds of H), same momenta.
+    let targets = Targets {
+        energy: 3.0 * inv.total,
+        momentum: inv.momentum,
+        angular_momentum: inv.angular_momentum,
+        center_of_mass: inv.center_of_mass,
+        energy_scale: 3.0 * inv.total,
+        uncertain_impulses: false,
+    };
+    let settings = ProjectionSettings {
+        warm_start_threshold: 0.05,
+        ..Default::default()
+    };
+    let mut proj = Projector::new(settings).unwrap();
+    let (report, out) = proj.project(&model, &mut state, 1.0 / 30.0, &targets);
+    eprintln!("warm start: {report:?}");
+    assert!(report.warm_start && report.converged, "{report:?}");
+    assert!(rel(out.total, targets.energy) <= 1e-9);
+    for a in 0..3 {
+        assert!((out.momentum[a] - inv.momentum[a]).abs() <= 1e-9 * norm(inv.momentum));
+        assert!(
+            (out.angular_momentum[a] - inv.angular_momentum[a]).abs()
+                <= 1e-8 * norm(inv.angular_momentum)
+        );
+    }
+}

@@ -190,6 +190,7 @@ fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py
     d.set_item("halvings", r.halvings)?;
     d.set_item("active_rows", r.active_rows)?;
     d.set_item("base_energy", r.base_energy)?;
+    d.set_item("warm_start", r.warm_start)?;
     Ok(d)
 }
 
@@ -283,7 +284,7 @@ impl Simulation {
         vertices, tets, *, material, youngs_modulus, poisson_ratio, j0, mass_kind, mass_value, node_masses,
         integrator, dt, projection, tolerance, max_iterations, rows, c_eps, regularization, max_halvings,
         impact_bound, gravity, pinned, damping, threads, slack = "auto", newton_tolerance = 1e-6,
-        newton_max_iterations = 20, pd_iterations = 10
+        newton_max_iterations = 20, pd_iterations = 10, warm_start_threshold = f64::INFINITY
     ))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -314,6 +315,7 @@ impl Simulation {
         newton_tolerance: f64,
         newton_max_iterations: usize,
         pd_iterations: usize,
+        warm_start_threshold: f64,
     ) -> PyResult<Self> {
         let (mesh, _) = build_mesh(&vertices, &tets)?;
         let mat = make_material(material, youngs_modulus, poisson_ratio, j0)?;
@@ -371,6 +373,7 @@ impl Simulation {
                 max_halvings,
                 rows,
                 impact_bound,
+                warm_start_threshold,
                 slack: Slack::from_name(slack).ok_or_else(|| {
                     PyValueError::new_err(format!(
                         "slack: unknown '{slack}' (known: auto, on, off)"
