@@ -24,3 +24,25 @@ def shared_meshes() -> Path:
     if d is None:
         pytest.skip("the shared test meshes (../shared/meshes or $FEPR_SHARED_MESHES) are not present")
     return d
+
+
+def spinning_ell(integrator, projection):
+    """The built-in L stretched 1.3x about its centre of mass, spinning at 1 rad/s about z and drifting at
+    (0.5, 0.2, 0.1) m/s; Neo-Hookean E = 1e3 Pa, nu = 0.3, 5 kg per vertex, dt = 1/30 s."""
+    import numpy as np
+
+    import fepr
+
+    sim = fepr.Simulation(
+        fepr.meshes.ell(),
+        material=fepr.NeoHookean(youngs_modulus=1e3, poisson_ratio=0.3),
+        node_mass=5.0,
+        dt=1 / 30,
+        integrator=integrator,
+        projection=projection,
+    )
+    c = sim.center_of_mass()
+    x = c + 1.3 * (sim.rest_positions - c)
+    sim.positions = x
+    sim.velocities = np.array([0.5, 0.2, 0.1]) + np.cross([0.0, 0.0, 1.0], x - c)
+    return sim

@@ -6,27 +6,12 @@ import numpy as np
 import pytest
 
 import fepr
-
-
-def _stretched_ell(integrator, projection, *, dt=1 / 30):
-    sim = fepr.Simulation(
-        fepr.meshes.ell(),
-        material=fepr.NeoHookean(youngs_modulus=1e3, poisson_ratio=0.3),
-        node_mass=5.0,
-        dt=dt,
-        integrator=integrator,
-        projection=projection,
-    )
-    c = sim.center_of_mass()
-    x = c + 1.3 * (sim.rest_positions - c)
-    sim.positions = x
-    sim.velocities = np.array([0.5, 0.2, 0.1]) + np.cross([0.0, 0.0, 1.0], x - c)
-    return sim
+from conftest import spinning_ell
 
 
 def test_integrator_by_name_and_by_object():
-    a = _stretched_ell("implicit_euler", False)
-    b = _stretched_ell(fepr.ImplicitEuler(tolerance=1e-6, max_iterations=20), False)
+    a = spinning_ell("implicit_euler", False)
+    b = spinning_ell(fepr.ImplicitEuler(tolerance=1e-6, max_iterations=20), False)
     a.step(3)
     b.step(3)
     np.testing.assert_array_equal(a.positions, b.positions)
@@ -40,7 +25,7 @@ def test_invalid_newton_settings_are_config_errors(kwargs):
 
 
 def test_backward_euler_alone_loses_more_than_half_its_energy_within_2_s():
-    sim = _stretched_ell("implicit_euler", False)
+    sim = spinning_ell("implicit_euler", False)
     sim.step(60)
     h = sim.history
     kept = h["total"][-1] / h["total"][0]
@@ -50,7 +35,7 @@ def test_backward_euler_alone_loses_more_than_half_its_energy_within_2_s():
 
 
 def test_backward_euler_with_fepr_holds_h_p_l_for_10_s():
-    sim = _stretched_ell("implicit_euler", True)
+    sim = spinning_ell("implicit_euler", True)
     p0, l0 = sim.linear_momentum(), sim.angular_momentum()
     sim.step(300)
     h = sim.history

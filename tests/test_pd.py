@@ -6,26 +6,11 @@ import numpy as np
 import pytest
 
 import fepr
-
-
-def _spinning_ell(projection, integrator="projective_dynamics"):
-    sim = fepr.Simulation(
-        fepr.meshes.ell(),
-        material=fepr.NeoHookean(youngs_modulus=1e3, poisson_ratio=0.3),
-        node_mass=5.0,
-        dt=1 / 30,
-        integrator=integrator,
-        projection=projection,
-    )
-    c = sim.center_of_mass()
-    x = c + 1.3 * (sim.rest_positions - c)
-    sim.positions = x
-    sim.velocities = np.array([0.5, 0.2, 0.1]) + np.cross([0.0, 0.0, 1.0], x - c)
-    return sim
+from conftest import spinning_ell
 
 
 def test_pd_uses_the_arap_energy_it_minimises():
-    sim = _spinning_ell(True)
+    sim = spinning_ell("projective_dynamics", True)
     assert isinstance(sim.material, fepr.Arap)
     assert sim.material.youngs_modulus == 1e3 and sim.material.poisson_ratio == 0.3
     # The elastic energy reported is the ARAP energy mu |F - R|^2 summed over tets.
@@ -46,8 +31,8 @@ def test_pd_uses_the_arap_energy_it_minimises():
 def test_pd_settings_are_validated():
     with pytest.raises(fepr.ConfigError, match="iterations"):
         fepr.ProjectiveDynamics(iterations=0)
-    a = _spinning_ell(False, "projective_dynamics")
-    b = _spinning_ell(False, fepr.ProjectiveDynamics(iterations=10))
+    a = spinning_ell("projective_dynamics", False)
+    b = spinning_ell(fepr.ProjectiveDynamics(iterations=10), False)
     a.step(3)
     b.step(3)
     np.testing.assert_array_equal(a.positions, b.positions)
@@ -55,14 +40,14 @@ def test_pd_settings_are_validated():
 
 
 def test_pd_alone_loses_more_than_half_of_its_energy_within_2_s():
-    sim = _spinning_ell(False)
+    sim = spinning_ell("projective_dynamics", False)
     sim.step(60)
     h = sim.history
     assert h["total"][-1] / h["total"][0] < 0.5
 
 
 def test_pd_with_fepr_holds_h_p_l_for_10_s():
-    sim = _spinning_ell(True)
+    sim = spinning_ell("projective_dynamics", True)
     p0, l0 = sim.linear_momentum(), sim.angular_momentum()
     sim.step(300)
     h = sim.history
