@@ -546,3 +546,23 @@ def test_example_files_match_the_demo_scenes(name):
     assert f.integrator.name == s.integrator.name
     assert f.integrator.dt == pytest.approx(s.integrator.dt, rel=1e-12)
     np.testing.assert_allclose(f.load_mesh().vertices, s.load_mesh().vertices)
+
+
+def test_integrator_options_reach_the_integrator_and_foreign_options_are_named():
+    from fepr.scene import scene_from_dict
+
+    base = {
+        "mesh": {"builtin": "ell"},
+        "material": {"model": "neo_hookean", "youngs_modulus": 1e3, "poisson_ratio": 0.3},
+        "mass": {"node_mass": 5.0},
+        "projection": {"enabled": True, "slack": "off"},
+    }
+    sim = scene_from_dict(
+        {**base, "integrator": {"name": "implicit_euler", "tolerance": 1e-8, "max_iterations": 7}}
+    ).build()
+    assert sim.integrator_settings == fepr.ImplicitEuler(tolerance=1e-8, max_iterations=7)
+    assert sim.projection.slack == "off"
+    sim = scene_from_dict({**base, "integrator": {"name": "projective_dynamics", "iterations": 4}}).build()
+    assert sim.integrator_settings == fepr.ProjectiveDynamics(iterations=4)
+    with pytest.raises(fepr.ConfigError, match="iterations is not an option of 'implicit_euler'"):
+        scene_from_dict({**base, "integrator": {"name": "implicit_euler", "iterations": 4}}).build()

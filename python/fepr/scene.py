@@ -97,7 +97,7 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
     "material": ("model", "youngs_modulus", "poisson_ratio", "j0"),
     "mass": ("node_mass", "density"),
     "initial": ("scale", "scale_about", "velocity", "angular_velocity", "velocities", "alternating_velocity"),
-    "integrator": ("name", "dt"),
+    "integrator": ("name", "dt", "tolerance", "max_iterations", "iterations"),
     "projection": (
         "enabled",
         "tolerance",
@@ -107,6 +107,8 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
         "regularization",
         "max_halvings",
         "impact_bound",
+        "slack",
+        "warm_start",
     ),
     "world": ("gravity", "pinned", "pin_below", "damping"),
     "run": ("steps", "threads"),
@@ -209,6 +211,24 @@ class IntegratorSettings:
 
     name: str = "symplectic_euler"
     dt: float = 1.0 / 30.0
+    #: Newton settings (``implicit_euler``) and local/global iterations (``projective_dynamics``).
+    tolerance: Optional[float] = None
+    max_iterations: Optional[int] = None
+    iterations: Optional[int] = None
+
+    def make(self):
+        """The integrator object with the given options (a ConfigError names an option the integrator lacks)."""
+        import fepr
+
+        given = {
+            k: getattr(self, k) for k in ("tolerance", "max_iterations", "iterations") if getattr(self, k) is not None
+        }
+        allowed = {"implicit_euler": ("tolerance", "max_iterations"), "projective_dynamics": ("iterations",)}
+        extra = sorted(set(given) - set(allowed.get(self.name, ())))
+        if extra:
+            raise ConfigError(f"[integrator] {', '.join(extra)} is not an option of {self.name!r}")
+        types = {"implicit_euler": fepr.ImplicitEuler, "projective_dynamics": fepr.ProjectiveDynamics}
+        return types[self.name](**given) if self.name in types else self.name
 
 
 @dataclass
@@ -223,10 +243,22 @@ class ProjectionSettings:
     regularization: Optional[float] = None
     max_halvings: Optional[int] = None
     impact_bound: Optional[float] = None
+    slack: Optional[str] = None
+    warm_start: Optional[float] = None
 
     def options(self) -> Dict[str, Any]:
         """The options that were given, as keyword arguments for :class:`fepr.Projection`."""
-        names = ("tolerance", "max_iterations", "rows", "c_eps", "regularization", "max_halvings", "impact_bound")
+        names = (
+            "tolerance",
+            "max_iterations",
+            "rows",
+            "c_eps",
+            "regularization",
+            "max_halvings",
+            "impact_bound",
+            "slack",
+            "warm_start",
+        )
         return {k: getattr(self, k) for k in names if getattr(self, k) is not None}
 
     def make(self):
@@ -437,7 +469,7 @@ class Scene:
             sim = fepr.Simulation(
                 mesh,
                 material=material,
-                integrator=self.integrator.name,
+                integrator=self.integrator.make(),
                 dt=self.integrator.dt,
                 projection=projection,
                 gravity=self.world.gravity,
@@ -762,6 +794,8 @@ def _parse_projection(t: _Table) -> ProjectionSettings:
         regularization=t.number("regularization", None),
         max_halvings=t.integer("max_halvings", None, minimum=0),
         impact_bound=t.number("impact_bound", None, positive=True),
+        slack=t.string("slack", None, choices=("auto", "on", "off")),
+        warm_start=t.number("warm_start", None, positive=True),
     )
 
 
@@ -861,6 +895,9 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
         integrator=IntegratorSettings(
             name=integ.string("name", "symplectic_euler", choices=_known_integrators()),
             dt=integ.number("dt", 1.0 / 30.0, positive=True),
+            tolerance=integ.number("tolerance", None, positive=True),
+            max_iterations=integ.integer("max_iterations", None, minimum=1),
+            iterations=integ.integer("iterations", None, minimum=1),
         ),
         projection=_parse_projection(table("projection")),
         world=_parse_world(table("world")),
