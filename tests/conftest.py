@@ -46,3 +46,16 @@ def spinning_ell(integrator, projection):
     sim.positions = x
     sim.velocities = np.array([0.5, 0.2, 0.1]) + np.cross([0.0, 0.0, 1.0], x - c)
     return sim
+
+
+def max_drifts(history):
+    """Largest relative drifts of H, P and L (about the centre of mass) over a history, against row 0."""
+    import numpy as np
+
+    h = history
+    dh = np.abs(h["total"] / h["total"][0] - 1).max()
+    p = np.stack([h["px"], h["py"], h["pz"]], axis=1)
+    ang = np.stack([h["lx"], h["ly"], h["lz"]], axis=1)
+    dp = (np.linalg.norm(p - p[0], axis=1) / np.linalg.norm(p[0])).max()
+    dl = (np.linalg.norm(ang - ang[0], axis=1) / np.linalg.norm(ang[0])).max()
+    return dh, dp, dl

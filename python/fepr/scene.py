@@ -248,17 +248,7 @@ class ProjectionSettings:
 
     def options(self) -> Dict[str, Any]:
         """The options that were given, as keyword arguments for :class:`fepr.Projection`."""
-        names = (
-            "tolerance",
-            "max_iterations",
-            "rows",
-            "c_eps",
-            "regularization",
-            "max_halvings",
-            "impact_bound",
-            "slack",
-            "warm_start",
-        )
+        names = [k for k in SCENE_KEYS["projection"] if k != "enabled"]
         return {k: getattr(self, k) for k in names if getattr(self, k) is not None}
 
     def make(self):
