@@ -220,7 +220,8 @@ def test_view_page_draws_the_scene_and_the_projection_toggle_reaches_the_server(
         text=True,
     )
     lines: list = []
-    threading.Thread(target=lambda: [lines.append(ln) for ln in server.stdout], daemon=True).start()
+    reader = threading.Thread(target=lambda: [lines.append(ln) for ln in server.stdout], daemon=True)
+    reader.start()
     browser = None
     devtools = None
     try:
@@ -256,7 +257,10 @@ def test_view_page_draws_the_scene_and_the_projection_toggle_reaches_the_server(
         devtools.call("Page.navigate", url=f"http://127.0.0.1:{port}")
 
         def drawn():
-            img = devtools.screenshot()
+            try:
+                img = devtools.screenshot()
+            except RuntimeError:  # the page is still loading ("Not attached to an active page")
+                return None
             return img if _mesh_pixels(img, projection=True) > 300 else None
 
         img = _wait_for(drawn, 45, "the mesh to be drawn in the viewport")
@@ -291,5 +295,8 @@ def test_view_page_draws_the_scene_and_the_projection_toggle_reaches_the_server(
         except subprocess.TimeoutExpired:
             server.kill()
             raise AssertionError("fepr view did not shut down on SIGTERM") from None
+        finally:
+            reader.join(10)
+            server.stdout.close()
     assert server.returncode == 0, "".join(lines[-20:])
     assert any("fepr view: stopped" in ln for ln in lines)
