@@ -7,6 +7,7 @@ Commands::
     fepr compare SCENE.toml --out DIR [--integrators a,b] [--steps N] [--frames F] [--size WxH] [--no-video] [--quiet]
     fepr view SCENE.toml | MESH [--host ADDR] [--port P] [--integrator NAME] [--dt S] [--no-browser-hint]
     fepr mesh INPUT [-o OUTPUT] [--max-volume V | --edge-length L] [--quality Q] [--mesher M] [--info]
+    fepr bench [--quick] [--json PATH] [--scenes LIST] [--threads N] [--meshes DIR]
     fepr --version | --help
 
 Exit status: 0 success; 1 an output file could not be written; 2 invalid command line, scene or mesh;
@@ -21,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Optional, Sequence
 
+from .bench import add_bench_parser, cmd_bench
 from .errors import FeprError
 
 __all__ = ["EXIT_ERROR", "EXIT_INVALID", "EXIT_OK", "EXIT_RUNAWAY", "build_parser", "main"]
@@ -141,6 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mesh_parser(sub)
     _add_compare_parser(sub)
     _add_view_parser(sub)
+    add_bench_parser(sub)
     return parser
 
 
@@ -414,6 +417,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _cmd_compare(args)
         if args.command == "view":
             return _cmd_view(args)
+        if args.command == "bench":
+            return cmd_bench(args)
         return _cmd_demo(args)
     except FeprError as exc:
         _err(f"error: {exc}")
