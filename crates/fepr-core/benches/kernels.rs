@@ -59,7 +59,7 @@ fn box_mesh(n: usize) -> TetMesh {
 
 /// TetGen `.node`/`.ele` reader (enough for the seed meshes).
 fn load_tetgen(stem: &std::path::Path) -> Option<TetMesh> {
-    let read = |ext: &str| std::fs::read_to_string(stem.with_extension(ext)).ok();
+    let read = |ext: &str| std::fs::read_to_string(format!("{}.{ext}", stem.display())).ok();
     let numbers = |text: &str| -> Vec<Vec<f64>> {
         text.lines()
             .map(|l| l.split('#').next().unwrap_or(""))

@@ -34,6 +34,7 @@ pub mod linalg;
 pub mod material;
 pub mod mesh;
 pub mod model;
+pub mod ordering;
 pub mod parallel;
 pub mod pd;
 pub mod projection;

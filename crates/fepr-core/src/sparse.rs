@@ -1,7 +1,8 @@
 //! Sparse symmetric positive definite solves with faer: the symbolic analysis (fill-reducing ordering and
 //! elimination structure) is done once per sparsity pattern, then every numeric factorisation reuses it
 //! (symbolic once, numeric many). The matrix is given by its lower triangle in compressed sparse column
-//! form; values are updated in place between factorisations.
+//! form; values are updated in place between factorisations. The fill-reducing ordering is METIS nested
+//! dissection where it beats approximate minimum degree (3D meshes), see [`FillOrdering`].
 //!
 //! Factorisation and solves use faer's parallel kernels on the current rayon pool. faer splits dense blocks
 //! over output rows and columns, never over the summation index, so results are bit-identical for any
@@ -9,6 +10,7 @@
 
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
+use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{
     factorize_symbolic_cholesky, LltRef, SymbolicCholesky, SymmetricOrdering,
 };
@@ -16,6 +18,7 @@ use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Conj, MatMut, Par, Side};
 
 use crate::error::{FeprError, Result};
+use crate::ordering::nested_dissection;
 
 /// faer parallelism for the current rayon pool.
 fn parallelism() -> Par {
@@ -77,21 +80,47 @@ pub struct SparseCholesky {
     factorized: bool,
     /// Numeric factorisations done with this symbolic analysis.
     pub numeric_count: usize,
+    ordering: FillOrdering,
 }
+
+/// Fill-reducing ordering of the symbolic analysis.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FillOrdering {
+    /// Nested dissection for matrices of dimension >= 1000 when it gives a smaller factor than AMD (it does
+    /// on 3D tet meshes: about half the fill), else AMD.
+    Auto,
+    /// faer's approximate minimum degree.
+    Amd,
+    /// METIS nested dissection on the (block-compressed) graph; falls back to AMD if METIS fails.
+    NestedDissection,
+}
+
+/// Below this dimension `Auto` uses AMD only.
+const ND_MIN_DIM: usize = 1000;
 
 impl std::fmt::Debug for SparseCholesky {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("SparseCholesky")
             .field("n", &self.pattern.nrows())
             .field("nnz_l", &self.l_values.len())
+            .field("ordering", &self.ordering)
             .finish()
     }
 }
 
 impl SparseCholesky {
-    /// Symbolic analysis of a lower pattern (approximate minimum degree ordering). `rhs_columns` is the
+    /// Symbolic analysis of a lower pattern with the [`FillOrdering::Auto`] ordering. `rhs_columns` is the
     /// largest number of right-hand sides solved at once.
     pub fn analyse(pattern: &LowerPattern, rhs_columns: usize) -> Result<Self> {
+        Self::analyse_with(pattern, rhs_columns, FillOrdering::Auto)
+    }
+
+    /// Symbolic analysis with a chosen fill-reducing ordering.
+    pub fn analyse_with(
+        pattern: &LowerPattern,
+        rhs_columns: usize,
+        ordering: FillOrdering,
+    ) -> Result<Self> {
         let sym = SymbolicSparseColMat::new_checked(
             pattern.n,
             pattern.n,
@@ -99,13 +128,46 @@ impl SparseCholesky {
             None,
             pattern.row_idx.clone(),
         );
-        let symbolic = factorize_symbolic_cholesky(
-            sym.as_ref(),
-            Side::Lower,
-            SymmetricOrdering::Amd,
-            Default::default(),
-        )
-        .map_err(|e| FeprError::Simulation(format!("sparse symbolic analysis failed: {e:?}")))?;
+        let symbolic_failed =
+            |e| FeprError::Simulation(format!("sparse symbolic analysis failed: {e:?}"));
+        let amd = || {
+            factorize_symbolic_cholesky(
+                sym.as_ref(),
+                Side::Lower,
+                SymmetricOrdering::Amd,
+                Default::default(),
+            )
+            .map_err(symbolic_failed)
+        };
+        let nd = || -> Option<Result<SymbolicCholesky<usize>>> {
+            let (fwd, inv) = nested_dissection(pattern.n, &pattern.col_ptr, &pattern.row_idx)?;
+            Some(
+                factorize_symbolic_cholesky(
+                    sym.as_ref(),
+                    Side::Lower,
+                    SymmetricOrdering::Custom(PermRef::new_checked(&fwd, &inv, pattern.n)),
+                    Default::default(),
+                )
+                .map_err(symbolic_failed),
+            )
+        };
+        let (symbolic, used) = match ordering {
+            FillOrdering::Amd => (amd()?, FillOrdering::Amd),
+            FillOrdering::NestedDissection => match nd() {
+                Some(r) => (r?, FillOrdering::NestedDissection),
+                None => (amd()?, FillOrdering::Amd),
+            },
+            FillOrdering::Auto if pattern.n < ND_MIN_DIM => (amd()?, FillOrdering::Amd),
+            FillOrdering::Auto => {
+                // Both symbolic analyses are cheap next to one numeric factorisation: keep the one with
+                // the smaller factor (nested dissection on 3D meshes, by a factor of about 2).
+                let a = amd()?;
+                match nd() {
+                    Some(Ok(n)) if n.len_val() < a.len_val() => (n, FillOrdering::NestedDissection),
+                    _ => (a, FillOrdering::Amd),
+                }
+            }
+        };
         let par = parallelism();
         let factor_mem =
             MemBuffer::new(symbolic.factorize_numeric_llt_scratch::<f64>(par, Default::default()));
@@ -120,7 +182,13 @@ impl SparseCholesky {
             solve_mem,
             factorized: false,
             numeric_count: 0,
+            ordering: used,
         })
+    }
+
+    /// The fill-reducing ordering in use (never `Auto`).
+    pub fn ordering(&self) -> FillOrdering {
+        self.ordering
     }
 
     pub fn dim(&self) -> usize {
@@ -178,6 +246,85 @@ impl SparseCholesky {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// 3D grid graph Laplacian + identity with `b` dofs per node (block diagonal coupling), lower pattern.
+    fn grid3(nx: usize, b: usize) -> (LowerPattern, Vec<f64>) {
+        let idx = |x: usize, y: usize, z: usize| x + nx * (y + nx * z);
+        let nodes = nx * nx * nx;
+        let mut cols = vec![Vec::new(); nodes * b];
+        let mut edges = Vec::new();
+        for z in 0..nx {
+            for y in 0..nx {
+                for x in 0..nx {
+                    let p = idx(x, y, z);
+                    for (dx, dy, dz) in [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 1)] {
+                        if x + dx < nx && y + dy < nx && z + dz < nx {
+                            edges.push((p, idx(x + dx, y + dy, z + dz)));
+                        }
+                    }
+                }
+            }
+        }
+        for &(p, q) in &edges {
+            for a in 0..b {
+                for c in 0..b {
+                    cols[b * p + a].push(b * q + c);
+                }
+            }
+        }
+        for p in 0..nodes {
+            for a in 0..b {
+                for c in a + 1..b {
+                    cols[b * p + a].push(b * p + c);
+                }
+            }
+        }
+        let pat = LowerPattern::from_columns(nodes * b, cols);
+        let mut values = vec![0.0; pat.nnz()];
+        let mut diag = vec![1.0; pat.n];
+        for c in 0..pat.n {
+            for k in pat.col_ptr[c] + 1..pat.col_ptr[c + 1] {
+                values[k] = -0.1;
+                diag[c] += 0.1;
+                diag[pat.row_idx[k]] += 0.1;
+            }
+        }
+        for c in 0..pat.n {
+            values[pat.col_ptr[c]] = diag[c];
+        }
+        (pat, values)
+    }
+
+    #[test]
+    fn nested_dissection_beats_amd_on_3d_grids_and_solves_the_same_system() {
+        for b in [1, 3] {
+            let (pat, values) = grid3(14, b);
+            let mut amd = SparseCholesky::analyse_with(&pat, 1, FillOrdering::Amd).unwrap();
+            let mut nd =
+                SparseCholesky::analyse_with(&pat, 1, FillOrdering::NestedDissection).unwrap();
+            let auto = SparseCholesky::analyse(&pat, 1).unwrap();
+            assert_eq!(nd.ordering(), FillOrdering::NestedDissection);
+            assert!(
+                nd.factor_nnz() < amd.factor_nnz(),
+                "b = {b}: nd {} vs amd {}",
+                nd.factor_nnz(),
+                amd.factor_nnz()
+            );
+            assert_eq!(auto.ordering(), FillOrdering::NestedDissection);
+            amd.factorize(&values).unwrap();
+            nd.factorize(&values).unwrap();
+            let rhs: Vec<f64> = (0..pat.n).map(|i| (i as f64 * 0.37).sin()).collect();
+            let (mut xa, mut xn) = (rhs.clone(), rhs.clone());
+            amd.solve_in_place(&mut xa, 1);
+            nd.solve_in_place(&mut xn, 1);
+            let diff = xa
+                .iter()
+                .zip(&xn)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(diff < 1e-12, "{diff}");
+        }
+    }
 
     #[test]
     fn solves_a_small_spd_system_and_reuses_the_analysis() {
