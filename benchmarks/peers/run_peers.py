@@ -1,0 +1,181 @@
+"""Peer comparison: the same scenes with fepr and with peer simulators, on the CPU, timed the same way in the
+same run (wall time per step or per evaluation after a warm-up, best of the run's repeats).
+
+    pip install ".[peers]"                         # newton (Warp) and pbatoolkit, from PyPI
+    python benchmarks/peers/run_peers.py --json benchmarks/results/peers.json
+
+Peers that are not installed or fail are reported with the reason (never a crash). Scenes: box_10k, the
+bunny (19,379 tets; 0.5 m, E = 1e5 Pa, 1000 kg/m^3), bunny2 (29,548 tets), box_100k.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy_baseline  # noqa: E402
+
+import fepr  # noqa: E402
+from fepr.bench import SCENES, load_scene_mesh, shared_meshes_dir  # noqa: E402
+
+PEER_SCENES = ("box_10k", "bunny", "bunny2", "box_100k")
+
+
+def lame(e, nu):
+    return e / (2 * (1 + nu)), e * nu / ((1 + nu) * (1 - 2 * nu))
+
+
+def fepr_times(scene, mesh, dt, threads, budget):
+    """fepr: energy + gradient (1 and all threads), explicit step without and with FEPR."""
+    out = {}
+    mass = {"node_mass": scene.node_mass} if scene.node_mass is not None else {"density": scene.density}
+    mat = fepr.NeoHookean(youngs_modulus=scene.youngs_modulus, poisson_ratio=scene.poisson_ratio)
+    k = len(mesh.tets)
+    for proj in (False, True):
+        for th in (1, threads):
+            sim = fepr.Simulation(mesh, material=mat, dt=dt, projection=proj, threads=th, **mass)
+            x0 = sim.rest_positions
+            c = x0.mean(axis=0)
+            sim.positions = c + scene.stretch * (x0 - c)
+            if not proj and th == 1:
+                reps = max(3, int(0.3 / max(k * 50e-9, 1e-6)))
+                t1 = min(sim._sim.bench_energy_gradient(reps, 1)[0] for _ in range(2))
+                tn = min(sim._sim.bench_energy_gradient(reps, threads)[0] for _ in range(2))
+                out["eg_ns_per_tet_1"] = 1e9 * t1 / k
+                out["eg_ns_per_tet_all"] = 1e9 * tn / k
+            sim.step(2)
+            n, t0 = 0, time.perf_counter()
+            while n < 3 or time.perf_counter() - t0 < budget:
+                sim.step(1)
+                n += 1
+            per = (time.perf_counter() - t0) / n
+            out[f"{'se_fepr' if proj else 'se'}_ns_per_tet_{1 if th == 1 else 'all'}"] = 1e9 * per / k
+    return out
+
+
+def guarded(fn, *args, **kw):
+    try:
+        return fn(*args, **kw), None
+    except ImportError as e:
+        return None, f"not installed ({e})"
+    except Exception as e:  # report, never crash
+        return None, f"{type(e).__name__}: {e}".splitlines()[0][:300] + " | " + traceback.format_exc().splitlines()[-2]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", default=",".join(PEER_SCENES))
+    ap.add_argument("--json", metavar="PATH")
+    ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--budget", type=float, default=1.0, help="seconds of timed steps per measurement")
+    ap.add_argument("--skip", default="", help="comma-separated peers to skip: newton,newton_vbd,pbat,pbat_vbd,numpy")
+    args = ap.parse_args(argv)
+    skip = set(filter(None, args.skip.split(",")))
+    meshes_dir = shared_meshes_dir()
+    rows = []
+    for name in args.scenes.split(","):
+        scene = SCENES[name]
+        mesh, why = load_scene_mesh(scene, meshes_dir)
+        if mesh is None:
+            rows.append({"scene": name, "skipped": why})
+            continue
+        rest = np.asarray(mesh.vertices, dtype=np.float64)
+        tets = np.asarray(mesh.tets, dtype=np.int64)
+        k = len(tets)
+        c = rest.mean(axis=0)
+        x0 = c + scene.stretch * (rest - c)
+        mu, lam = lame(scene.youngs_modulus, scene.poisson_ratio)
+        dt = scene.integrators[0][1]
+        density = scene.density if scene.density is not None else None
+        # Masses as fepr lumps them (node mass or density), shared with the NumPy baseline.
+        mass = {"node_mass": scene.node_mass} if scene.node_mass is not None else {"density": scene.density}
+        probe = fepr.Simulation(
+            mesh,
+            material=fepr.NeoHookean(youngs_modulus=scene.youngs_modulus, poisson_ratio=0.3),
+            dt=dt,
+            projection=False,
+            **mass,
+        )
+        masses = probe.masses
+        if density is None:  # node-mass scenes: the equivalent uniform density for the peers
+            density = float(masses.sum() / probe_volume(rest, tets))
+        row = {"scene": name, "tets": k, "vertices": len(rest), "dt": dt}
+        print(f"== {name}: {k:,} tets", flush=True)
+        row["fepr"] = fepr_times(scene, mesh, dt, args.threads, args.budget)
+        print("   fepr", {a: round(b, 1) for a, b in row["fepr"].items()}, flush=True)
+        if "numpy" not in skip:
+            r, err = guarded(numpy_baseline.time_step, rest, tets, mu, lam, masses, x0, dt, budget_s=args.budget)
+            row["numpy_step_ns_per_tet"] = 1e9 * r[0] / k if r else None
+            row["numpy_error"] = err
+            print("   numpy", row["numpy_step_ns_per_tet"], err or "", flush=True)
+        if "newton" not in skip:
+            import peer_newton
+
+            r, err = guarded(peer_newton.time_step, rest, tets, mu, lam, density, x0, dt, budget_s=args.budget)
+            row["newton_step_ns_per_tet"] = 1e9 * r[0] / k if r else None
+            row["newton_finite"] = r[1] if r else None
+            row["newton_error"] = err
+            print("   newton semi-implicit", row["newton_step_ns_per_tet"], err or "", flush=True)
+        if "newton_vbd" not in skip:
+            import peer_newton
+
+            r, err = guarded(
+                peer_newton.time_step, rest, tets, mu, lam, density, x0, 1 / 60, budget_s=args.budget, solver="vbd"
+            )
+            row["newton_vbd_ns_per_tet"] = 1e9 * r[0] / k if r else None
+            row["newton_vbd_error"] = err
+            print("   newton vbd", row["newton_vbd_ns_per_tet"], err or "", flush=True)
+        if "pbat" not in skip:
+            import peer_pbat
+
+            r, err = guarded(peer_pbat.time_energy_gradient, rest, tets, mu, lam, x0, budget_s=args.budget)
+            row["pbat_eg_ns_per_tet"] = 1e9 * r / k if r else None
+            row["pbat_error"] = err
+            print("   pbat energy+gradient", row["pbat_eg_ns_per_tet"], err or "", flush=True)
+        if "pbat_vbd" not in skip:
+            import peer_pbat
+
+            r, err = guarded(peer_pbat.time_vbd_step, rest, tets, mu, lam, density, x0, 1 / 60, budget_s=args.budget)
+            row["pbat_vbd_ns_per_tet"] = 1e9 * r / k if r else None
+            row["pbat_vbd_error"] = err
+            print("   pbat vbd", row["pbat_vbd_ns_per_tet"], err or "", flush=True)
+        f = row["fepr"]
+        ratios = {}
+        if row.get("newton_step_ns_per_tet"):
+            ratios["newton_si / fepr_se (all threads)"] = row["newton_step_ns_per_tet"] / f["se_ns_per_tet_all"]
+            ratios["newton_si / fepr_se (1 thread)"] = row["newton_step_ns_per_tet"] / f["se_ns_per_tet_1"]
+        if row.get("numpy_step_ns_per_tet"):
+            ratios["numpy / fepr_se (all threads)"] = row["numpy_step_ns_per_tet"] / f["se_ns_per_tet_all"]
+        if row.get("pbat_eg_ns_per_tet"):
+            ratios["pbat_eg / fepr_eg (all threads)"] = row["pbat_eg_ns_per_tet"] / f["eg_ns_per_tet_all"]
+        row["ratios_peer_over_fepr"] = ratios
+        print("   ratios", {a: round(b, 2) for a, b in ratios.items()}, flush=True)
+        rows.append(row)
+    doc = {
+        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+        "threads": args.threads,
+        "scenes": rows,
+    }
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+    return 0
+
+
+def probe_volume(rest, tets):
+    d = rest[tets[:, 1:]] - rest[tets[:, [0]]]
+    return float(np.abs(np.linalg.det(d)).sum() / 6.0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
