@@ -3,8 +3,11 @@
 Commands::
 
     fepr run SCENE.toml [--steps N] [--out DIR] [--no-projection] [--export FORMATS] [--export-every K] [--quiet]
-    fepr demo [--steps N] [--out DIR] [--quiet]
+    fepr demo [--steps N] [--out DIR] [--frames F] [--size WxH] [--no-video] [--quiet]
+    fepr compare SCENE.toml --out DIR [--integrators a,b] [--steps N] [--frames F] [--size WxH] [--no-video] [--quiet]
+    fepr view SCENE.toml | MESH [--host ADDR] [--port P] [--integrator NAME] [--dt S] [--no-browser-hint]
     fepr mesh INPUT [-o OUTPUT] [--max-volume V | --edge-length L] [--quality Q] [--mesher M] [--info]
+    fepr bench [--quick] [--json PATH] [--scenes LIST] [--threads N] [--meshes DIR]
     fepr --version | --help
 
 Exit status: 0 success; 1 an output file could not be written; 2 invalid command line, scene or mesh;
@@ -19,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Optional, Sequence
 
+from .bench import add_bench_parser, cmd_bench
 from .errors import FeprError
 
 __all__ = ["EXIT_ERROR", "EXIT_INVALID", "EXIT_OK", "EXIT_RUNAWAY", "build_parser", "main"]
@@ -118,9 +122,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser(
         "demo",
-        help="run the built-in demo scenes with and without FEPR and print a table",
-        description="Run the built-in demo scenes (builtin meshes, no files needed), each with and without "
-        "FEPR, and print a table of conservation errors, iterations and timings.",
+        help="the showcase: built-in scenes with and without FEPR, plots, videos and an HTML report",
+        description="Run the built-in gallery (builtin meshes, no files needed), each scene with and without "
+        "FEPR (backward Euler and Projective Dynamics too), write plots, side-by-side videos, summaries and "
+        "report.html under DIR (default ./fepr-demo), and print a table of conservation errors, iterations and "
+        "timings.",
     )
     demo.add_argument(
         "--steps",
@@ -129,12 +135,69 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="steps per run (default: each scene's own)",
     )
-    demo.add_argument(
-        "--out", type=Path, default=None, metavar="DIR", help="also write each run's diagnostics under DIR"
-    )
+    demo.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (default ./fepr-demo)")
     demo.add_argument("--quiet", "-q", action="store_true", help="print only the table")
+    demo.add_argument("--frames", type=_frames, default=None, metavar="F", help="video frames per scene (default 30)")
+    demo.add_argument("--size", default=None, metavar="WxH", help="video panel size in pixels (default 480x352)")
+    demo.add_argument("--no-video", action="store_true", help="skip the videos (plots, summaries and report only)")
     _add_mesh_parser(sub)
+    _add_compare_parser(sub)
+    _add_view_parser(sub)
+    add_bench_parser(sub)
     return parser
+
+
+def _frames(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of frames, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"frames must be >= 1, got {n}")
+    return n
+
+
+def _add_compare_parser(sub) -> None:
+    cmp = sub.add_parser(
+        "compare",
+        help="run a scene with and without FEPR (and several integrators): plots, video, summary, report",
+        description="Run SCENE with and without the projection, for each listed integrator, and write to DIR: "
+        "energy.png, momentum.png, side_by_side.mp4/.gif (off-screen, polyscope on EGL), summary.md, "
+        "summary.json, report.html, and each run's diagnostics.csv. Needs the compare extra: "
+        'pip install "fepr[compare]".',
+    )
+    cmp.add_argument("scene", metavar="SCENE.toml", help="scene file")
+    cmp.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    cmp.add_argument(
+        "--integrators",
+        default=None,
+        metavar="A,B",
+        help="comma-separated base integrators to compare (default: the scene's own)",
+    )
+    cmp.add_argument("--steps", type=_positive_int, default=None, metavar="N", help="steps (default: [run] steps)")
+    cmp.add_argument("--frames", type=_frames, default=48, metavar="F", help="video frames (default 48)")
+    cmp.add_argument("--size", default="640x480", metavar="WxH", help="panel size in pixels (default 640x480)")
+    cmp.add_argument("--fps", type=_positive_float, default=24.0, help="video frame rate (default 24)")
+    cmp.add_argument("--no-video", action="store_true", help="skip the videos")
+    cmp.add_argument("--quiet", "-q", action="store_true", help="no progress bars; print only the summary line")
+
+
+def _add_view_parser(sub) -> None:
+    view = sub.add_parser(
+        "view",
+        help="interactive viewer in the browser (viser)",
+        description="Serve an interactive viewer of a scene file or a mesh (builtin meshes: ell, box, sphere, "
+        "cylinder) on http://HOST:PORT and print its URL: play, pause, step, reset, projection on/off, "
+        "integrator and dt, live energy and momentum plots, colour by J or energy density, drag a vertex. "
+        'Needs the view extra: pip install "fepr[view]". Ctrl-C stops it.',
+    )
+    view.add_argument("target", metavar="SCENE.toml | MESH", help="scene file, mesh file or builtin mesh name")
+    view.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1, this machine only)")
+    view.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 picks a free one)")
+    view.add_argument("--integrator", default=None, help="base integrator at start (default: the scene's own)")
+    view.add_argument("--dt", type=_positive_float, default=None, help="time step at start, s")
+    view.add_argument("--paused", action="store_true", help="start paused")
+    view.add_argument("--max-seconds", type=_positive_float, default=None, help=argparse.SUPPRESS)
 
 
 def _positive_float(text: str) -> float:
@@ -273,8 +336,65 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from . import demo
+    from .compare import parse_size
 
-    return demo.main(steps=args.steps, out_dir=args.out, quiet=args.quiet)
+    size = demo.DEMO_SIZE if args.size is None else parse_size(args.size)
+    frames = demo.DEMO_FRAMES if args.frames is None else args.frames
+    return demo.main(
+        steps=args.steps, out_dir=args.out, quiet=args.quiet, frames=frames, size=size, video=not args.no_video
+    )
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from .compare import compare, parse_size
+    from .errors import ConfigError
+    from .report.runs import parse_integrators
+    from .scene import load_scene
+
+    size = parse_size(args.size)
+    if not Path(args.scene).is_file():
+        raise ConfigError(f"scene file not found: {args.scene}")
+    scene = load_scene(args.scene)
+    integrators = parse_integrators(args.integrators, scene.integrator.name)
+    result = compare(
+        scene,
+        args.out,
+        integrators=integrators,
+        steps=args.steps,
+        frames=args.frames,
+        size=size,
+        fps=args.fps,
+        video=not args.no_video,
+        quiet=args.quiet,
+    )
+    for note in (result.video_error, result.plot_error):
+        if note:
+            _err(f"note: {note}")
+    if not args.quiet:
+        width = max(len(r["run"]) for r in result.rows)
+        for r in result.rows:
+            print(
+                f"  {r['run'].ljust(width)}  steps {r['steps']}  max |dH|/H0 {r['max_dh']}  "
+                f"P drift {r['p_drift']}  L drift {r['l_drift']}  min J {r['min_j']}  "
+                f"iters {r['mean_iterations']}  {r['ms_per_step']} ms/step",
+                flush=True,
+            )
+    print(f"fepr compare {result.summary_line()}", flush=True)
+    return EXIT_OK
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    from .viewer import serve_target
+
+    return serve_target(
+        args.target,
+        host=args.host,
+        port=args.port,
+        integrator=args.integrator,
+        dt=args.dt,
+        paused=args.paused,
+        max_seconds=args.max_seconds,
+    )
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -293,6 +413,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _cmd_run(args)
         if args.command == "mesh":
             return _cmd_mesh(args)
+        if args.command == "compare":
+            return _cmd_compare(args)
+        if args.command == "view":
+            return _cmd_view(args)
+        if args.command == "bench":
+            return cmd_bench(args)
         return _cmd_demo(args)
     except FeprError as exc:
         _err(f"error: {exc}")

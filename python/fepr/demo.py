@@ -6,6 +6,9 @@ The scenes follow the reference results of the project's FEPR spec (section 7):
   released; Neo-Hookean E = 1e3 Pa, nu = 0.3, 5 kg per vertex, symplectic Euler, dt = 1/30 s, 300 steps, no
   gravity. Without projection the step is unstable and runs away; with it, H, P and L stay at their
   initial values.
+- ``seed_demo1_wobble``: the seed's "wobbly" start on the builtin L: stretched 1.2x about its centre of mass and
+  every other vertex pushed down at 2 m/s; symplectic Euler, dt = 1/30 s, no gravity. Without projection the
+  energy wanders by about 20%; with it, H, P and L stay.
 - ``spinning_l_gravity``: the L stretched 5% about its centre of mass, spinning at 1 rad/s about z and thrown
   at 1 m/s along x under gravity; dt = 1/100 s, 100 steps. P follows P0 + m g t, L (about the centre of mass)
   is conserved.
@@ -17,19 +20,38 @@ The scenes follow the reference results of the project's FEPR spec (section 7):
 - ``implicit_cantilever``: a bar pinned at one end sagging under gravity, backward Euler at dt = 1/30 s: alone
   the oscillation dies out; with FEPR (energy row) it keeps swinging.
 
-``python -c "import fepr.demo; fepr.demo.main()"`` and ``fepr demo`` run them and print a table.
+The seed's three initial conditions on the L are ``seed_demo3_stretch``, ``seed_demo1_wobble`` and
+``spinning_l_gravity``. ``implicit_ell`` and ``implicit_cantilever`` are also run with Projective Dynamics
+(:data:`GALLERY`): every dissipative base integrator alone damps the motion out; with FEPR the energy is held.
+
+``fepr demo`` (:func:`main`) runs the gallery through :func:`fepr.compare.compare`, writes each scene's plots,
+side-by-side video, summary and report under ``./fepr-demo/<scene>/`` with an index ``report.html``, and prints
+a table. :func:`run_demos` runs the same scenes without any rendering (numbers only).
 """
 
 from __future__ import annotations
 
 import copy
 import math
+import sys
+import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Dict, List, Optional, Union
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 from .scene import RunResult, Scene, run_scene, scene_from_dict
 
-__all__ = ["DEMO_SCENES", "demo_scenes", "format_table", "main", "run_demos"]
+__all__ = [
+    "DEMO_SCENES",
+    "GALLERY",
+    "GalleryItem",
+    "demo_scenes",
+    "format_gallery_table",
+    "format_table",
+    "main",
+    "run_demos",
+    "run_gallery",
+]
 
 G = [0.0, 0.0, -9.81]
 
@@ -45,6 +67,17 @@ DEMO_SCENES: Dict[str, Dict[str, Any]] = {
         "projection": {"enabled": True},
         "world": {"gravity": [0.0, 0.0, 0.0]},
         "run": {"steps": 300},
+    },
+    "seed_demo1_wobble": {
+        "scene": {"description": "the L stretched 1.2x, every other vertex pushed down at 2 m/s, no gravity"},
+        "mesh": {"builtin": "ell"},
+        "material": {"model": "neo_hookean", "youngs_modulus": 1e3, "poisson_ratio": 0.3},
+        "mass": {"node_mass": 5.0},
+        "initial": {"scale": 1.2, "scale_about": "centroid", "alternating_velocity": [0.0, 0.0, -2.0]},
+        "integrator": {"name": "symplectic_euler", "dt": 1.0 / 30.0},
+        "projection": {"enabled": True},
+        "world": {"gravity": [0.0, 0.0, 0.0]},
+        "run": {"steps": 240},
     },
     "spinning_l_gravity": {
         "scene": {"description": "the L stretched 5%, spinning 1 rad/s about z, thrown at 1 m/s, gravity"},
@@ -210,19 +243,214 @@ def format_table(results: List[RunResult]) -> str:
     return "\n".join(lines)
 
 
-def main(steps: Optional[int] = None, out_dir: Union[str, Path, None] = None, quiet: bool = False) -> int:
-    """Run the demos and print the table (what ``fepr demo`` does). Returns 0."""
+# --------------------------------------------------------------------------------------------------------
+# The gallery: every demo scene as a side-by-side comparison (plots, video, summary, report)
+# --------------------------------------------------------------------------------------------------------
 
-    def report(r: RunResult) -> None:
+
+@dataclass(frozen=True)
+class GalleryItem:
+    """One scene of ``fepr demo``: its name in :data:`DEMO_SCENES`, the integrators to compare (``None``: the
+    scene's own) and an optional shorter run for the video."""
+
+    name: str
+    integrators: Optional[Tuple[str, ...]] = None
+    steps: Optional[int] = None
+
+
+#: What ``fepr demo`` shows, in order. Integrators that the installed extension lacks are left out.
+GALLERY: Tuple[GalleryItem, ...] = (
+    GalleryItem("seed_demo3_stretch", steps=150),
+    GalleryItem("seed_demo1_wobble", steps=150),
+    GalleryItem("spinning_l_gravity"),
+    GalleryItem("dropped_box"),
+    GalleryItem("wobbly_box"),
+    GalleryItem("implicit_ell", integrators=("implicit_euler", "projective_dynamics"), steps=120),
+    GalleryItem("implicit_cantilever", integrators=("implicit_euler", "projective_dynamics"), steps=90),
+)
+
+#: Video settings of the demo: frames per scene, panel size (pixels), frames per second.
+DEMO_FRAMES = 30
+DEMO_SIZE = (480, 352)
+DEMO_FPS = 15.0
+
+
+def _gallery_scene(item: GalleryItem) -> Scene:
+    d = copy.deepcopy(DEMO_SCENES[item.name])
+    d.setdefault("scene", {})["name"] = item.name
+    return scene_from_dict(d, ".", source=f"demo:{item.name}")
+
+
+def _integrators(item: GalleryItem) -> Optional[List[str]]:
+    if item.integrators is None:
+        return None
+    from . import _core
+
+    names = [n for n in item.integrators if n in _core.INTEGRATORS]
+    return names or None
+
+
+def run_gallery(
+    out_dir: Union[str, Path],
+    *,
+    steps: Optional[int] = None,
+    frames: int = DEMO_FRAMES,
+    size: Tuple[int, int] = DEMO_SIZE,
+    video: bool = True,
+    quiet: bool = False,
+    on_result: Optional[Callable[[Any], None]] = None,
+) -> List[Any]:
+    """Run every :data:`GALLERY` scene through :func:`fepr.compare.compare` into ``out_dir/<scene>/``.
+
+    Returns the :class:`fepr.compare.CompareResult` of each scene. ``steps`` overrides every scene's length.
+    """
+    from .compare import compare
+    from .progress import progress_bar
+
+    results = []
+    out = Path(out_dir)
+    with progress_bar(len(GALLERY), desc="fepr demo", unit="scene", quiet=quiet) as bar:
+        for item in GALLERY:
+            bar.set_description(f"fepr demo: {item.name}")
+            res = compare(
+                _gallery_scene(item),
+                out / item.name,
+                integrators=_integrators(item),
+                steps=item.steps if steps is None else steps,
+                frames=frames,
+                size=size,
+                fps=DEMO_FPS,
+                video=video,
+                quiet=True,
+            )
+            for run in res.runs:  # the recorded frames are no longer needed
+                run.frames = run.frames[:0]
+            results.append(res)
+            bar.update(1)
+            if on_result is not None:
+                on_result(res)
+    return results
+
+
+GALLERY_HEADER = (
+    "scene",
+    "integrator",
+    "FEPR",
+    "steps",
+    "max|H/H0-1|",
+    "|P-Pexp|",
+    "|L-L0|",
+    "min J",
+    "iters",
+    "ms/step",
+)
+
+
+def gallery_rows(results: Sequence[Any]) -> List[List[str]]:
+    """Table cells, one row per run; runs of an integrator other than the scene's own are named
+    ``scene/integrator``."""
+    rows = []
+    for res in results:
+        for run, m in zip(res.runs, res.metrics):
+            name = res.scene if run.spec.default else f"{res.scene}/{run.spec.integrator}"
+            steps = f"runaway at {m.runaway_step}" if m.runaway_step is not None else str(m.steps)
+            rows.append(
+                [
+                    name,
+                    run.spec.integrator,
+                    "on" if run.spec.projection else "off",
+                    steps,
+                    _sci(m.max_dh),
+                    _sci(m.p_drift),
+                    _sci(m.l_drift),
+                    f"{m.min_j:.3g}",
+                    "-" if m.mean_iterations is None else f"{m.mean_iterations:.2f}",
+                    f"{m.ms_per_step:.3f}",
+                ]
+            )
+    return rows
+
+
+def format_gallery_table(results: Sequence[Any]) -> str:
+    """The plain-text table of ``fepr demo``: one line per run, with a legend."""
+    rows = [list(GALLERY_HEADER)] + gallery_rows(results)
+    widths = [max(len(row[i]) for row in rows) for i in range(len(GALLERY_HEADER))]
+    lines = []
+    for k, row in enumerate(rows):
+        cells = [c.ljust(w) if i < 4 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))]
+        lines.append("  ".join(cells).rstrip())
+        if k == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    lines += [
+        "",
+        "max|H/H0-1|  largest relative energy error over the run",
+        "|P-Pexp|     largest drift of the linear momentum from P0 + m g t, relative",
+        "|L-L0|       largest drift of the angular momentum about the centre of mass, relative",
+        "             ('-': vertices pinned, the supports exchange momentum with the body)",
+        "min J        smallest volume ratio det F; iters: mean FEPR iterations per step",
+        "ms/step      the solver's own time per step (base step + projection)",
+    ]
+    return "\n".join(lines)
+
+
+def _write_index(out: Path, results: Sequence[Any]) -> Path:
+    from .compare import _section
+    from .report.html import report_page
+
+    sections = []
+    for res in results:
+        setup = ""
+        summary = res.out_dir / "summary.json"
+        if summary.is_file():
+            import json
+
+            info = json.loads(summary.read_text())["setup"]
+            setup = f"{info['steps']} steps of dt = {info['dt']:.4g} s; total mass {info['total_mass']:.4g} kg."
+        description = DEMO_SCENES[res.scene].get("scene", {}).get("description", "")
+        sections.append(_section(res, res.scene, description, setup, prefix=f"{res.scene}/"))
+    intro = (
+        "Each scene runs with FEPR (warm colours) and without it (cool colours), side by side with the same "
+        "camera. Without projection, symplectic Euler drifts or runs away, and backward Euler and Projective "
+        "Dynamics damp the motion out; with FEPR the energy, linear and angular momentum are held."
+    )
+    path = out / "report.html"
+    path.write_text(report_page("fepr demo", sections, intro=intro))
+    return path
+
+
+def main(
+    steps: Optional[int] = None,
+    out_dir: Union[str, Path, None] = None,
+    quiet: bool = False,
+    *,
+    frames: int = DEMO_FRAMES,
+    size: Tuple[int, int] = DEMO_SIZE,
+    video: bool = True,
+) -> int:
+    """Run the gallery, write ``out_dir`` (default ``./fepr-demo``), print the table (what ``fepr demo`` does).
+
+    Returns 0.
+    """
+    out = Path("fepr-demo") if out_dir is None else Path(out_dir)
+    start = time.perf_counter()
+
+    def report(res) -> None:
         if not quiet:
-            print(f"  {r.summary()}", flush=True)
+            print(f"  {res.summary_line()}", flush=True)
 
     if not quiet:
-        print("fepr demo: each scene with FEPR on and off", flush=True)
-    results = run_demos(steps=steps, out_dir=out_dir, on_result=report)
+        print(f"fepr demo: {len(GALLERY)} scenes, each with FEPR on and off -> {out}", flush=True)
+    results = run_gallery(out, steps=steps, frames=frames, size=size, video=video, quiet=quiet, on_result=report)
+    index = _write_index(out, results)
     if not quiet:
         print()
-    print(format_table(results))
-    if out_dir is not None and not quiet:
-        print(f"\ndiagnostics written under {out_dir}")
+    print(format_gallery_table(results))
+    notes = sorted({r.video_error for r in results if r.video_error} | {r.plot_error for r in results if r.plot_error})
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr, flush=True)
+    runs = sum(len(r.runs) for r in results)
+    print(
+        f"\nfepr demo: {len(results)} scenes, {runs} runs in {time.perf_counter() - start:.1f} s; report: {index}",
+        flush=True,
+    )
     return 0

@@ -236,7 +236,11 @@ class IntegratorSettings:
         extra = sorted(set(given) - set(allowed.get(self.name, ())))
         if extra:
             raise ConfigError(f"[integrator] {', '.join(extra)} is not an option of {self.name!r}")
-        types = {"implicit_euler": fepr.ImplicitEuler, "projective_dynamics": fepr.ProjectiveDynamics, "xpbd": fepr.Xpbd}
+        types = {
+            "implicit_euler": fepr.ImplicitEuler,
+            "projective_dynamics": fepr.ProjectiveDynamics,
+            "xpbd": fepr.Xpbd,
+        }
         return types[self.name](**given) if self.name in types else self.name
 
 

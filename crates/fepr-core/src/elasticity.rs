@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 
 use crate::linalg::{det, matmul, transpose, Mat3, Vec3};
-use crate::material::Hyperelastic;
+use crate::material::{Hyperelastic, Material, NeoHookean};
 use crate::mesh::edge_matrix;
 use crate::model::Model;
 use crate::parallel::{reduce_chunks, TET_CHUNK};
@@ -42,10 +42,18 @@ impl ElasticSummary {
     }
 }
 
-/// Scratch memory for gradient evaluations (reused across calls, no allocation in the step loop).
+/// Scratch memory for gradient evaluations (reused across calls, no allocation in the step loop): the
+/// gradients on corners 1..3 of every tet (corner 0 gets minus their sum, recomputed in the gather).
 #[derive(Clone, Debug, Default)]
 pub struct ElasticWorkspace {
-    element_gradients: Vec<[Vec3; 4]>,
+    element_gradients: Vec<[Vec3; 3]>,
+}
+
+impl ElasticWorkspace {
+    /// Bytes held by the workspace.
+    pub fn bytes(&self) -> usize {
+        self.element_gradients.capacity() * std::mem::size_of::<[Vec3; 3]>()
+    }
 }
 
 /// Deformation gradient of tet `e`.
@@ -55,18 +63,41 @@ pub fn deformation_gradient(model: &Model, x: &[Vec3], e: usize) -> Mat3 {
     matmul(&edge_matrix(x, t), &model.rest.dm_inv[e])
 }
 
+/// Call `$body` with `$m` bound to the concrete material, so that the per-tet loops are compiled once per
+/// material (no per-tet dispatch).
+macro_rules! with_material {
+    ($model:expr, $m:ident => $body:expr) => {
+        match &$model.material {
+            Material::NeoHookean($m) => $body,
+            Material::StableNeoHookean($m) => $body,
+            Material::Arap($m) => $body,
+            #[allow(unreachable_patterns)]
+            $m => $body,
+        }
+    };
+}
+
 /// Elastic energy only (no gradient), J.
 pub fn elastic_energy(model: &Model, x: &[Vec3]) -> ElasticSummary {
+    with_material!(model, mat => energy_impl(mat, model, x))
+}
+
+fn energy_impl<M: Hyperelastic + Sync>(mat: &M, model: &Model, x: &[Vec3]) -> ElasticSummary {
     let k = model.num_tets();
+    let (tets, dm_inv, volume) = (model.mesh.tets(), &model.rest.dm_inv, &model.rest.volume);
     reduce_chunks(
         k,
         TET_CHUNK,
         |range| {
             let mut s = ElasticSummary::zero();
-            for e in range {
-                let f = deformation_gradient(model, x, e);
+            for ((t, dmi), vol) in tets[range.clone()]
+                .iter()
+                .zip(&dm_inv[range.clone()])
+                .zip(&volume[range])
+            {
+                let f = matmul(&edge_matrix(x, t), dmi);
                 let j = det(&f);
-                s.energy += model.rest.volume[e] * model.material.energy_density(&f);
+                s.energy += vol * mat.energy_density(&f);
                 s.min_j = s.min_j.min(j);
                 s.inverted += (j <= 0.0) as usize;
             }
@@ -78,6 +109,10 @@ pub fn elastic_energy(model: &Model, x: &[Vec3]) -> ElasticSummary {
 }
 
 /// Elastic energy and its gradient `dE_el/dx` (written to `grad`, shape (m, 3), J/m).
+///
+/// Two passes: a per-tet pass over fixed chunks (energy density, stress, the corner gradients into the
+/// workspace) and a per-vertex gather in the fixed incidence order (ascending tet index). Both are
+/// parallel; neither depends on the thread count, so the result is bit-identical for any thread count.
 pub fn elastic_energy_gradient(
     model: &Model,
     x: &[Vec3],
@@ -85,59 +120,299 @@ pub fn elastic_energy_gradient(
     grad: &mut [Vec3],
 ) -> ElasticSummary {
     let k = model.num_tets();
-    ws.element_gradients.resize(k, [[0.0; 3]; 4]);
-    let parts: Vec<ElasticSummary> = ws
-        .element_gradients
-        .par_chunks_mut(TET_CHUNK)
-        .enumerate()
-        .map(|(c, chunk)| {
-            let mut s = ElasticSummary::zero();
-            for (i, out) in chunk.iter_mut().enumerate() {
-                let e = c * TET_CHUNK + i;
-                let f = deformation_gradient(model, x, e);
-                let j = det(&f);
-                let vol = model.rest.volume[e];
-                let (psi, p) = model.material.energy_and_stress(&f);
-                s.energy += vol * psi;
-                s.min_j = s.min_j.min(j);
-                s.inverted += (j <= 0.0) as usize;
-                // H = V P D_m^-T; its columns are the gradients on vertices 1..3.
-                let h = matmul(&p, &transpose(&model.rest.dm_inv[e]));
-                let mut g0 = [0.0; 3];
-                for a in 0..3 {
-                    for b in 0..3 {
-                        let gab = vol * h[b][a];
-                        out[a + 1][b] = gab;
-                        g0[b] -= gab;
-                    }
-                }
-                out[0] = g0;
-            }
-            s
-        })
-        .collect();
-    let summary = parts
-        .into_iter()
-        .fold(ElasticSummary::zero(), ElasticSummary::combine);
+    if ws.element_gradients.len() != k {
+        ws.element_gradients.resize(k, [[0.0; 3]; 3]);
+    }
+    let summary = match &model.material {
+        Material::NeoHookean(nh) => neo_hookean_pass(nh, model, x, &mut ws.element_gradients),
+        _ => with_material!(model, mat => element_pass(mat, model, x, &mut ws.element_gradients)),
+    };
     gather(model, &ws.element_gradients, grad);
     summary
 }
 
-/// Sum per-tet corner values into vertices, in the fixed incidence order.
-fn gather(model: &Model, element_values: &[[Vec3; 4]], out: &mut [Vec3]) {
+fn element_pass<M: Hyperelastic + Sync>(
+    mat: &M,
+    model: &Model,
+    x: &[Vec3],
+    out: &mut [[Vec3; 3]],
+) -> ElasticSummary {
+    let (tets, dm_inv, volume) = (model.mesh.tets(), &model.rest.dm_inv, &model.rest.volume);
+    let parts: Vec<ElasticSummary> = out
+        .par_chunks_mut(TET_CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let range = c * TET_CHUNK..c * TET_CHUNK + chunk.len();
+            let mut s = ElasticSummary::zero();
+            for (((out, t), dmi), &vol) in chunk
+                .iter_mut()
+                .zip(&tets[range.clone()])
+                .zip(&dm_inv[range.clone()])
+                .zip(&volume[range])
+            {
+                let f = matmul(&edge_matrix(x, t), dmi);
+                let j = det(&f);
+                let (psi, p) = mat.energy_and_stress(&f);
+                s.energy += vol * psi;
+                s.min_j = s.min_j.min(j);
+                s.inverted += (j <= 0.0) as usize;
+                // H = V P D_m^-T; its columns are the gradients on vertices 1..3.
+                let h = matmul(&p, &transpose(dmi));
+                for a in 0..3 {
+                    for b in 0..3 {
+                        out[a][b] = vol * h[b][a];
+                    }
+                }
+            }
+            s
+        })
+        .collect();
+    parts
+        .into_iter()
+        .fold(ElasticSummary::zero(), ElasticSummary::combine)
+}
+
+/// Tets per batch of the Neo-Hookean kernel (structure of arrays across the batch, so the compiler can use
+/// SIMD lanes for the per-tet arithmetic).
+const LANES: usize = 4;
+type Lanes = [f64; LANES];
+
+/// The Neo-Hookean element pass, batched over [`LANES`] tets. The arithmetic mirrors
+/// [`NeoHookean::energy_and_stress`] operation by operation (no fused multiply-adds), so every lane gives
+/// bit-for-bit the scalar result (gated by a test); only the scheduling differs.
+fn neo_hookean_pass(
+    nh: &NeoHookean,
+    model: &Model,
+    x: &[Vec3],
+    out: &mut [[Vec3; 3]],
+) -> ElasticSummary {
+    #[cfg(target_arch = "x86_64")]
+    let avx2 = std::arch::is_x86_feature_detected!("avx2");
+    let parts: Vec<ElasticSummary> = out
+        .par_chunks_mut(TET_CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            #[cfg(target_arch = "x86_64")]
+            if avx2 {
+                // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
+                return unsafe { neo_hookean_chunk_avx2(nh, model, x, c * TET_CHUNK, chunk) };
+            }
+            neo_hookean_chunk(nh, model, x, c * TET_CHUNK, chunk)
+        })
+        .collect();
+    parts
+        .into_iter()
+        .fold(ElasticSummary::zero(), ElasticSummary::combine)
+}
+
+/// [`neo_hookean_chunk`] compiled for AVX2 (wider lanes; no FMA, so the results are the same bits).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn neo_hookean_chunk_avx2(
+    nh: &NeoHookean,
+    model: &Model,
+    x: &[Vec3],
+    base: usize,
+    chunk: &mut [[Vec3; 3]],
+) -> ElasticSummary {
+    neo_hookean_chunk(nh, model, x, base, chunk)
+}
+
+/// One chunk of tets `base..base + chunk.len()`, in batches of [`LANES`], the remainder one by one.
+#[inline(always)]
+fn neo_hookean_chunk(
+    nh: &NeoHookean,
+    model: &Model,
+    x: &[Vec3],
+    base: usize,
+    chunk: &mut [[Vec3; 3]],
+) -> ElasticSummary {
+    let (tets, dm_inv, volume) = (model.mesh.tets(), &model.rest.dm_inv, &model.rest.volume);
+    let mut s = ElasticSummary::zero();
+    let mut batches = chunk.chunks_exact_mut(LANES);
+    let mut e0 = base;
+    for batch in &mut batches {
+        let b: &mut [[Vec3; 3]; LANES] = batch.try_into().expect("exact chunk");
+        neo_hookean_batch(
+            nh,
+            tets[e0..e0 + LANES].try_into().expect("in range"),
+            dm_inv[e0..e0 + LANES].try_into().expect("in range"),
+            volume[e0..e0 + LANES].try_into().expect("in range"),
+            x,
+            b,
+            &mut s,
+        );
+        e0 += LANES;
+    }
+    for (i, o) in batches.into_remainder().iter_mut().enumerate() {
+        let e = e0 + i;
+        element_scalar(nh, &tets[e], &dm_inv[e], volume[e], x, o, &mut s);
+    }
+    s
+}
+
+/// One tet through the generic material interface (the reference the batched kernel must match).
+#[inline(always)]
+fn element_scalar<M: Hyperelastic>(
+    mat: &M,
+    t: &[usize; 4],
+    dmi: &Mat3,
+    vol: f64,
+    x: &[Vec3],
+    out: &mut [Vec3; 3],
+    s: &mut ElasticSummary,
+) {
+    let f = matmul(&edge_matrix(x, t), dmi);
+    let j = det(&f);
+    let (psi, p) = mat.energy_and_stress(&f);
+    s.energy += vol * psi;
+    s.min_j = s.min_j.min(j);
+    s.inverted += (j <= 0.0) as usize;
+    let h = matmul(&p, &transpose(dmi));
+    for a in 0..3 {
+        for b in 0..3 {
+            out[a][b] = vol * h[b][a];
+        }
+    }
+}
+
+#[inline(always)]
+fn neo_hookean_batch(
+    nh: &NeoHookean,
+    t: &[[usize; 4]; LANES],
+    dmi: &[Mat3; LANES],
+    vol: &[f64; LANES],
+    x: &[Vec3],
+    out: &mut [[Vec3; 3]; LANES],
+    s: &mut ElasticSummary,
+) {
+    let z: Lanes = [0.0; LANES];
+    // Edge matrices D_s[i][c] = x_{c+1}[i] - x_0[i] and D_m^-1, lane-last.
+    let mut ds = [[z; 3]; 3];
+    let mut dm = [[z; 3]; 3];
+    for l in 0..LANES {
+        let x0 = x[t[l][0]];
+        for c in 0..3 {
+            let xc = x[t[l][c + 1]];
+            for i in 0..3 {
+                ds[i][c][l] = xc[i] - x0[i];
+                dm[i][c][l] = dmi[l][i][c];
+            }
+        }
+    }
+    // F = D_s D_m^-1 (as linalg::matmul).
+    let mut f = [[z; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            for l in 0..LANES {
+                f[i][j][l] = ds[i][0][l] * dm[0][j][l]
+                    + ds[i][1][l] * dm[1][j][l]
+                    + ds[i][2][l] * dm[2][j][l];
+            }
+        }
+    }
+    // I_C (as linalg::ddot), J (as linalg::det), cofactor (as linalg::cofactor).
+    let mut ic = z;
+    for i in 0..3 {
+        for j in 0..3 {
+            for l in 0..LANES {
+                ic[l] += f[i][j][l] * f[i][j][l];
+            }
+        }
+    }
+    let mut jd = z;
+    let mut cof = [[z; 3]; 3];
+    for l in 0..LANES {
+        let m = |i: usize, j: usize| f[i][j][l];
+        jd[l] = m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1))
+            - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0))
+            + m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
+        cof[0][0][l] = m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1);
+        cof[0][1][l] = m(1, 2) * m(2, 0) - m(1, 0) * m(2, 2);
+        cof[0][2][l] = m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0);
+        cof[1][0][l] = m(0, 2) * m(2, 1) - m(0, 1) * m(2, 2);
+        cof[1][1][l] = m(0, 0) * m(2, 2) - m(0, 2) * m(2, 0);
+        cof[1][2][l] = m(0, 1) * m(2, 0) - m(0, 0) * m(2, 1);
+        cof[2][0][l] = m(0, 1) * m(1, 2) - m(0, 2) * m(1, 1);
+        cof[2][1][l] = m(0, 2) * m(1, 0) - m(0, 0) * m(1, 2);
+        cof[2][2][l] = m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0);
+    }
+    // Volumetric part (as NeoHookean::volumetric with the extended logarithm).
+    let (mu, lambda, j0) = (nh.mu, nh.lambda, nh.j0);
+    let mut psi = z;
+    let mut dg = z;
+    for l in 0..LANES {
+        let j = jd[l];
+        let (lg, dl) = if j >= j0 {
+            (j.ln(), 1.0 / j)
+        } else {
+            let d = j - j0;
+            (
+                j0.ln() + d / j0 - d * d / (2.0 * j0 * j0),
+                1.0 / j0 - d / (j0 * j0),
+            )
+        };
+        let g = -mu * lg + 0.5 * lambda * lg * lg;
+        dg[l] = (-mu + lambda * lg) * dl;
+        psi[l] = 0.5 * mu * (ic[l] - 3.0) + g;
+    }
+    // P = mu F + g'(J) cof(F); H = V P D_m^-T, whose columns are the gradients on corners 1..3.
+    let mut p = [[z; 3]; 3];
+    for i in 0..3 {
+        for k in 0..3 {
+            for l in 0..LANES {
+                p[i][k][l] = mu * f[i][k][l] + dg[l] * cof[i][k][l];
+            }
+        }
+    }
+    for b in 0..3 {
+        for a in 0..3 {
+            for l in 0..LANES {
+                // h[b][a] = sum_k p[b][k] dm_inv^T[k][a] = sum_k p[b][k] dm_inv[a][k]
+                let h =
+                    p[b][0][l] * dm[a][0][l] + p[b][1][l] * dm[a][1][l] + p[b][2][l] * dm[a][2][l];
+                out[l][a][b] = vol[l] * h;
+            }
+        }
+    }
+    for l in 0..LANES {
+        s.energy += vol[l] * psi[l];
+        s.min_j = s.min_j.min(jd[l]);
+        s.inverted += (jd[l] <= 0.0) as usize;
+    }
+}
+
+/// Vertices per parallel task in the gather.
+const VERTEX_CHUNK: usize = 512;
+
+/// Sum per-tet corner values into vertices, in the fixed incidence order. Corner 0's value is minus the sum
+/// of corners 1..3, evaluated in that order.
+fn gather(model: &Model, element_values: &[[Vec3; 3]], out: &mut [Vec3]) {
     let offsets = &model.incidence_offsets;
     let slots = &model.incidence_slots;
-    out.par_iter_mut().enumerate().for_each(|(i, g)| {
-        let mut acc = [0.0; 3];
-        for &slot in &slots[offsets[i]..offsets[i + 1]] {
-            let s = slot as usize;
-            let v = element_values[s / 4][s % 4];
-            acc[0] += v[0];
-            acc[1] += v[1];
-            acc[2] += v[2];
-        }
-        *g = acc;
-    });
+    out.par_chunks_mut(VERTEX_CHUNK)
+        .enumerate()
+        .for_each(|(c, chunk)| {
+            let first = c * VERTEX_CHUNK;
+            for (i, g) in chunk.iter_mut().enumerate() {
+                let v = first + i;
+                let mut acc = [0.0; 3];
+                for &slot in &slots[offsets[v]..offsets[v + 1]] {
+                    let s = slot as usize;
+                    let e = &element_values[s >> 2];
+                    let corner = s & 3;
+                    let val = if corner == 0 {
+                        [0, 1, 2].map(|b| 0.0 - e[0][b] - e[1][b] - e[2][b])
+                    } else {
+                        e[corner - 1]
+                    };
+                    acc[0] += val[0];
+                    acc[1] += val[1];
+                    acc[2] += val[2];
+                }
+                *g = acc;
+            }
+        });
 }
 
 #[cfg(test)]
@@ -294,6 +569,34 @@ mod tests {
         let one = run(1);
         assert_eq!(one, run(2));
         assert_eq!(one, run(4));
+    }
+
+    #[test]
+    fn batched_neo_hookean_matches_the_material_interface_bit_for_bit() {
+        // Large random perturbations: many tets below j0 = 0.1 and some inverted, so both branches of the
+        // extended logarithm run; 3^3 * 6 = 162 tets is not a multiple of the batch (remainder path too).
+        let mat = NeoHookean::new(1e4, 0.3).unwrap();
+        let model = grid_model(3, Material::NeoHookean(mat));
+        for seed in [1, 5, 9] {
+            let mut x = deformed(&model, seed);
+            for (i, p) in x.iter_mut().enumerate() {
+                let w = (i as f64 * 1.7).sin();
+                p[2] *= 0.05 + 0.9 * w * w;
+            }
+            let k = model.num_tets();
+            let mut a = vec![[[0.0; 3]; 3]; k];
+            let mut b = vec![[[0.0; 3]; 3]; k];
+            let sa = neo_hookean_pass(&mat, &model, &x, &mut a);
+            let sb = element_pass(&mat, &model, &x, &mut b);
+            assert!(sa.inverted > 0 && sa.min_j < mat.j0, "{sa:?}");
+            assert_eq!(sa.energy.to_bits(), sb.energy.to_bits());
+            assert_eq!(sa.min_j.to_bits(), sb.min_j.to_bits());
+            assert_eq!(sa.inverted, sb.inverted);
+            let bits = |v: &Vec<[Vec3; 3]>| -> Vec<u64> {
+                v.iter().flatten().flatten().map(|g| g.to_bits()).collect()
+            };
+            assert_eq!(bits(&a), bits(&b));
+        }
     }
 
     #[test]

@@ -157,7 +157,17 @@ impl Integrator for ImplicitEuler {
             ]);
         }
         let x_n = state.x.clone();
-        let mut x = self.y.clone();
+        // Start Newton from the better of the inertial prediction y and x_n. Phi(x_n) = K_n + U(x_n) (the
+        // start-of-step energy, less gravity's share), so with a monotone line search the step can never end
+        // with more energy than it started with, even when y inverts slivers and Newton cannot recover within
+        // its iterations; starting from y alone would then hand a wildly energetic state to the next step.
+        let mut x = if Self::objective(model, &x_n, &self.y, h)
+            < Self::objective(model, &self.y, &self.y, h)
+        {
+            x_n.clone()
+        } else {
+            self.y.clone()
+        };
         let mut report = StepReport {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()

@@ -331,6 +331,10 @@ pub struct Projector {
     stiffness_ratio: Vec<f64>,
     /// `a_i = m_i / w_i` of this step's metric.
     metric_factor: Vec<f64>,
+    /// The full step's trial point while the model step length is tried.
+    x_spare: Vec<Vec3>,
+    v_spare: Vec<Vec3>,
+    grad_spare: Vec<Vec3>,
 }
 
 struct Problem<'a> {
@@ -524,12 +528,15 @@ impl Projector {
                     if cand.0.c.iter().all(|c| c.is_finite()) {
                         let a_star = model_step_length(&pb, &cur.c, &cand.0.c);
                         if a_star < 0.95 {
+                            // Keep the full step's buffers aside, so that falling back to it needs no
+                            // second evaluation.
+                            self.swap_trial_spare();
                             let alt = self.trial(&pb, s, t, &lambda, a_star);
                             if alt.0.c.iter().all(|c| c.is_finite()) && alt.1 < cand.1 {
                                 cand = alt;
                                 alpha = a_star;
                             } else {
-                                cand = self.trial(&pb, s, t, &lambda, 1.0);
+                                self.swap_trial_spare();
                             }
                         }
                     }
@@ -689,6 +696,17 @@ impl Projector {
 }
 
 impl Projector {
+    /// Exchange the trial buffers with the spare ones (sized on first use).
+    fn swap_trial_spare(&mut self) {
+        let m = self.x_trial.len();
+        for buf in [&mut self.x_spare, &mut self.v_spare, &mut self.grad_spare] {
+            buf.resize(m, [0.0; 3]);
+        }
+        std::mem::swap(&mut self.x_trial, &mut self.x_spare);
+        std::mem::swap(&mut self.v_trial, &mut self.v_spare);
+        std::mem::swap(&mut self.grad_trial, &mut self.grad_spare);
+    }
+
     /// Evaluate the trial point `q - alpha D^-1 G lambda` (into the trial buffers): returns its evaluation,
     /// scaled residual norm and slack values.
     fn trial(

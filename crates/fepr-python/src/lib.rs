@@ -544,6 +544,43 @@ impl Simulation {
         );
         Ok((s.energy, from_vec3(py, &grad)))
     }
+    /// Benchmark helper: time `repeats` elastic energy + gradient evaluations at the current positions on
+    /// `threads` worker threads (GIL released, workspace reused, after one warm-up evaluation). Returns
+    /// (seconds per evaluation, the energy's bits, a checksum of the gradient's bits) so callers can
+    /// compare thread counts bit for bit.
+    fn bench_energy_gradient(
+        &self,
+        py: Python<'_>,
+        repeats: usize,
+        threads: usize,
+    ) -> PyResult<(f64, u64, u64)> {
+        if repeats == 0 || threads == 0 {
+            return Err(PyValueError::new_err(
+                "repeats and threads must be at least 1",
+            ));
+        }
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .map_err(|e| PyRuntimeError::new_err(format!("cannot start {threads} threads: {e}")))?;
+        let (model, x) = (&self.inner.model, &self.inner.state.x);
+        Ok(py.detach(|| {
+            pool.install(|| {
+                let mut grad = vec![[0.0; 3]; x.len()];
+                let mut ws = ElasticWorkspace::default();
+                let mut s = elastic_energy_gradient(model, x, &mut ws, &mut grad);
+                let t0 = std::time::Instant::now();
+                for _ in 0..repeats {
+                    s = elastic_energy_gradient(model, x, &mut ws, &mut grad);
+                }
+                let dt = t0.elapsed().as_secs_f64() / repeats as f64;
+                let checksum = grad.iter().flatten().fold(0u64, |h, g| {
+                    (h ^ g.to_bits()).wrapping_mul(0x0100_0000_01b3)
+                });
+                (dt, s.energy.to_bits(), checksum)
+            })
+        }))
+    }
     fn last_projection<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
         match self.inner.history().last().and_then(|d| d.projection) {
             Some(r) => Ok(Some(report_dict(py, &r)?)),

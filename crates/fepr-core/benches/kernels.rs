@@ -1,0 +1,235 @@
+//! Criterion benchmarks of the kernels: elastic energy + gradient (1 thread and all threads), one symplectic
+//! Euler step, one FEPR projection, and the sparse Cholesky factorisations (fill-reducing ordering).
+//!
+//! `cargo bench -p fepr-core --bench kernels` (add `-- energy` to run a subset). Meshes: built-in boxes
+//! (6 tets per cell) and, when present, `../shared/meshes/seed/bunny2.1.{node,ele}` beside the repository.
+
+use std::hint::black_box;
+use std::path::PathBuf;
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
+use fepr_core::integrators::{Integrator, SymplecticEuler};
+use fepr_core::linalg::Vec3;
+use fepr_core::material::{Material, NeoHookean};
+use fepr_core::mesh::{MassSpec, TetMesh};
+use fepr_core::model::{Model, ModelBuilder, State};
+use fepr_core::projection::{ProjectionSettings, Projector};
+use fepr_core::simulation::Simulation;
+use fepr_core::sparse::{LowerPattern, SparseCholesky};
+
+/// An `n x n x n` box of unit size, 6 tets per cell (the layout of `fepr.meshes.box`).
+fn box_mesh(n: usize) -> TetMesh {
+    let idx = |i: usize, j: usize, k: usize| (i + (n + 1) * (j + (n + 1) * k)) as i64;
+    let mut v = Vec::with_capacity((n + 1).pow(3));
+    for k in 0..=n {
+        for j in 0..=n {
+            for i in 0..=n {
+                v.push([i as f64, j as f64, k as f64].map(|c| c / n as f64));
+            }
+        }
+    }
+    const CUBE: [[i64; 4]; 6] = [
+        [0, 1, 3, 7],
+        [0, 3, 2, 7],
+        [0, 2, 6, 7],
+        [0, 6, 4, 7],
+        [0, 4, 5, 7],
+        [0, 5, 1, 7],
+    ];
+    let mut t = Vec::with_capacity(6 * n * n * n);
+    for k in 0..n {
+        for j in 0..n {
+            for i in 0..n {
+                let corner = |c: i64| {
+                    idx(
+                        i + (c & 1) as usize,
+                        j + ((c >> 1) & 1) as usize,
+                        k + ((c >> 2) & 1) as usize,
+                    )
+                };
+                for ct in &CUBE {
+                    t.push(ct.map(corner));
+                }
+            }
+        }
+    }
+    TetMesh::new(v, &t).unwrap().0
+}
+
+/// TetGen `.node`/`.ele` reader (enough for the seed meshes).
+fn load_tetgen(stem: &std::path::Path) -> Option<TetMesh> {
+    let read = |ext: &str| std::fs::read_to_string(stem.with_extension(ext)).ok();
+    let numbers = |text: &str| -> Vec<Vec<f64>> {
+        text.lines()
+            .map(|l| l.split('#').next().unwrap_or(""))
+            .filter(|l| !l.trim().is_empty())
+            .map(|l| {
+                l.split_whitespace()
+                    .filter_map(|w| w.parse().ok())
+                    .collect()
+            })
+            .collect()
+    };
+    let nodes = numbers(&read("node")?);
+    let eles = numbers(&read("ele")?);
+    let base = nodes.get(1)?.first().copied()? as i64;
+    let v: Vec<Vec3> = nodes[1..].iter().map(|r| [r[1], r[2], r[3]]).collect();
+    let t: Vec<[i64; 4]> = eles[1..]
+        .iter()
+        .map(|r| [1, 2, 3, 4].map(|c| r[c] as i64 - base))
+        .collect();
+    TetMesh::new(v, &t).ok().map(|(m, _)| m)
+}
+
+fn bunny2() -> Option<TetMesh> {
+    let root =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/meshes/seed/bunny2.1");
+    load_tetgen(&root)
+}
+
+fn model(mesh: TetMesh) -> Model {
+    ModelBuilder::new(
+        mesh,
+        Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
+    )
+    .mass(MassSpec::NodeMass(0.05))
+    .build()
+    .unwrap()
+}
+
+/// Stretched by 5% about the centroid (the bench scenes' initial state).
+fn stretched(model: &Model) -> Vec<Vec3> {
+    let x = model.mesh.vertices();
+    let n = x.len() as f64;
+    let c = [0, 1, 2].map(|a| x.iter().map(|p| p[a]).sum::<f64>() / n);
+    x.iter()
+        .map(|p| [0, 1, 2].map(|a| c[a] + 1.05 * (p[a] - c[a])))
+        .collect()
+}
+
+fn scenes() -> Vec<(String, Model)> {
+    let mut s = vec![
+        ("box_10k".to_string(), model(box_mesh(12))),
+        ("box_100k".to_string(), model(box_mesh(26))),
+    ];
+    if let Some(b) = bunny2() {
+        s.push(("bunny2".to_string(), model(b)));
+    }
+    s
+}
+
+fn pool(threads: usize) -> rayon::ThreadPool {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+}
+
+fn energy_gradient(c: &mut Criterion) {
+    let mut g = c.benchmark_group("energy_gradient");
+    let all = std::thread::available_parallelism().map_or(1, |n| n.get());
+    for (name, model) in scenes() {
+        let x = stretched(&model);
+        let mut grad = vec![[0.0; 3]; x.len()];
+        let mut ws = ElasticWorkspace::default();
+        g.throughput(Throughput::Elements(model.num_tets() as u64));
+        for threads in [1, all] {
+            let p = pool(threads);
+            g.bench_function(BenchmarkId::new(format!("{name}/threads"), threads), |b| {
+                p.install(|| {
+                    b.iter(|| elastic_energy_gradient(&model, black_box(&x), &mut ws, &mut grad))
+                })
+            });
+        }
+    }
+    g.finish();
+}
+
+fn steps(c: &mut Criterion) {
+    let mut g = c.benchmark_group("step");
+    g.sample_size(20);
+    for (name, model) in scenes() {
+        let x = stretched(&model);
+        g.throughput(Throughput::Elements(model.num_tets() as u64));
+        let mut state = State::at_rest(&model);
+        state.x.clone_from(&x);
+        let mut se = SymplecticEuler::new();
+        g.bench_function(BenchmarkId::new("symplectic_euler", &name), |b| {
+            b.iter(|| {
+                se.step(&model, &mut state, 1e-3);
+            })
+        });
+        let mut state = State::at_rest(&model);
+        state.x.clone_from(&x);
+        let proj = Projector::new(ProjectionSettings::default()).unwrap();
+        let mut sim = Simulation::new(
+            model.clone(),
+            state,
+            Box::new(SymplecticEuler::new()),
+            1e-3,
+            Some(proj),
+        )
+        .unwrap();
+        g.bench_function(BenchmarkId::new("symplectic_euler_fepr", &name), |b| {
+            b.iter(|| {
+                sim.step().unwrap();
+            })
+        });
+    }
+    g.finish();
+}
+
+/// The vertex adjacency of a mesh as a lower pattern (the Projective Dynamics m x m matrix).
+fn vertex_pattern(model: &Model) -> LowerPattern {
+    let m = model.num_vertices();
+    let mut cols = vec![Vec::new(); m];
+    for t in model.mesh.tets() {
+        for &a in t {
+            for &b in t {
+                if a > b {
+                    cols[b].push(a);
+                }
+            }
+        }
+    }
+    LowerPattern::from_columns(m, cols)
+}
+
+/// A graph Laplacian plus a mass-like diagonal on the pattern: SPD.
+fn laplacian_values(p: &LowerPattern) -> Vec<f64> {
+    let mut values = vec![0.0; p.nnz()];
+    let mut diag = vec![1.0; p.n];
+    for c in 0..p.n {
+        for k in p.col_ptr[c] + 1..p.col_ptr[c + 1] {
+            values[k] = -1.0;
+            diag[c] += 1.0;
+            diag[p.row_idx[k]] += 1.0;
+        }
+    }
+    for c in 0..p.n {
+        values[p.col_ptr[c]] = diag[c];
+    }
+    values
+}
+
+fn cholesky(c: &mut Criterion) {
+    let mut g = c.benchmark_group("cholesky");
+    g.sample_size(10);
+    for (name, model) in scenes() {
+        let p = vertex_pattern(&model);
+        let values = laplacian_values(&p);
+        let mut chol = SparseCholesky::analyse(&p, 3).unwrap();
+        g.bench_function(BenchmarkId::new("factorize_m", &name), |b| {
+            b.iter(|| chol.factorize(&values).unwrap())
+        });
+        let mut rhs = vec![1.0; 3 * p.n];
+        g.bench_function(BenchmarkId::new("solve_m_3rhs", &name), |b| {
+            b.iter(|| chol.solve_in_place(&mut rhs, 3))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, energy_gradient, steps, cholesky);
+criterion_main!(benches);

@@ -1,0 +1,460 @@
+"""``fepr bench``: time the kernels and whole steps over a fixed suite of scenes.
+
+For every scene: the elastic energy + gradient per tet on one thread and on all threads (and whether the two
+results are bit-identical), then for each integrator of the scene the time per step with FEPR, the base step
+and projection times, the projection's iterations per step and its share of the step, and memory (peak
+resident set size and bytes per tet of the explicit + FEPR path). Each scene runs in a fresh subprocess so
+that its peak memory is its own.
+
+Scenes: built-in boxes at about 1k, 10k, 100k and 1M tets, and the real meshes in ``../shared/meshes`` (or
+``$FEPR_SHARED_MESHES``) when present: the seed's ``bunny2`` (29,548 tets), ``bunny.msh`` (19,379 tets),
+the armadillo and the little elephant.
+
+Benchmarks report; they do not fail. ``--quick`` runs a small subset in well under a minute (CI runs it to
+prove the command still works). ``--json PATH`` (``-`` for stdout) writes every number.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence
+
+import numpy as np
+
+__all__ = ["SCENES", "QUICK_SCENES", "Scene", "add_bench_parser", "cmd_bench", "run_scene", "run_suite"]
+
+
+@dataclass(frozen=True)
+class Scene:
+    """One benchmark scene: a mesh, a material, masses, an initial stretch and the integrators to time."""
+
+    name: str
+    #: ``("box", cells)`` for a unit cube of ``6 cells^3`` tets, or ``("file", relative path)`` under the
+    #: shared meshes directory.
+    source: tuple
+    youngs_modulus: float
+    poisson_ratio: float = 0.3
+    node_mass: Optional[float] = None
+    density: Optional[float] = None
+    #: Largest extent of the mesh in metres (``None``: as in the file).
+    fit: Optional[float] = None
+    #: Initial stretch about the centroid (1.05 = 5%).
+    stretch: float = 1.05
+    #: ``(integrator, dt)`` pairs, each with FEPR on.
+    integrators: tuple = (("symplectic_euler", 1e-3),)
+    note: str = ""
+    extra: Dict[str, Any] = field(default_factory=dict)
+
+
+_BOX = dict(youngs_modulus=1e4, density=1000.0, stretch=1.05)
+
+#: The full suite, in order.
+SCENES: Dict[str, Scene] = {
+    s.name: s
+    for s in [
+        Scene(
+            "box_1k",
+            ("box", 6),
+            **_BOX,
+            integrators=(("symplectic_euler", 1e-3), ("projective_dynamics", 1 / 30), ("implicit_euler", 1 / 30)),
+        ),
+        Scene(
+            "box_10k",
+            ("box", 12),
+            **_BOX,
+            integrators=(("symplectic_euler", 1e-3), ("projective_dynamics", 1 / 30), ("implicit_euler", 1 / 30)),
+        ),
+        Scene(
+            "box_100k",
+            ("box", 26),
+            **_BOX,
+            integrators=(("symplectic_euler", 1e-3), ("projective_dynamics", 1 / 30)),
+        ),
+        Scene("box_1m", ("box", 55), **_BOX),
+        Scene(
+            "bunny2",
+            ("file", "seed/bunny2.1.node"),
+            youngs_modulus=1e3,
+            node_mass=0.05,
+            stretch=1.05,
+            integrators=(("symplectic_euler", 1e-3),),
+            note="seed bunny2: E = 1e3 Pa, 0.05 kg per node, dt = 1 ms, 5% stretch",
+        ),
+        Scene(
+            "bunny",
+            ("file", "bunny.msh"),
+            youngs_modulus=1e5,
+            density=1000.0,
+            fit=0.5,
+            stretch=1.10,
+            integrators=(("symplectic_euler", 1e-4), ("projective_dynamics", 1 / 30), ("implicit_euler", 1 / 30)),
+            note="integrators-issue bunny: 0.5 m, E = 1e5 Pa, 1000 kg/m^3, 10% stretch",
+        ),
+        Scene("armadillo", ("file", "Armadillo_Tetra_4406.vtu"), youngs_modulus=1e4, density=1000.0, fit=1.0),
+        Scene(
+            "elephant",
+            ("file", "little-elephant.msh"),
+            youngs_modulus=1e4,
+            density=1000.0,
+            fit=1.0,
+            integrators=(("symplectic_euler", 5e-4),),
+        ),
+    ]
+}
+
+#: ``--quick``: small scenes, few steps (CI).
+QUICK_SCENES = ("box_1k", "box_10k", "bunny2")
+
+
+def shared_meshes_dir() -> Optional[Path]:
+    """``$FEPR_SHARED_MESHES``, else ``../shared/meshes`` beside the repository or the working directory."""
+    env = os.environ.get("FEPR_SHARED_MESHES")
+    candidates = [Path(env)] if env else []
+    candidates.append(Path(__file__).resolve().parents[3] / "shared" / "meshes")
+    candidates.append(Path.cwd().parent / "shared" / "meshes")
+    for c in candidates:
+        if c.is_dir():
+            return c
+    return None
+
+
+def _rss_bytes(field_name: str) -> int:
+    """VmRSS or VmHWM (peak) of this process in bytes (Linux); 0 where /proc is missing."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field_name + ":"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def _reset_peak_rss() -> None:
+    """Reset VmHWM to the current RSS (Linux >= 4.0; silently ignored elsewhere)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+
+
+def load_scene_mesh(scene: Scene, meshes_dir: Optional[Path]):
+    """The scene's :class:`fepr.TetMesh`, or ``None`` with the reason when its file is missing."""
+    from . import meshes
+    from .io import load_mesh
+
+    kind, arg = scene.source
+    if kind == "box":
+        return meshes.box(size=1.0, resolution=arg), None
+    if meshes_dir is None:
+        return None, "the shared meshes directory (../shared/meshes or $FEPR_SHARED_MESHES) is not present"
+    path = meshes_dir / arg
+    if not path.exists():
+        return None, f"{path} is not present"
+    return (load_mesh(str(path), fit=scene.fit) if scene.fit else load_mesh(str(path))), None
+
+
+def _make_sim(scene: Scene, mesh, integrator: str, dt: float, threads: int):
+    from .materials import NeoHookean
+    from .simulation import Simulation
+
+    mass = {"node_mass": scene.node_mass} if scene.node_mass is not None else {"density": scene.density}
+    sim = Simulation(
+        mesh,
+        material=NeoHookean(youngs_modulus=scene.youngs_modulus, poisson_ratio=scene.poisson_ratio),
+        integrator=integrator,
+        dt=dt,
+        projection=True,
+        threads=threads,
+        **mass,
+    )
+    x0 = sim.rest_positions
+    c = x0.mean(axis=0)
+    sim.positions = c + scene.stretch * (x0 - c)
+    return sim
+
+
+def _time_steps(sim, budget_s: float, min_steps: int, max_steps: int, warmup: int) -> Dict[str, Any]:
+    sim.step(warmup)
+    n0 = sim.num_steps
+    steps = 0
+    t0 = time.perf_counter()
+    while steps < min_steps or (steps < max_steps and time.perf_counter() - t0 < budget_s):
+        sim.step(1)
+        steps += 1
+    wall = time.perf_counter() - t0
+    h = sim.history
+    rows = slice(n0, n0 + steps)
+    base_ms = float(np.mean(h["base_ms"][rows]))
+    proj_ms = float(np.mean(h["proj_ms"][rows]))
+    iters = float(np.mean(h["proj_iterations"][rows]))
+    return {
+        "steps": steps,
+        "ms_per_step": 1e3 * wall / steps,
+        "steps_per_s": steps / wall,
+        "base_ms": base_ms,
+        "proj_ms": proj_ms,
+        "proj_iterations": iters,
+        "proj_share": proj_ms / (base_ms + proj_ms) if base_ms + proj_ms > 0 else float("nan"),
+        "proj_converged": float(np.mean(h["proj_converged"][rows])),
+        "base_iterations": float(np.mean(h["base_iterations"][rows])),
+        "max_rel_energy_drift": float(np.max(np.abs(h["total"][rows] / h["total"][0] - 1.0))),
+    }
+
+
+def run_scene(
+    name: str,
+    *,
+    quick: bool = False,
+    threads: Optional[int] = None,
+    meshes_dir: Optional[Path] = None,
+    budget_s: Optional[float] = None,
+) -> Dict[str, Any]:
+    """Measure one scene in this process; returns a JSON-ready dict (``skipped`` set when it cannot run)."""
+    scene = SCENES[name]
+    all_threads = threads or os.cpu_count() or 1
+    out: Dict[str, Any] = {"scene": name, "note": scene.note, "threads": all_threads}
+    rss0 = _rss_bytes("VmRSS")
+    t0 = time.perf_counter()
+    mesh, why = load_scene_mesh(scene, meshes_dir if meshes_dir is not None else shared_meshes_dir())
+    if mesh is None:
+        out["skipped"] = why
+        return out
+    out["load_s"] = time.perf_counter() - t0
+    tets = int(len(mesh.tets))
+    out["tets"], out["vertices"] = tets, int(mesh.num_vertices)
+    budget = budget_s if budget_s is not None else (0.15 if quick else 1.5)
+    repeats = max(3, min(200, int((0.05 if quick else 0.5) / max(tets * 40e-9, 1e-6))))
+
+    _reset_peak_rss()
+    rss_mesh = _rss_bytes("VmRSS")
+    results = []
+    for k, (integ, dt) in enumerate(scene.integrators):
+        if quick and k > 0 and tets > 2000:
+            continue
+        t_build = time.perf_counter()
+        sim = _make_sim(scene, mesh, integ, dt, all_threads)
+        build_s = time.perf_counter() - t_build
+        if k == 0:
+            # Energy + gradient: one thread and all threads, same state, bit for bit.
+            one = sim._sim.bench_energy_gradient(repeats, 1)
+            many = sim._sim.bench_energy_gradient(repeats, all_threads)
+            eg1 = sim._sim.bench_energy_gradient(repeats, 1)[0]  # again: the better of two runs
+            egn = sim._sim.bench_energy_gradient(repeats, all_threads)[0]
+            t1, tn = min(one[0], eg1), min(many[0], egn)
+            out["energy_gradient"] = {
+                "ms_1_thread": 1e3 * t1,
+                "ms_all_threads": 1e3 * tn,
+                "ns_per_tet_1_thread": 1e9 * t1 / tets,
+                "ns_per_tet_all_threads": 1e9 * tn / tets,
+                "speedup": t1 / tn,
+                "bit_identical": one[1:] == many[1:],
+                "repeats": repeats,
+            }
+        n_large = tets > 200_000
+        r = _time_steps(
+            sim,
+            budget_s=budget,
+            min_steps=2 if (quick or n_large) else 5,
+            max_steps=20 if quick else 2000,
+            warmup=1 if (quick or n_large) else 3,
+        )
+        r["integrator"], r["dt"], r["build_s"] = integ, dt, build_s
+        eg_all = out["energy_gradient"]["ms_all_threads"]
+        if integ == "projective_dynamics":
+            # PD runs on the ARAP energy (polar decompositions): compare with that energy's evaluation.
+            eg_all = 1e3 * sim._sim.bench_energy_gradient(max(3, repeats // 4), all_threads)[0]
+            r["energy_gradient_ms_all_threads"] = eg_all
+        # One evaluation precedes the iterations; each iteration evaluates the trial point (plus O(m) passes).
+        r["proj_ms_per_evaluation"] = r["proj_ms"] / (1.0 + r["proj_iterations"])
+        r["proj_evaluation_vs_energy_gradient"] = r["proj_ms_per_evaluation"] / eg_all
+        r["us_per_tet_step"] = 1e3 * r["ms_per_step"] / tets
+        results.append(r)
+        if k == 0:
+            peak = _rss_bytes("VmHWM")
+            now = _rss_bytes("VmRSS")
+            out["memory"] = {
+                "peak_rss_mb": peak / 2**20,
+                # Held while stepping (RSS after the timed steps, minus the RSS with the mesh loaded): the
+                # peak also counts the transient allocations of mesh validation and model building.
+                "bytes_per_tet_steady": (now - rss_mesh) / tets if now else float("nan"),
+                "rss_before_mesh_mb": rss0 / 2**20,
+                "bytes_per_tet": (peak - rss_mesh) / tets if peak else float("nan"),
+                "bytes_per_tet_with_mesh": (peak - rss0) / tets if peak else float("nan"),
+            }
+        del sim
+    out["integrators"] = results
+    out["peak_rss_mb"] = _rss_bytes("VmHWM") / 2**20
+    return out
+
+
+def _worker(args) -> int:
+    res = run_scene(
+        args.worker,
+        quick=args.quick,
+        threads=args.threads,
+        meshes_dir=Path(args.meshes) if args.meshes else None,
+    )
+    print(json.dumps(res))
+    return 0
+
+
+def run_suite(
+    scenes: Sequence[str],
+    *,
+    quick: bool = False,
+    threads: Optional[int] = None,
+    meshes: Optional[str] = None,
+    progress=None,
+) -> List[Dict[str, Any]]:
+    """Run each scene in a fresh ``python -m fepr.bench`` subprocess; returns their dicts."""
+    results = []
+    for name in scenes:
+        cmd = [sys.executable, "-m", "fepr.bench", "--worker", name]
+        if quick:
+            cmd.append("--quick")
+        if threads:
+            cmd += ["--threads", str(threads)]
+        if meshes:
+            cmd += ["--meshes", meshes]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        if proc.returncode != 0 or not proc.stdout.strip():
+            res = {"scene": name, "error": (proc.stderr or proc.stdout).strip()[-2000:]}
+        else:
+            res = json.loads(proc.stdout.strip().splitlines()[-1])
+        res["wall_s"] = time.perf_counter() - t0
+        results.append(res)
+        if progress:
+            progress(res)
+    return results
+
+
+def format_table(results: Sequence[Dict[str, Any]]) -> str:
+    """A plain-text table of the main numbers."""
+    head = (
+        f"{'scene':<10} {'tets':>9} {'E+G ns/tet 1T':>13} {'nT':>6} {'x':>5} {'bits':>4}  "
+        f"{'integrator':<24} {'ms/step':>9} {'steps/s':>8} {'base ms':>8} {'proj ms':>8} {'iters':>5} "
+        f"{'proj%':>5} {'eval/EG':>7} {'B/tet':>6}"
+    )
+    lines = [head, "-" * len(head)]
+    for r in results:
+        if "error" in r or "skipped" in r:
+            why = r.get("skipped") or ("error: " + r["error"].splitlines()[-1] if r["error"] else "error")
+            lines.append(f"{r['scene']:<10} {'-':>9}  {why}")
+            continue
+        eg = r["energy_gradient"]
+        mem = r.get("memory", {})
+        for i, s in enumerate(r["integrators"]):
+            prefix = " " * 56
+            if i == 0:
+                prefix = (
+                    f"{r['scene']:<10} {r['tets']:>9,} {eg['ns_per_tet_1_thread']:>13.1f} "
+                    f"{eg['ns_per_tet_all_threads']:>6.1f} {eg['speedup']:>5.2f} "
+                    f"{'yes' if eg['bit_identical'] else 'NO':>4}  "
+                )
+            name = s["integrator"] + ("+fepr")
+            bpt = f"{mem.get('bytes_per_tet', float('nan')):>6.0f}" if i == 0 else ""
+            lines.append(
+                prefix + f"{name:<24} {s['ms_per_step']:>9.3f} {s['steps_per_s']:>8.1f} {s['base_ms']:>8.3f} "
+                f"{s['proj_ms']:>8.3f} {s['proj_iterations']:>5.2f} {100 * s['proj_share']:>5.1f} "
+                f"{s['proj_evaluation_vs_energy_gradient']:>7.2f} " + bpt
+            )
+    return "\n".join(lines)
+
+
+def add_bench_parser(subparsers) -> None:
+    """Register the ``bench`` subcommand on an ``argparse`` subparsers object."""
+    p = subparsers.add_parser(
+        "bench",
+        help="time energy + gradient, steps and projection over a fixed suite of scenes",
+        description=__doc__.split("\n\n")[1] if __doc__ else None,
+    )
+    p.add_argument("--quick", action="store_true", help=f"small scenes, few steps ({', '.join(QUICK_SCENES)})")
+    p.add_argument("--json", metavar="PATH", help="write all results as JSON to PATH ('-' for stdout)")
+    p.add_argument(
+        "--scenes",
+        metavar="LIST",
+        help=f"comma-separated scene names (default: all; known: {', '.join(SCENES)})",
+    )
+    p.add_argument(
+        "--threads", type=int, metavar="N", help="threads for the 'all threads' numbers (default: all cores)"
+    )
+    p.add_argument("--meshes", metavar="DIR", help="shared meshes directory (default: ../shared/meshes)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def cmd_bench(args) -> int:
+    """Run ``fepr bench``; returns the exit status (0 unless a scene crashed)."""
+    if args.scenes:
+        names = [s.strip() for s in args.scenes.split(",") if s.strip()]
+        unknown = [n for n in names if n not in SCENES]
+        if unknown:
+            print(f"fepr bench: unknown scene(s) {', '.join(unknown)} (known: {', '.join(SCENES)})", file=sys.stderr)
+            return 2
+    else:
+        names = list(QUICK_SCENES if args.quick else SCENES)
+    if args.threads is not None and args.threads < 1:
+        print("fepr bench: --threads must be at least 1", file=sys.stderr)
+        return 2
+    to_stdout = args.json == "-"
+
+    def progress(r):
+        if not args.quiet and not to_stdout:
+            what = "skipped" if "skipped" in r else ("ERROR" if "error" in r else "done")
+            print(f"  {r['scene']}: {what} ({r['wall_s']:.1f} s)", file=sys.stderr, flush=True)
+
+    t0 = time.perf_counter()
+    results = run_suite(names, quick=args.quick, threads=args.threads, meshes=args.meshes, progress=progress)
+    doc = {
+        "fepr_bench": 1,
+        "quick": bool(args.quick),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "python": platform.python_version(),
+        },
+        "wall_s": time.perf_counter() - t0,
+        "scenes": results,
+    }
+    if args.json:
+        text = json.dumps(doc, indent=1)
+        if to_stdout:
+            print(text)
+        else:
+            Path(args.json).write_text(text + "\n")
+    if not to_stdout:
+        print(format_table(results))
+    return 1 if any("error" in r for r in results) else 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m fepr.bench")
+    sub = parser.add_subparsers(dest="command")
+    add_bench_parser(sub)
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    parser.add_argument("--quick", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--threads", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--meshes", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        return _worker(args)
+    if args.command == "bench":
+        return cmd_bench(args)
+    parser.print_help()
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

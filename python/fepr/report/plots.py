@@ -1,0 +1,150 @@
+"""Energy and momentum plots of a comparison (matplotlib, off-screen ``Agg`` back end).
+
+``energy.png``: total energy H(t) (J) and the relative error |H/H0 - 1| (log scale), one curve per run.
+``momentum.png``: |P(t)| (kg m/s) and |L(t)| about the centre of mass (kg m^2/s), one curve per run.
+Colours follow :mod:`fepr.report.style`: warm with FEPR (solid), cool without (dashed). A run that ran away is
+marked with a cross where it stopped, and the axes are scaled to the runs that did not.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..errors import MissingDependencyError
+from .runs import RecordedRun
+
+__all__ = ["energy_plot", "momentum_plot"]
+
+
+def _pyplot():
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg", force=True)
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise MissingDependencyError(
+            'plots need matplotlib: pip install "fepr[compare]" (or pip install matplotlib)'
+        ) from None
+    return plt
+
+
+def _style(ax, title: str, ylabel: str) -> None:
+    ax.set_title(title, fontsize=12, loc="left")
+    ax.set_xlabel("time (s)", fontsize=11)
+    ax.set_ylabel(ylabel, fontsize=11)
+    ax.grid(True, color="#dee2e6", linewidth=0.8)
+    ax.tick_params(labelsize=10)
+    for side in ("top", "right"):
+        ax.spines[side].set_visible(False)
+
+
+def _label(run: RecordedRun) -> str:
+    if run.runaway_step is not None:
+        return f"{run.spec.label} (runaway at step {run.runaway_step})"
+    return run.spec.label
+
+
+def _limits(values: List[np.ndarray], log: bool) -> Optional[Tuple[float, float]]:
+    v = np.concatenate([a[np.isfinite(a)] for a in values]) if values else np.zeros(0)
+    if log:
+        v = v[v > 0]
+    if v.size == 0:
+        return None
+    lo, hi = float(v.min()), float(v.max())
+    if log:
+        return lo / 3.0, hi * 3.0
+    pad = 0.08 * (hi - lo) if hi > lo else max(abs(hi) * 0.05, 1e-12)
+    return lo - pad, hi + pad
+
+
+def _panel(
+    ax,
+    runs: Sequence[RecordedRun],
+    series: Callable[[RecordedRun], np.ndarray],
+    log: bool,
+    min_span: Optional[float] = None,
+) -> None:
+    """One curve per run; linear panels span at least ``min_span`` (so a conserved quantity reads as flat)."""
+    sane = []
+    for run in runs:
+        t = run.history["time"]
+        y = series(run)
+        ls = "-" if run.spec.projection else "--"
+        ax.plot(t, y, ls, color=run.spec.color, linewidth=2.0, label=_label(run))
+        if run.runaway_step is not None:
+            ax.plot(t[-1:], y[-1:], "x", color=run.spec.color, markersize=9, markeredgewidth=2.5)
+        else:
+            sane.append(y)
+    everything = [series(r) for r in runs]
+    lim = _limits(everything if log else (sane or everything), log)
+    if not log and lim is not None and min_span is not None:
+        mid = 0.5 * (lim[0] + lim[1])
+        half = max(0.5 * (lim[1] - lim[0]), 0.5 * min_span)
+        lim = (mid - half, mid + half)
+        ax.ticklabel_format(axis="y", useOffset=False)
+    if log:
+        ax.set_yscale("log")
+    if lim is not None:
+        ax.set_ylim(*lim)
+
+
+def _finish(fig, axes, path: Path, title: str) -> Path:
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.suptitle(title, fontsize=13, x=0.01, ha="left", fontweight="bold")
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 4), fontsize=10, frameon=False)
+    fig.tight_layout(rect=(0, 0.1 + 0.04 * ((len(labels) - 1) // 4), 1, 0.95))
+    fig.savefig(path, dpi=110, facecolor="white")
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return path
+
+
+def _span(runs: Sequence[RecordedRun], series: Callable[[RecordedRun], np.ndarray]) -> float:
+    """10% of the largest initial value (at least a tiny positive number)."""
+    return max(0.1 * max(abs(float(series(r)[0])) for r in runs), 1e-12)
+
+
+def energy_plot(runs: Sequence[RecordedRun], path, *, title: str = "") -> Path:
+    """Write ``energy.png``: H(t) in J and |H/H0 - 1| on a log scale, one curve per run. Returns the path."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
+
+    def total(r: RecordedRun) -> np.ndarray:
+        return r.history["total"]
+
+    def rel(r: RecordedRun) -> np.ndarray:
+        h = r.history["total"]
+        with np.errstate(all="ignore"):
+            return np.maximum(np.abs(h / h[0] - 1.0), 1e-17)
+
+    h0 = max(abs(float(r.history["total"][0])) for r in runs)
+    _panel(axes[0], runs, total, log=False, min_span=0.1 * h0)
+    _style(axes[0], "total energy H = K + U", "H (J)")
+    _panel(axes[1], runs, rel, log=True)
+    _style(axes[1], "relative energy error", "|H/H0 - 1|")
+    return _finish(fig, axes, Path(path), title or "energy")
+
+
+def momentum_plot(runs: Sequence[RecordedRun], path, *, title: str = "") -> Path:
+    """Write ``momentum.png``: |P(t)| and |L(t)| (about the centre of mass), one curve per run."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
+
+    def p(r: RecordedRun) -> np.ndarray:
+        return np.linalg.norm(np.stack([r.history[c] for c in ("px", "py", "pz")], axis=1), axis=1)
+
+    def ang(r: RecordedRun) -> np.ndarray:
+        return np.linalg.norm(np.stack([r.history[c] for c in ("lx", "ly", "lz")], axis=1), axis=1)
+
+    _panel(axes[0], runs, p, log=False, min_span=_span(runs, p))
+    _style(axes[0], "linear momentum |P|", "|P| (kg m/s)")
+    _panel(axes[1], runs, ang, log=False, min_span=_span(runs, ang))
+    _style(axes[1], "angular momentum |L| (about the centre of mass)", "|L| (kg m²/s)")
+    pinned = any(r.pinned for r in runs)
+    note = " (pinned: the supports exchange momentum with the body)" if pinned else ""
+    return _finish(fig, axes, Path(path), (title or "momentum") + note)

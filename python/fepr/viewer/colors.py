@@ -1,0 +1,102 @@
+"""Surface colouring for the viewer: per-tet fields (J, energy density) on the boundary triangles, in bins.
+
+The boundary triangles of a tet mesh each belong to one tet; a field per tet (``J = det F``, or the energy
+density ``Psi(F)`` in J/m^3) gives each triangle a value, and the triangles are grouped into :data:`NUM_BINS`
+colour bins so that each bin can be drawn as one single-coloured mesh (cheap to update in the browser).
+"""
+
+from __future__ import annotations
+
+from typing import List, Tuple
+
+import numpy as np
+
+from ..export.fields import TetKinematics
+from ..export.surface import TET_FACES
+
+__all__ = ["COLOR_MODES", "NUM_BINS", "SurfaceColoring", "boundary_faces_with_tets"]
+
+#: Colour modes of the viewer.
+COLOR_MODES = ("solid", "J (volume change)", "energy density")
+NUM_BINS = 9
+
+#: Diverging palette for J: compressed (blue) .. unchanged (light) .. stretched (red), RGB 0..255.
+J_PALETTE = (
+    (33, 102, 172),
+    (67, 147, 195),
+    (146, 197, 222),
+    (209, 229, 240),
+    (240, 240, 240),
+    (253, 219, 199),
+    (244, 165, 130),
+    (214, 96, 77),
+    (178, 24, 43),
+)
+#: Sequential palette for the energy density: low (dark violet) .. high (yellow).
+PSI_PALETTE = (
+    (68, 1, 84),
+    (72, 40, 120),
+    (62, 74, 137),
+    (49, 104, 142),
+    (38, 130, 142),
+    (31, 158, 137),
+    (53, 183, 121),
+    (110, 206, 88),
+    (253, 231, 37),
+)
+
+
+def boundary_faces_with_tets(tets) -> Tuple[np.ndarray, np.ndarray]:
+    """Boundary triangles (f, 3) with outward normals and the index (f,) of the tet each belongs to."""
+    t = np.asarray(tets, dtype=np.int64)
+    faces = t[:, TET_FACES].reshape(-1, 3)  # (4k, 3)
+    owner = np.repeat(np.arange(len(t)), 4)
+    key = np.sort(faces, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    once = counts[inverse.reshape(-1)] == 1
+    return faces[once], owner[once]
+
+
+class SurfaceColoring:
+    """Bins the boundary triangles by a per-tet field of the current positions.
+
+    Parameters
+    ----------
+    rest_positions : (m, 3) float
+        Rest positions, m.
+    tets : (k, 4) int
+        Tets.
+    material : fepr material, optional
+        For the energy density (``material.energy_density(F)``, J/m^3).
+    """
+
+    def __init__(self, rest_positions, tets, material=None):
+        self.faces, self.face_tets = boundary_faces_with_tets(tets)
+        self.kinematics = TetKinematics(rest_positions, tets)
+        self.material = material
+
+    def field(self, mode: str, positions) -> np.ndarray:
+        """The per-tet field of ``mode`` at ``positions`` (m, 3): J, or the energy density in J/m^3."""
+        F = self.kinematics.deformation_gradients(positions)
+        if mode == COLOR_MODES[1] or self.material is None:
+            return np.linalg.det(F)
+        return np.asarray(self.material.energy_density(F), dtype=np.float64).reshape(-1)
+
+    def bins(self, mode: str, positions) -> Tuple[List[np.ndarray], Tuple[Tuple[int, int, int], ...], str]:
+        """Faces per colour bin, the palette, and a legend line for ``mode`` (not ``"solid"``)."""
+        values = self.field(mode, positions)[self.face_tets]
+        if mode == COLOR_MODES[1]:
+            lo, hi = 0.5, 1.5
+            palette = J_PALETTE
+            legend = "J: blue < 1 (compressed), light = 1, red > 1 (stretched); range 0.5 .. 1.5"
+        else:
+            lo = 0.0
+            finite = values[np.isfinite(values)]
+            hi = float(np.percentile(finite, 98)) if finite.size else 1.0
+            hi = hi if hi > 0 else 1.0
+            palette = PSI_PALETTE
+            legend = f"energy density: dark 0 .. yellow {hi:.3g} J/m³"
+        with np.errstate(invalid="ignore"):
+            idx = np.clip(((values - lo) / (hi - lo) * NUM_BINS).astype(np.int64), 0, NUM_BINS - 1)
+        idx[~np.isfinite(values)] = NUM_BINS - 1
+        return [self.faces[idx == b] for b in range(NUM_BINS)], palette, legend

@@ -1,0 +1,361 @@
+"""The simulation side of the viewer: a :class:`ViewerSession` steps a :class:`fepr.Simulation` in a background
+thread, takes commands from the GUI (play, pause, step, reset, projection, integrator, dt, pace, drag), and
+publishes snapshots (positions and a time series of energies and momenta) for the GUI to draw.
+
+No viser here: the session is plain Python and testable on its own.
+
+Drag spring. While a vertex ``i`` is dragged towards an anchor ``a`` (m), every step first applies the impulse of
+the spring force ``F = k (a - x_i)`` (N) over the step, ``dv_i = h F / m_i``, by assigning the velocities; the
+simulation then resets its projection references to that state, so FEPR conserves the energy *including* the
+spring's work. The work of each impulse, ``W = m_i/2 (|v_i + dv_i|^2 - |v_i|^2)`` (J), is summed in
+:attr:`Snapshot.drag_work`: the step's energy budget. The stiffness is ``k = min(20 M, m_i / (2 h^2))`` (N/m,
+M the total mass), below the explicit stability limit of the spring alone.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Optional, Tuple
+
+import numpy as np
+
+from .. import _core
+from ..errors import ConfigError, SimulationError
+
+__all__ = ["Builder", "Snapshot", "ViewerSession"]
+
+#: ``build(integrator, dt, projection)`` returns a fresh :class:`fepr.Simulation` in the initial state.
+Builder = Callable[[str, float, bool], object]
+
+SERIES = ("t", "kinetic", "potential", "total", "p", "l")
+
+
+@dataclass
+class Snapshot:
+    """What the GUI draws: positions (m, 3) in m, the latest numbers, and the time series (each a list)."""
+
+    version: int
+    positions: np.ndarray
+    time: float
+    steps: int
+    running: bool
+    projection: bool
+    integrator: str
+    dt: float
+    kinetic: float
+    potential: float
+    total: float
+    momentum: float
+    angular_momentum: float
+    iterations: Optional[int]
+    ms_per_step: float
+    drag_work: float
+    dragging: Optional[int]
+    error: Optional[str]
+    series: Dict[str, List[float]] = field(default_factory=dict)
+
+
+class ViewerSession:
+    """A simulation stepped in a background thread.
+
+    Parameters
+    ----------
+    build : callable
+        ``build(integrator, dt, projection)`` -> a new :class:`fepr.Simulation` in its initial state.
+    integrator : str
+        Base integrator at start (one of ``fepr._core.INTEGRATORS``).
+    dt : float
+        Time step, s.
+    projection : bool
+        FEPR on at start.
+    realtime : bool
+        Pace simulated time to wall time (else step as fast as possible).
+    max_points : int
+        Length of the plotted time series (older points are dropped).
+    log : callable, optional
+        Called with one line of text for every command that changes the simulation (the CLI prints them).
+    """
+
+    def __init__(
+        self,
+        build: Builder,
+        *,
+        integrator: str,
+        dt: float,
+        projection: bool = True,
+        realtime: bool = True,
+        running: bool = True,
+        max_points: int = 2000,
+        log: Optional[Callable[[str], None]] = None,
+    ):
+        self._build = build
+        self._check_integrator(integrator)
+        self.integrator = integrator
+        self.dt = float(dt)
+        self.projection = bool(projection)
+        self.realtime = bool(realtime)
+        self.running = bool(running)
+        self.max_points = int(max_points)
+        self._log = log or (lambda line: None)
+        self._commands: queue.Queue[Tuple[str, object]] = queue.Queue()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._version = 0
+        self._error: Optional[str] = None
+        self._drag: Optional[Tuple[int, np.ndarray]] = None
+        self._sim = self._build(self.integrator, self.dt, self.projection)
+        self._reset_counters()
+        self._snapshot = self._take_snapshot()
+
+    # ---- commands (any thread) --------------------------------------------------------------------------
+    @staticmethod
+    def _check_integrator(name: str) -> None:
+        if name not in _core.INTEGRATORS:
+            raise ConfigError(f"unknown integrator {name!r} (known: {', '.join(_core.INTEGRATORS)})")
+
+    def play(self) -> None:
+        self._commands.put(("running", True))
+
+    def pause(self) -> None:
+        self._commands.put(("running", False))
+
+    def step_once(self) -> None:
+        self._commands.put(("step", 1))
+
+    def reset(self) -> None:
+        self._commands.put(("reset", None))
+
+    def set_projection(self, on: bool) -> None:
+        self._commands.put(("projection", bool(on)))
+
+    def set_integrator(self, name: str) -> None:
+        self._check_integrator(name)
+        self._commands.put(("integrator", name))
+
+    def set_dt(self, dt: float) -> None:
+        if not (dt > 0 and np.isfinite(dt)):
+            raise ConfigError(f"dt must be a positive number of seconds, got {dt!r}")
+        self._commands.put(("dt", float(dt)))
+
+    def set_realtime(self, on: bool) -> None:
+        self._commands.put(("realtime", bool(on)))
+
+    def grab(self, point) -> int:
+        """Start dragging the surface vertex nearest to ``point`` (m); returns its index."""
+        x = self.snapshot().positions
+        i = int(np.argmin(np.linalg.norm(x - np.asarray(point, dtype=np.float64), axis=1)))
+        self._commands.put(("drag", (i, np.array(x[i]))))
+        return i
+
+    def drag_to(self, anchor) -> None:
+        """Move the anchor of the drag spring to ``anchor`` (m)."""
+        self._commands.put(("anchor", np.asarray(anchor, dtype=np.float64)))
+
+    def release(self) -> None:
+        self._commands.put(("release", None))
+
+    # ---- snapshots ----------------------------------------------------------------------------------------
+    def snapshot(self) -> Snapshot:
+        with self._lock:
+            return self._snapshot
+
+    @property
+    def simulation(self):
+        """The current simulation (replaced when the integrator, dt or projection changes)."""
+        return self._sim
+
+    # ---- thread -------------------------------------------------------------------------------------------
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._loop, name="fepr-viewer-sim", daemon=True)
+            self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+
+    def run_pending(self) -> None:
+        """Apply queued commands and take one step if running (what the thread does; for tests without it)."""
+        self._apply_commands()
+        if self.running or self._pending_steps:
+            self._advance()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._apply_commands()
+            if not (self.running or self._pending_steps) or self._error:
+                self._pending_steps = 0
+                time.sleep(0.01)
+                continue
+            self._advance()
+            if self.realtime and self.running:
+                lag = self._sim_time - (time.perf_counter() - self._wall0)
+                if lag > 0:
+                    time.sleep(min(lag, 0.1))
+                elif lag < -0.25:  # too slow for real time: do not try to catch up
+                    self._wall0 = time.perf_counter() - self._sim_time
+            else:
+                time.sleep(0)  # let the GUI thread in
+
+    # ---- internals (simulation thread) --------------------------------------------------------------------
+    def _reset_counters(self) -> None:
+        self._series: Dict[str, List[float]] = {k: [] for k in SERIES}
+        self._t_offset = 0.0
+        self._sim_time = 0.0
+        self._steps = 0
+        self._drag_work = 0.0
+        self._pending_steps = 0
+        self._iterations: Optional[int] = None
+        self._ms = 0.0
+        self._wall0 = time.perf_counter()
+        self._error = None
+
+    def _rebuild(self, keep_state: bool) -> None:
+        x, v = np.array(self._sim.positions), np.array(self._sim.velocities)
+        t = self._t_offset + float(self._sim.time)
+        self._sim = self._build(self.integrator, self.dt, self.projection)
+        if keep_state:
+            self._sim.positions = x
+            self._sim.velocities = v
+            self._t_offset = t
+        self._wall0 = time.perf_counter() - self._sim_time
+
+    def _apply_commands(self) -> None:
+        changed = False
+        while True:
+            try:
+                kind, value = self._commands.get_nowait()
+            except queue.Empty:
+                break
+            changed = True
+            if kind == "running":
+                self.running = bool(value)
+                self._wall0 = time.perf_counter() - self._sim_time
+                self._log(f"running: {'yes' if self.running else 'no'}")
+            elif kind == "step":
+                self.running = False
+                self._pending_steps += int(value)
+            elif kind == "reset":
+                self._sim = self._build(self.integrator, self.dt, self.projection)
+                self._reset_counters()
+                self._drag = None
+                self._log("reset")
+            elif kind == "projection":
+                if bool(value) != self.projection:
+                    self.projection = bool(value)
+                    self._rebuild(keep_state=True)
+                self._log(f"projection: {'on' if self.projection else 'off'}")
+            elif kind == "integrator":
+                if value != self.integrator:
+                    self.integrator = str(value)
+                    self._rebuild(keep_state=True)
+                self._log(f"integrator: {self.integrator}")
+            elif kind == "dt":
+                if value != self.dt:
+                    self.dt = float(value)
+                    self._rebuild(keep_state=True)
+                self._log(f"dt: {self.dt:g} s")
+            elif kind == "realtime":
+                self.realtime = bool(value)
+                self._wall0 = time.perf_counter() - self._sim_time
+                self._log(f"pace: {'real time' if self.realtime else 'as fast as possible'}")
+            elif kind == "drag":
+                i, anchor = value
+                self._drag = (int(i), anchor)
+                self._log(f"drag: vertex {i}")
+            elif kind == "anchor":
+                if self._drag is not None:
+                    self._drag = (self._drag[0], value)
+            elif kind == "release":
+                if self._drag is not None:
+                    self._log(f"drag released: work {self._drag_work:.6g} J")
+                self._drag = None
+        if changed:
+            self._publish()
+
+    def _apply_drag(self) -> None:
+        """Impulse of the drag spring over one step; adds its work to the budget (see the module docstring)."""
+        if self._drag is None:
+            return
+        i, anchor = self._drag
+        sim = self._sim
+        if bool(sim.pinned[i]):
+            return
+        x = sim.positions
+        v = sim.velocities
+        m_i = float(sim.masses[i])
+        h = float(sim.dt)
+        k = min(20.0 * float(sim.total_mass), 0.5 * m_i / (h * h))
+        force = k * (anchor - x[i])
+        dv = h * force / m_i
+        before = 0.5 * m_i * float(v[i] @ v[i])
+        v[i] = v[i] + dv
+        self._drag_work += 0.5 * m_i * float(v[i] @ v[i]) - before
+        sim.velocities = v
+
+    def _advance(self) -> None:
+        sim = self._sim
+        t0 = time.perf_counter()
+        try:
+            self._apply_drag()
+            sim.step(1)
+        except (SimulationError, ConfigError) as exc:
+            self._error = str(exc)
+            self.running = False
+            self._log(f"stopped: {exc}")
+            self._publish()
+            return
+        if self._pending_steps:
+            self._pending_steps -= 1
+        self._steps += 1
+        self._sim_time += float(sim.dt)
+        rep = sim.last_projection
+        self._iterations = None if rep is None else int(rep.iterations)
+        self._ms = 1e3 * (time.perf_counter() - t0)
+        self._publish()
+
+    def _take_snapshot(self) -> Snapshot:
+        sim = self._sim
+        e = sim.energy()
+        p = float(np.linalg.norm(sim.linear_momentum()))
+        ang = float(np.linalg.norm(sim.angular_momentum()))
+        t = self._t_offset + float(sim.time)
+        s = self._series
+        if not s["t"] or t != s["t"][-1]:
+            for key, val in zip(SERIES, (t, e.kinetic, e.elastic + e.gravitational, e.total, p, ang)):
+                s[key].append(float(val))
+                if len(s[key]) > self.max_points:
+                    del s[key][0]
+        self._version += 1
+        return Snapshot(
+            version=self._version,
+            positions=np.array(sim.positions),
+            time=t,
+            steps=self._steps,
+            running=self.running,
+            projection=self.projection,
+            integrator=self.integrator,
+            dt=self.dt,
+            kinetic=float(e.kinetic),
+            potential=float(e.elastic + e.gravitational),
+            total=float(e.total),
+            momentum=p,
+            angular_momentum=ang,
+            iterations=self._iterations,
+            ms_per_step=self._ms,
+            drag_work=self._drag_work,
+            dragging=None if self._drag is None else self._drag[0],
+            error=self._error,
+            series={k: list(v) for k, v in s.items()},
+        )
+
+    def _publish(self) -> None:
+        snap = self._take_snapshot()
+        with self._lock:
+            self._snapshot = snap

@@ -1,0 +1,52 @@
+"""fepr bench: the command runs, writes JSON with every field, and reports (never asserts on) timings."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from fepr import bench
+from fepr.cli import main
+
+
+def test_run_scene_reports_every_field_and_bit_identical_energy_gradient():
+    r = bench.run_scene("box_1k", quick=True, budget_s=0.01)
+    assert r["tets"] == 1296 and r["vertices"] == 343
+    eg = r["energy_gradient"]
+    for key in ("ns_per_tet_1_thread", "ns_per_tet_all_threads", "speedup"):
+        assert eg[key] > 0
+    assert eg["bit_identical"] is True
+    names = [s["integrator"] for s in r["integrators"]]
+    assert names == ["symplectic_euler", "projective_dynamics", "implicit_euler"]
+    for s in r["integrators"]:
+        assert s["steps"] >= 2 and s["ms_per_step"] > 0
+        assert 0 <= s["proj_share"] <= 1
+        assert s["proj_converged"] == 1.0
+    assert r["memory"]["peak_rss_mb"] > 0
+
+
+def test_missing_mesh_is_skipped_with_a_reason(tmp_path):
+    r = bench.run_scene("bunny2", quick=True, meshes_dir=tmp_path)
+    assert "skipped" in r and "not present" in r["skipped"]
+
+
+def test_cli_bench_writes_json(tmp_path, capsys):
+    out = tmp_path / "b.json"
+    code = main(["bench", "--quick", "--quiet", "--scenes", "box_1k", "--json", str(out)])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert doc["quick"] is True and doc["scenes"][0]["scene"] == "box_1k"
+    assert "symplectic_euler+fepr" in capsys.readouterr().out
+
+
+def test_cli_bench_rejects_unknown_scene(capsys):
+    assert main(["bench", "--scenes", "nope"]) == 2
+    assert "unknown scene" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", list(bench.SCENES))
+def test_scene_table_is_consistent(name):
+    s = bench.SCENES[name]
+    assert (s.node_mass is None) != (s.density is None)
+    assert s.integrators and all(dt > 0 for _, dt in s.integrators)
