@@ -19,7 +19,7 @@ from . import export, meshes
 from ._core import __version__
 from .errors import ConfigError, FeprError, MeshError, MissingDependencyError, SimulationError
 from .io import load_mesh
-from .materials import Arap, NeoHookean, StableNeoHookean
+from .materials import Arap, ConstraintNeoHookean, NeoHookean, StableNeoHookean
 from .mesh import TetMesh
 from .mesh_report import MeshInfo, mesh_info
 from .mesher import tetrahedralize
@@ -32,10 +32,12 @@ from .simulation import (
     ProjectiveDynamics,
     Simulation,
     SymplecticEuler,
+    Xpbd,
 )
 
 __all__ = [
     "Arap",
+    "ConstraintNeoHookean",
     "ProjectiveDynamics",
     "ConfigError",
     "Energy",
@@ -53,6 +55,7 @@ __all__ = [
     "StableNeoHookean",
     "SymplecticEuler",
     "TetMesh",
+    "Xpbd",
     "__version__",
     "export",
     "load_mesh",

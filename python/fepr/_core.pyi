@@ -59,6 +59,9 @@ class Simulation:
         newton_max_iterations: int = 20,
         pd_iterations: int = 10,
         warm_start_threshold: float = ...,
+        metric: str = "auto",
+        xpbd_substeps: int = 20,
+        xpbd_iterations: int = 1,
     ) -> None: ...
     def step(self, n: int) -> int: ...
     positions: npt.NDArray[np.float64]

@@ -149,4 +149,30 @@ class Arap(_Material):
         _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
 
 
+@dataclass(frozen=True)
+class ConstraintNeoHookean(_Material):
+    """The Neo-Hookean energy of XPBD's constraints (Macklin and Mueller 2021), shifted so that Psi(I) = 0.
+
+    ``Psi = mu/2 (I_C - 3) + lambda'/2 (J - alpha)^2 - lambda'/2 (alpha - 1)^2`` with ``lambda' = lambda + mu``
+    (matching linear elasticity at rest) and ``alpha = 1 + mu / lambda'``. It is the sum of the energies of the
+    per-tet deviatoric constraint ``sqrt(I_C)`` (compliance ``1/(mu V)``) and hydrostatic constraint ``J - alpha``
+    (compliance ``1/(lambda' V)``) that the ``"xpbd"`` integrator solves, so with FEPR it is the energy that is
+    conserved. Defined for inverted F.
+
+    Parameters
+    ----------
+    youngs_modulus : float
+        Young's modulus E, Pa (> 0).
+    poisson_ratio : float
+        Poisson ratio nu, -1 < nu < 0.5.
+    """
+
+    youngs_modulus: float
+    poisson_ratio: float
+    model = "constraint_neo_hookean"
+
+    def __post_init__(self):
+        _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
+
+
 Material = _Material

@@ -97,7 +97,7 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
     "material": ("model", "youngs_modulus", "poisson_ratio", "j0"),
     "mass": ("node_mass", "density"),
     "initial": ("scale", "scale_about", "velocity", "angular_velocity", "velocities", "alternating_velocity"),
-    "integrator": ("name", "dt", "tolerance", "max_iterations", "iterations"),
+    "integrator": ("name", "dt", "tolerance", "max_iterations", "iterations", "substeps"),
     "projection": (
         "enabled",
         "tolerance",
@@ -109,13 +109,14 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
         "impact_bound",
         "slack",
         "warm_start",
+        "metric",
     ),
     "world": ("gravity", "pinned", "pin_below", "damping"),
     "run": ("steps", "threads"),
     "export": ("formats", "every"),
 }
 
-MATERIAL_MODELS = ("neo_hookean", "stable_neo_hookean")
+MATERIAL_MODELS = ("neo_hookean", "stable_neo_hookean", "arap", "constraint_neo_hookean")
 #: Integrator names planned by the design; the ones actually accepted come from the compiled core.
 INTEGRATORS = ("symplectic_euler", "implicit_euler", "projective_dynamics", "xpbd")
 PROJECTION_ROWS = ("auto", "energy", "energy_momentum", "all")
@@ -211,23 +212,35 @@ class IntegratorSettings:
 
     name: str = "symplectic_euler"
     dt: float = 1.0 / 30.0
-    #: Newton settings (``implicit_euler``) and local/global iterations (``projective_dynamics``).
+    #: Newton settings (``implicit_euler``), local/global iterations (``projective_dynamics``), sweeps per
+    #: substep and substeps (``xpbd``).
     tolerance: Optional[float] = None
     max_iterations: Optional[int] = None
     iterations: Optional[int] = None
+    substeps: Optional[int] = None
 
     def make(self):
         """The integrator object with the given options (a ConfigError names an option the integrator lacks)."""
         import fepr
 
         given = {
-            k: getattr(self, k) for k in ("tolerance", "max_iterations", "iterations") if getattr(self, k) is not None
+            k: getattr(self, k)
+            for k in ("tolerance", "max_iterations", "iterations", "substeps")
+            if getattr(self, k) is not None
         }
-        allowed = {"implicit_euler": ("tolerance", "max_iterations"), "projective_dynamics": ("iterations",)}
+        allowed = {
+            "implicit_euler": ("tolerance", "max_iterations"),
+            "projective_dynamics": ("iterations",),
+            "xpbd": ("iterations", "substeps"),
+        }
         extra = sorted(set(given) - set(allowed.get(self.name, ())))
         if extra:
             raise ConfigError(f"[integrator] {', '.join(extra)} is not an option of {self.name!r}")
-        types = {"implicit_euler": fepr.ImplicitEuler, "projective_dynamics": fepr.ProjectiveDynamics}
+        types = {
+            "implicit_euler": fepr.ImplicitEuler,
+            "projective_dynamics": fepr.ProjectiveDynamics,
+            "xpbd": fepr.Xpbd,
+        }
         return types[self.name](**given) if self.name in types else self.name
 
 
@@ -245,6 +258,7 @@ class ProjectionSettings:
     impact_bound: Optional[float] = None
     slack: Optional[str] = None
     warm_start: Optional[float] = None
+    metric: Optional[str] = None
 
     def options(self) -> Dict[str, Any]:
         """The options that were given, as keyword arguments for :class:`fepr.Projection`."""
@@ -353,7 +367,7 @@ class Scene:
         return mesh
 
     def make_material(self):
-        """The material object (:class:`fepr.NeoHookean` or :class:`fepr.StableNeoHookean`)."""
+        """The material object (:class:`fepr.NeoHookean`, :class:`fepr.StableNeoHookean`, ...)."""
         import fepr
 
         mat = self.material
@@ -363,7 +377,12 @@ class Scene:
                 if mat.j0 is not None:
                     kw["j0"] = mat.j0
                 return fepr.NeoHookean(youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio, **kw)
-            return fepr.StableNeoHookean(youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio)
+            types = {
+                "stable_neo_hookean": fepr.StableNeoHookean,
+                "arap": fepr.Arap,
+                "constraint_neo_hookean": fepr.ConstraintNeoHookean,
+            }
+            return types[mat.model](youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio)
         except ConfigError as exc:
             raise ConfigError(f"{self._where()}[material] {exc}") from None
 
@@ -786,6 +805,7 @@ def _parse_projection(t: _Table) -> ProjectionSettings:
         impact_bound=t.number("impact_bound", None, positive=True),
         slack=t.string("slack", None, choices=("auto", "on", "off")),
         warm_start=t.number("warm_start", None, positive=True),
+        metric=t.string("metric", None, choices=("auto", "mass", "stiffness")),
     )
 
 
@@ -888,6 +908,7 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
             tolerance=integ.number("tolerance", None, positive=True),
             max_iterations=integ.integer("max_iterations", None, minimum=1),
             iterations=integ.integer("iterations", None, minimum=1),
+            substeps=integ.integer("substeps", None, minimum=1),
         ),
         projection=_parse_projection(table("projection")),
         world=_parse_world(table("world")),

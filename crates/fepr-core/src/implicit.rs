@@ -127,6 +127,10 @@ impl Integrator for ImplicitEuler {
         "implicit_euler"
     }
 
+    fn is_implicit(&self) -> bool {
+        true
+    }
+
     fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
         let m = model.num_vertices();
         if self.assembler.is_none() {
@@ -153,7 +157,17 @@ impl Integrator for ImplicitEuler {
             ]);
         }
         let x_n = state.x.clone();
-        let mut x = self.y.clone();
+        // Start Newton from the better of the inertial prediction y and x_n. Phi(x_n) = K_n + U(x_n) (the
+        // start-of-step energy, less gravity's share), so with a monotone line search the step can never end
+        // with more energy than it started with, even when y inverts slivers and Newton cannot recover within
+        // its iterations; starting from y alone would then hand a wildly energetic state to the next step.
+        let mut x = if Self::objective(model, &x_n, &self.y, h)
+            < Self::objective(model, &self.y, &self.y, h)
+        {
+            x_n.clone()
+        } else {
+            self.y.clone()
+        };
         let mut report = StepReport {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()
@@ -219,7 +233,7 @@ impl Integrator for ImplicitEuler {
             let slope = -dec;
             let mut alpha = 1.0;
             let free_index = &asm.free_index;
-            loop {
+            let accepted = loop {
                 self.x_trial.clear();
                 self.x_trial.extend_from_slice(&x);
                 for (i, &fi) in free_index.iter().enumerate() {
@@ -230,14 +244,25 @@ impl Integrator for ImplicitEuler {
                     }
                 }
                 let phi_trial = Self::objective(model, &self.x_trial, &self.y, h);
-                // Accept when Armijo holds, or when the predicted decrease is within a few hundred ulps of
-                // Phi (then the comparison measures round-off, and the full Newton step is trusted).
+                if phi_trial <= phi + 1e-4 * alpha * slope {
+                    break true;
+                }
+                // When the predicted decrease is within a few hundred ulps of Phi, the comparison measures
+                // round-off: accept a trial whose change of Phi is round-off too.
                 let resolvable = dec > 1e-10 * phi_magnitude;
-                if !resolvable || phi_trial <= phi + 1e-4 * alpha * slope || alpha < 1e-6 {
-                    break;
+                if !resolvable && phi_trial <= phi + 1e-10 * phi_magnitude {
+                    break true;
+                }
+                if alpha < 1e-10 {
+                    // No decrease along the Newton direction: keep the current iterate (never accept an
+                    // increase of Phi, which is what keeps backward Euler from gaining energy).
+                    break false;
                 }
                 alpha *= 0.5;
                 report.line_search_steps += 1;
+            };
+            if !accepted {
+                break;
             }
             std::mem::swap(&mut x, &mut self.x_trial);
         }

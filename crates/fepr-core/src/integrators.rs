@@ -37,6 +37,11 @@ pub trait Integrator: Send + Sync {
     fn check(&self, _model: &Model) -> crate::error::Result<()> {
         Ok(())
     }
+    /// True for implicit (unconditionally stable, dissipative) integrators: the projection then uses the
+    /// stiffness metric by default (see [`crate::projection::Metric`]).
+    fn is_implicit(&self) -> bool {
+        false
+    }
 }
 
 /// Symplectic (semi-implicit) Euler, the seed's integrator:
@@ -128,8 +133,12 @@ pub fn finish_positional_step(model: &Model, state: &mut State, x: &[Vec3], x_n:
 }
 
 /// Integrator names known to [`integrator_by_name`].
-pub const INTEGRATOR_NAMES: &[&str] =
-    &["symplectic_euler", "implicit_euler", "projective_dynamics"];
+pub const INTEGRATOR_NAMES: &[&str] = &[
+    "symplectic_euler",
+    "implicit_euler",
+    "projective_dynamics",
+    "xpbd",
+];
 
 /// Make an integrator from its scene-file name, with default settings.
 pub fn integrator_by_name(name: &str) -> Option<Box<dyn Integrator>> {
@@ -137,6 +146,7 @@ pub fn integrator_by_name(name: &str) -> Option<Box<dyn Integrator>> {
         "symplectic_euler" => Some(Box::new(SymplecticEuler::new())),
         "implicit_euler" => Some(Box::new(crate::implicit::ImplicitEuler::default())),
         "projective_dynamics" => Some(Box::new(crate::pd::ProjectiveDynamics::default())),
+        "xpbd" => Some(Box::new(crate::xpbd::Xpbd::default())),
         _ => None,
     }
 }

@@ -40,5 +40,6 @@ pub mod pd;
 pub mod projection;
 pub mod simulation;
 pub mod sparse;
+pub mod xpbd;
 
 pub use error::{FeprError, Result};

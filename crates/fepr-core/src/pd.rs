@@ -169,6 +169,10 @@ impl Integrator for ProjectiveDynamics {
         "projective_dynamics"
     }
 
+    fn is_implicit(&self) -> bool {
+        true
+    }
+
     fn check(&self, model: &Model) -> Result<()> {
         match model.material {
             Material::Arap(_) => Ok(()),

@@ -17,7 +17,9 @@
 //! residual. Non-convergence keeps the best iterate (or `q~`) and is reported; the result is never NaN and
 //! never has more inverted tets than the base step.
 
-use crate::elasticity::{elastic_energy_gradient, ElasticSummary, ElasticWorkspace};
+use crate::elasticity::{
+    deformation_gradient, elastic_energy_gradient, ElasticSummary, ElasticWorkspace,
+};
 use crate::error::{invalid, Result};
 use crate::invariants::Invariants;
 use crate::linalg::{cross, dot, solve_symmetric_psd, sub, Vec3};
@@ -68,6 +70,9 @@ impl ActiveRows {
 /// Number of constraint rows in total.
 pub const ROWS: usize = 10;
 
+/// Attempts per projection (the first plus restarts with frozen vertices, see [`ProjectionReport::restarts`]).
+const MAX_ATTEMPTS: usize = 3;
+
 /// Projection settings, with the defaults of fepr-spec section 3.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ProjectionSettings {
@@ -92,6 +97,40 @@ pub struct ProjectionSettings {
     /// i.e. off, so that the result is the closest point of fepr-spec section 3). An opt-in for dissipative
     /// base steps at large dt that lose most of H in one step.
     pub warm_start_threshold: f64,
+    /// The position block of the metric D (default `Auto`, see [`Metric`]).
+    pub metric: Metric,
+}
+
+/// The position block of the projection's metric `D = diag(W, h^2 M, eps, eps)`.
+///
+/// fepr-spec section 3 uses `W = M`. With a stiff material at a large step that is a poor choice: the cheapest
+/// way to add energy in the M-metric is to move the light vertices of the stiffest elements (slivers) along
+/// their large forces, which pumps the energy deficit of a dissipative step into a few local modes and inverts
+/// them. `Stiffness` uses `W = M + h^2 diag(K_0)`, with `K_0` the rest-state stiffness (the diagonal of the
+/// element Hessians at rest, a scalar per vertex): the metric of the implicit step itself, up to the
+/// diagonal approximation. Stiff local modes become expensive to move, so energy is restored through the
+/// velocities and the smooth modes. For `W = M` both give the same result; in general the projection is then
+/// the closest point in the implicit step's own metric instead of the mass metric.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Metric {
+    /// `Stiffness` after an implicit base step (backward Euler, Projective Dynamics, XPBD), `Mass` after an
+    /// explicit one. Resolved by the simulation from the integrator (see [`Projector::set_implicit_base`]).
+    Auto,
+    /// `W = M` (fepr-spec section 3).
+    Mass,
+    /// `W = M + h^2 diag(K_0)`.
+    Stiffness,
+}
+
+impl Metric {
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "auto" => Some(Self::Auto),
+            "mass" => Some(Self::Mass),
+            "stiffness" => Some(Self::Stiffness),
+            _ => None,
+        }
+    }
 }
 
 /// When the slack variables s and t of fepr-spec section 2 are free to move.
@@ -133,6 +172,7 @@ impl Default for ProjectionSettings {
             impact_bound: None,
             slack: Slack::Auto,
             warm_start_threshold: f64::INFINITY,
+            metric: Metric::Auto,
         }
     }
 }
@@ -235,6 +275,12 @@ pub struct ProjectionReport {
     pub base_energy: f64,
     /// The velocity warm start was used (energy error above `warm_start_threshold`).
     pub warm_start: bool,
+    /// The position metric was `W = M + h^2 diag(K_0)` (see [`Metric`]).
+    pub stiffness_metric: bool,
+    /// Restarts from the base state after an attempt inverted tets the base step had upright.
+    pub restarts: usize,
+    /// Vertices whose positions were frozen by those restarts (their velocities stay free).
+    pub frozen_vertices: usize,
 }
 
 /// Everything an evaluation of `c(q)` produces.
@@ -248,15 +294,19 @@ struct Eval {
     /// About the target centre of mass.
     angular_momentum: Vec3,
     com: Vec3,
-    // Moments over the free vertices, for S.
-    grad_sq_over_m: f64,
-    grad_sum: Vec3,
-    grad_cross_v: Vec3,
+    // Moments over the free vertices, for S. With the position metric `w_i = m_i / a_i` (`a_i = 1` for the
+    // mass metric), the position-block moments carry the factor `a_i`; the velocity-block ones do not.
+    grad_sq_over_w: f64,
+    a_grad_sum: Vec3,
+    a_grad_cross_v: Vec3,
     free_mass: f64,
+    a_free_mass: f64,
     free_p: Vec3,
+    a_free_p: Vec3,
     free_l: Vec3,
     free_r: Vec3,
-    vv: [[f64; 3]; 3],
+    tr_vv: f64,
+    a_vv: [[f64; 3]; 3],
     rr: [[f64; 3]; 3],
 }
 
@@ -275,6 +325,12 @@ pub struct Projector {
     v_trial: Vec<Vec3>,
     x_best: Vec<Vec3>,
     v_best: Vec<Vec3>,
+    /// The base integrator is implicit (resolves `Metric::Auto`).
+    implicit_base: bool,
+    /// `diag(K_0)_i / m_i` per vertex, 1/s^2 (computed once per model, for the stiffness metric).
+    stiffness_ratio: Vec<f64>,
+    /// `a_i = m_i / w_i` of this step's metric.
+    metric_factor: Vec<f64>,
     /// The full step's trial point while the model step length is tried.
     x_spare: Vec<Vec3>,
     v_spare: Vec<Vec3>,
@@ -291,6 +347,8 @@ struct Problem<'a> {
     active: [bool; ROWS],
     row_scale: [f64; ROWS],
     eps: f64,
+    /// `a_i = m_i / w_i`: the position block of D is `diag(m_i / a_i)`; 0 freezes a vertex's position.
+    metric_factor: Vec<f64>,
 }
 
 impl Projector {
@@ -300,6 +358,36 @@ impl Projector {
             settings,
             ..Default::default()
         })
+    }
+
+    /// Tell the projection whether the base integrator is implicit (resolves [`Metric::Auto`]).
+    pub fn set_implicit_base(&mut self, implicit: bool) {
+        self.implicit_base = implicit;
+    }
+
+    /// The position metric that [`Metric::Auto`] resolves to here.
+    pub fn uses_stiffness_metric(&self) -> bool {
+        match self.settings.metric {
+            Metric::Mass => false,
+            Metric::Stiffness => true,
+            Metric::Auto => self.implicit_base,
+        }
+    }
+
+    /// Fill `metric_factor` with `a_i = m_i / w_i` for step size `h`.
+    fn prepare_metric(&mut self, model: &Model, h: f64) {
+        let m = model.num_vertices();
+        self.metric_factor.clear();
+        if !self.uses_stiffness_metric() {
+            self.metric_factor.resize(m, 1.0);
+            return;
+        }
+        if self.stiffness_ratio.len() != m {
+            self.stiffness_ratio = rest_stiffness_ratio(model);
+        }
+        let h2 = h * h;
+        self.metric_factor
+            .extend(self.stiffness_ratio.iter().map(|k| 1.0 / (1.0 + h2 * k)));
     }
 
     /// Project `state` (holding the base step's result `(x*, v*)`) in place, for step size `h` and the given
@@ -352,7 +440,9 @@ impl Projector {
         } else {
             ([0.0; 3], [0.0; 3])
         };
+        self.prepare_metric(model, h);
         let mut pb = Problem {
+            metric_factor: std::mem::take(&mut self.metric_factor),
             model,
             h,
             targets,
@@ -380,6 +470,7 @@ impl Projector {
             active_rows: pb.active.iter().filter(|a| **a).count(),
             initial_residual: max_scaled(&pb, &cur.c),
             base_energy: cur.kinetic + cur.el.energy + cur.gravitational,
+            stiffness_metric: self.uses_stiffness_metric(),
             ..Default::default()
         };
         let mut cur_norm = norm_scaled(&pb, &cur.c);
@@ -391,104 +482,132 @@ impl Projector {
         self.x_best.clear();
         self.v_best.clear();
 
-        // Opt-in warm start for large energy errors (a dissipative base step at a large dt can lose most of H
-        // in one step): scale the deformational velocities, which meets the energy row and keeps P and L; the
-        // iterations then fix the rest from nearby instead of linearising a stiff position correction far
-        // from the manifold.
-        if base_finite
-            && pb.active[0]
-            && (cur.c[0] / pb.row_scale[0]).abs() > self.settings.warm_start_threshold
-            && warm_start_velocities(&pb, &self.x, &mut self.v, cur.c[0])
-        {
-            cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
-            cur_norm = norm_scaled(&pb, &cur.c);
-            report.warm_start = true;
-            if cur_norm < best_norm && cur.c.iter().all(|c| c.is_finite()) {
-                best_norm = cur_norm;
-                best_is_base = false;
-                best_eval = cur;
-                self.x_best.extend_from_slice(&self.x);
-                self.v_best.extend_from_slice(&self.v);
-            }
-        }
-
-        if base_finite {
-            for _ in 0..self.settings.max_iterations {
-                if max_scaled(&pb, &cur.c) <= tol && cur.el.inverted <= base_inverted {
-                    report.converged = true;
-                    break;
-                }
-                let (lambda, used_lstsq) =
-                    solve_multipliers(&pb, &cur, self.settings.regularization);
-                report.least_squares_solves += used_lstsq as usize;
-                let mut alpha = 1.0;
-                let mut accepted = None;
-                let mut cand = self.trial(&pb, s, t, &lambda, 1.0);
-                // Curvature-aware step length: along the step, P and C are linear in alpha, L is quadratic,
-                // so c(alpha) = (1 - alpha) c(0) + alpha^2 e with e = c(1) holds for them exactly and models H's
-                // curvature. Where the full step overshoots (stiff materials), take the model's best alpha.
-                if cand.0.c.iter().all(|c| c.is_finite()) {
-                    let a_star = model_step_length(&pb, &cur.c, &cand.0.c);
-                    if a_star < 0.95 {
-                        // Keep the full step's buffers aside, so that falling back to it needs no
-                        // second evaluation.
-                        self.swap_trial_spare();
-                        let alt = self.trial(&pb, s, t, &lambda, a_star);
-                        if alt.0.c.iter().all(|c| c.is_finite()) && alt.1 < cand.1 {
-                            cand = alt;
-                            alpha = a_star;
-                        } else {
-                            self.swap_trial_spare();
-                        }
-                    }
-                }
-                for halving in 0..=self.settings.max_halvings {
-                    if halving > 0 {
-                        cand = self.trial(&pb, s, t, &lambda, alpha);
-                    }
-                    let (trial, n, s_new, t_new) = cand;
-                    // Intermediate iterates may pass through states with more inverted tets (the
-                    // linearisation does not know about inversion); only the returned state must not have
-                    // more than the base step (checked below).
-                    let admissible = trial.c.iter().all(|c| c.is_finite());
-                    if admissible && (n < cur_norm || halving == self.settings.max_halvings) {
-                        accepted = Some((trial, n, s_new, t_new));
-                        break;
-                    }
-                    if halving < self.settings.max_halvings {
-                        report.halvings += 1;
-                    }
-                    alpha *= 0.5;
-                }
-                report.iterations += 1;
-                let Some((trial, n, s_new, t_new)) = accepted else {
-                    break; // no admissible step: stop, keep the best so far
-                };
-                std::mem::swap(&mut self.x, &mut self.x_trial);
-                std::mem::swap(&mut self.v, &mut self.v_trial);
-                std::mem::swap(&mut self.grad, &mut self.grad_trial);
-                cur = trial;
-                cur_norm = n;
-                s = s_new;
-                t = t_new;
-                if n < best_norm && cur.el.inverted <= base_inverted {
-                    best_norm = n;
+        // Attempts: if an attempt ends with tets inverted that the base step had upright (a near-degenerate
+        // sliver flipped by the position correction), freeze the positions of those tets' vertices (their
+        // velocities stay free) and restart from q~. fepr-spec section 6, pitfall 5: the projection must not
+        // create inverted elements.
+        let mut attempt = 0;
+        loop {
+            // Opt-in warm start for large energy errors (a dissipative base step at a large dt can lose most of H
+            // in one step): scale the deformational velocities, which meets the energy row and keeps P and L; the
+            // iterations then fix the rest from nearby instead of linearising a stiff position correction far
+            // from the manifold.
+            if base_finite
+                && pb.active[0]
+                && (cur.c[0] / pb.row_scale[0]).abs() > self.settings.warm_start_threshold
+                && warm_start_velocities(&pb, &self.x, &mut self.v, cur.c[0])
+            {
+                cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+                cur_norm = norm_scaled(&pb, &cur.c);
+                report.warm_start = true;
+                if cur_norm < best_norm && cur.c.iter().all(|c| c.is_finite()) {
+                    best_norm = cur_norm;
                     best_is_base = false;
                     best_eval = cur;
-                    best_s = s;
-                    best_t = t;
-                    self.x_best.clear();
                     self.x_best.extend_from_slice(&self.x);
-                    self.v_best.clear();
                     self.v_best.extend_from_slice(&self.v);
                 }
             }
-            if !report.converged
-                && max_scaled(&pb, &cur.c) <= tol
-                && cur.el.inverted <= base_inverted
-            {
-                report.converged = true;
+
+            if base_finite {
+                for _ in 0..self.settings.max_iterations {
+                    if max_scaled(&pb, &cur.c) <= tol {
+                        // On the manifold; with new inversions, iterating further cannot help: restart.
+                        report.converged = cur.el.inverted <= base_inverted;
+                        break;
+                    }
+                    let (lambda, used_lstsq) =
+                        solve_multipliers(&pb, &cur, self.settings.regularization);
+                    report.least_squares_solves += used_lstsq as usize;
+                    let mut alpha = 1.0;
+                    let mut accepted = None;
+                    let mut cand = self.trial(&pb, s, t, &lambda, 1.0);
+                    // Curvature-aware step length: along the step, P and C are linear in alpha, L is quadratic,
+                    // so c(alpha) = (1 - alpha) c(0) + alpha^2 e with e = c(1) holds for them exactly and models H's
+                    // curvature. Where the full step overshoots (stiff materials), take the model's best alpha.
+                    if cand.0.c.iter().all(|c| c.is_finite()) {
+                        let a_star = model_step_length(&pb, &cur.c, &cand.0.c);
+                        if a_star < 0.95 {
+                            // Keep the full step's buffers aside, so that falling back to it needs no
+                            // second evaluation.
+                            self.swap_trial_spare();
+                            let alt = self.trial(&pb, s, t, &lambda, a_star);
+                            if alt.0.c.iter().all(|c| c.is_finite()) && alt.1 < cand.1 {
+                                cand = alt;
+                                alpha = a_star;
+                            } else {
+                                self.swap_trial_spare();
+                            }
+                        }
+                    }
+                    for halving in 0..=self.settings.max_halvings {
+                        if halving > 0 {
+                            cand = self.trial(&pb, s, t, &lambda, alpha);
+                        }
+                        let (trial, n, s_new, t_new) = cand;
+                        // Intermediate iterates may pass through states with more inverted tets (the
+                        // linearisation does not know about inversion); only the returned state must not have
+                        // more than the base step (checked below).
+                        let admissible = trial.c.iter().all(|c| c.is_finite());
+                        if admissible && (n < cur_norm || halving == self.settings.max_halvings) {
+                            accepted = Some((trial, n, s_new, t_new));
+                            break;
+                        }
+                        if halving < self.settings.max_halvings {
+                            report.halvings += 1;
+                        }
+                        alpha *= 0.5;
+                    }
+                    report.iterations += 1;
+                    let Some((trial, n, s_new, t_new)) = accepted else {
+                        break; // no admissible step: stop, keep the best so far
+                    };
+                    std::mem::swap(&mut self.x, &mut self.x_trial);
+                    std::mem::swap(&mut self.v, &mut self.v_trial);
+                    std::mem::swap(&mut self.grad, &mut self.grad_trial);
+                    cur = trial;
+                    cur_norm = n;
+                    s = s_new;
+                    t = t_new;
+                    if n < best_norm && cur.el.inverted <= base_inverted {
+                        best_norm = n;
+                        best_is_base = false;
+                        best_eval = cur;
+                        best_s = s;
+                        best_t = t;
+                        self.x_best.clear();
+                        self.x_best.extend_from_slice(&self.x);
+                        self.v_best.clear();
+                        self.v_best.extend_from_slice(&self.v);
+                    }
+                }
+                if !report.converged
+                    && max_scaled(&pb, &cur.c) <= tol
+                    && cur.el.inverted <= base_inverted
+                {
+                    report.converged = true;
+                }
             }
+            attempt += 1;
+            if report.converged
+                || !base_finite
+                || attempt >= MAX_ATTEMPTS
+                || cur.el.inverted <= base_inverted
+            {
+                break;
+            }
+            let frozen = freeze_newly_inverted(model, &self.x_base, &self.x, &mut pb.metric_factor);
+            if frozen == 0 {
+                break;
+            }
+            report.restarts += 1;
+            report.frozen_vertices += frozen;
+            self.x.copy_from_slice(&self.x_base);
+            self.v.copy_from_slice(&self.v_base);
+            s = 0.0;
+            t = 0.0;
+            cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+            cur_norm = norm_scaled(&pb, &cur.c);
         }
 
         // Choose the result: the converged iterate, else the best iterate if it improved on q~, else q~.
@@ -571,6 +690,7 @@ impl Projector {
             min_j: fin.el.min_j,
             inverted: fin.el.inverted,
         };
+        self.metric_factor = std::mem::take(&mut pb.metric_factor);
         (report, inv)
     }
 }
@@ -737,6 +857,48 @@ fn warm_start_velocities(pb: &Problem, x: &[Vec3], v: &mut [Vec3], c_h: f64) -> 
     true
 }
 
+/// `diag(K_0)_i / m_i` per vertex (1/s^2): the trace / 3 of the diagonal 3x3 blocks of the element Hessians at
+/// the rest shape (projected to PSD), summed over the incident elements, over the vertex mass. Rest-state so
+/// that the metric is fixed for the run (no dependence on the current, possibly inverted, state).
+fn rest_stiffness_ratio(model: &Model) -> Vec<f64> {
+    let m = model.num_vertices();
+    let rest = model.mesh.vertices();
+    let mut k = vec![0.0; m];
+    for (e, t) in model.mesh.tets().iter().enumerate() {
+        let he = crate::hessian::element_hessian(model, rest, e, true);
+        for (c, &vtx) in t.iter().enumerate() {
+            let mut tr = 0.0;
+            for a in 0..3 {
+                let d = 3 * c + a;
+                tr += he[d * 12 + d];
+            }
+            k[vtx] += tr / 3.0;
+        }
+    }
+    k.iter()
+        .zip(&model.masses)
+        .map(|(k, m)| if *m > 0.0 { (k / m).max(0.0) } else { 0.0 })
+        .collect()
+}
+
+/// Set `a_i = 0` (freeze the position) for every not yet frozen vertex of a tet that is inverted (`J <= 0`) at
+/// `x` but upright at `x_base`. Returns the number of vertices newly frozen.
+fn freeze_newly_inverted(model: &Model, x_base: &[Vec3], x: &[Vec3], factor: &mut [f64]) -> usize {
+    let mut frozen = 0;
+    for (e, t) in model.mesh.tets().iter().enumerate() {
+        let j = crate::linalg::det(&deformation_gradient(model, x, e));
+        if j <= 0.0 && crate::linalg::det(&deformation_gradient(model, x_base, e)) > 0.0 {
+            for &v in t {
+                if factor[v] != 0.0 {
+                    factor[v] = 0.0;
+                    frozen += 1;
+                }
+            }
+        }
+    }
+    frozen
+}
+
 fn max_scaled(pb: &Problem, c: &[f64; ROWS]) -> f64 {
     (0..ROWS)
         .filter(|&i| pb.active[i])
@@ -752,14 +914,14 @@ fn norm_scaled(pb: &Problem, c: &[f64; ROWS]) -> f64 {
         .sqrt()
 }
 
-/// `|q - q_base|_D` with `D = diag(M, h^2 M, eps, eps)`.
+/// `|q - q_base|_D` with `D = diag(W, h^2 M, eps, eps)`, `W = diag(m_i / a_i)`.
 fn d_norm(pb: &Problem, x: &[Vec3], v: &[Vec3], s: f64, t: f64, xb: &[Vec3], vb: &[Vec3]) -> f64 {
     let h2 = pb.h * pb.h;
     let mut sum = pb.eps * (s * s + t * t);
     for i in 0..x.len() {
         let dx = sub(x[i], xb[i]);
         let dv = sub(v[i], vb[i]);
-        sum += pb.model.masses[i] * (dot(dx, dx) + h2 * dot(dv, dv));
+        sum += pb.model.masses[i] * (dot(dx, dx) / pb.metric_factor[i] + h2 * dot(dv, dv));
     }
     sum.sqrt()
 }
@@ -787,14 +949,17 @@ fn evaluate(
         momentum: [0.0; 3],
         angular_momentum: [0.0; 3],
         com: [0.0; 3],
-        grad_sq_over_m: 0.0,
-        grad_sum: [0.0; 3],
-        grad_cross_v: [0.0; 3],
+        grad_sq_over_w: 0.0,
+        a_grad_sum: [0.0; 3],
+        a_grad_cross_v: [0.0; 3],
         free_mass: 0.0,
+        a_free_mass: 0.0,
         free_p: [0.0; 3],
+        a_free_p: [0.0; 3],
         free_l: [0.0; 3],
         free_r: [0.0; 3],
-        vv: [[0.0; 3]; 3],
+        tr_vv: 0.0,
+        a_vv: [[0.0; 3]; 3],
         rr: [[0.0; 3]; 3],
     };
     let mut mx = [0.0; 3];
@@ -818,17 +983,21 @@ fn evaluate(
         if model.pinned[i] {
             continue;
         }
+        let ai = pb.metric_factor[i];
         e.free_mass += mi;
-        e.grad_sq_over_m += dot(gi, gi) / mi;
+        e.a_free_mass += ai * mi;
+        e.grad_sq_over_w += ai * dot(gi, gi) / mi;
+        e.tr_vv += mi * dot(vi, vi);
         let gxv = cross(gi, vi);
         for a in 0..3 {
-            e.grad_sum[a] += gi[a];
-            e.grad_cross_v[a] += gxv[a];
+            e.a_grad_sum[a] += ai * gi[a];
+            e.a_grad_cross_v[a] += ai * gxv[a];
             e.free_p[a] += mi * vi[a];
+            e.a_free_p[a] += ai * mi * vi[a];
             e.free_l[a] += mi * lv[a];
             e.free_r[a] += mi * r[a];
             for b in 0..3 {
-                e.vv[a][b] += mi * vi[a] * vi[b];
+                e.a_vv[a][b] += ai * mi * vi[a] * vi[b];
                 e.rr[a][b] += mi * r[a] * r[b];
             }
         }
@@ -855,24 +1024,25 @@ fn small_matrix(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
         u[a] = 1.0;
         u
     };
-    let tr_vv = e.vv[0][0] + e.vv[1][1] + e.vv[2][2];
+    // Position-block terms carry the metric factor a_i (the `a_` moments); velocity-block terms do not.
+    let tr_avv = e.a_vv[0][0] + e.a_vv[1][1] + e.a_vv[2][2];
     let tr_rr = e.rr[0][0] + e.rr[1][1] + e.rr[2][2];
-    s[0][0] = e.grad_sq_over_m + tr_vv / h2;
+    s[0][0] = e.grad_sq_over_w + e.tr_vv / h2;
     for a in 0..3 {
         s[0][1 + a] = e.free_p[a] / h2;
-        s[0][4 + a] = e.grad_cross_v[a] + e.free_l[a] / h2;
-        s[0][7 + a] = e.grad_sum[a] / mt;
-        let pxa = cross(e.free_p, unit(a));
+        s[0][4 + a] = e.a_grad_cross_v[a] + e.free_l[a] / h2;
+        s[0][7 + a] = e.a_grad_sum[a] / mt;
+        let pxa = cross(e.a_free_p, unit(a));
         for b in 0..3 {
             let delta = if a == b { 1.0 } else { 0.0 };
             s[1 + a][1 + b] = e.free_mass * delta / h2 + pb.dp_star[a] * pb.dp_star[b] / pb.eps;
             // e_a . (e_b x R) = eps_abc R_c
             s[1 + a][4 + b] = dot(unit(a), cross(unit(b), e.free_r)) / h2;
-            s[4 + a][4 + b] = (tr_vv * delta - e.vv[a][b])
+            s[4 + a][4 + b] = (tr_avv * delta - e.a_vv[a][b])
                 + (tr_rr * delta - e.rr[a][b]) / h2
                 + pb.dl_star[a] * pb.dl_star[b] / pb.eps;
             s[4 + a][7 + b] = pxa[b] / mt;
-            s[7 + a][7 + b] = e.free_mass / (mt * mt) * delta;
+            s[7 + a][7 + b] = e.a_free_mass / (mt * mt) * delta;
         }
     }
     for i in 0..ROWS {
@@ -932,11 +1102,13 @@ fn apply_step(
             v_out[i] = v[i];
             continue;
         }
-        let inv_m = 1.0 / model.masses[i];
+        // dx = W^-1 (x-block of G lambda) with W_i = m_i / a_i.
+        let ai = pb.metric_factor[i];
+        let a_inv_m = ai / model.masses[i];
         let vxl = cross(v[i], ll);
         let lxr = cross(ll, sub(x[i], ct));
         for a in 0..3 {
-            let dx = lh * grad[i][a] * inv_m + vxl[a] + lc[a] / mt;
+            let dx = lh * grad[i][a] * a_inv_m + ai * (vxl[a] + lc[a] / mt);
             let dv = (lh * v[i][a] + lp[a] + lxr[a]) / h2;
             x_out[i][a] = x[i][a] - alpha * dx;
             v_out[i][a] = v[i][a] - alpha * dv;
@@ -999,13 +1171,22 @@ mod tests {
             energy_scale: 1.0,
             uncertain_impulses: true,
         };
-        for pinned in [false, true] {
+        // A non-uniform position metric (the stiffness metric's shape) as well as the mass metric.
+        let uniform = vec![1.0; m];
+        let varied: Vec<f64> = (0..m).map(|i| 1.0 / (1.0 + 0.7 * i as f64)).collect();
+        for (pinned, factors) in [
+            (false, &uniform),
+            (true, &uniform),
+            (false, &varied),
+            (true, &varied),
+        ] {
             model.pinned = vec![false; m];
             if pinned {
                 model.pinned[3] = true;
             }
             let h = 0.02;
             let pb = Problem {
+                metric_factor: factors.clone(),
                 model: &model,
                 h,
                 targets: &targets,
@@ -1069,7 +1250,7 @@ mod tests {
                 } else if vel {
                     1.0 / (h * h * model.masses[i])
                 } else {
-                    1.0 / model.masses[i]
+                    factors[i] / model.masses[i]
                 }
             };
             for a in 0..ROWS {

@@ -31,8 +31,6 @@ pub struct StepDiagnostics {
     /// Runaway detected: the base step's energy error exceeded 100% of the energy scale (an unstable step)
     /// and the projection (if any) did not converge back onto the targets.
     pub runaway: bool,
-    /// The projection failed and the references were reset to the measured values.
-    pub references_reset: bool,
 }
 
 /// Running references (fepr-spec section 2): initial values advanced by every step's budget and impulses.
@@ -98,6 +96,10 @@ impl Simulation {
             ));
         }
         integrator.check(&model)?;
+        let mut projector = projector;
+        if let Some(p) = projector.as_mut() {
+            p.set_implicit_base(integrator.is_implicit());
+        }
         let previous = state.clone();
         let mut sim = Self {
             model,
@@ -128,7 +130,6 @@ impl Simulation {
             proj_ms: 0.0,
             base_energy_error: 0.0,
             runaway: false,
-            references_reset: false,
         });
         Ok(sim)
     }
@@ -260,21 +261,15 @@ impl Simulation {
         };
         let scale_h = targets.energy.abs().max(targets.energy_scale);
         let base_energy_error = (base_total - targets.energy).abs() / scale_h;
-        let mut references_reset = false;
-        match &projection {
-            Some(rep) if !rep.converged => {
-                self.references = References::measured(&inv);
-                references_reset = true;
-            }
-            _ => {
-                self.references = References {
-                    energy: targets.energy,
-                    momentum: targets.momentum,
-                    angular_momentum: targets.angular_momentum,
-                    center_of_mass: targets.center_of_mass,
-                };
-            }
-        }
+        // The references advance to this step's targets even when the projection did not converge: a failed
+        // step does not lower the bar (re-basing on the measured state would make a one-step failure a
+        // permanent loss of energy); the next projection starts from the fallback state and tries again.
+        self.references = References {
+            energy: targets.energy,
+            momentum: targets.momentum,
+            angular_momentum: targets.angular_momentum,
+            center_of_mass: targets.center_of_mass,
+        };
         self.history.push(StepDiagnostics {
             step,
             time: self.state.time,
@@ -289,7 +284,6 @@ impl Simulation {
             // rescued the step.
             runaway: (base_energy_error.is_nan() || base_energy_error > 1.0)
                 && !projection.is_some_and(|p| p.converged),
-            references_reset,
         });
         Ok(self.history.last().expect("just pushed"))
     }

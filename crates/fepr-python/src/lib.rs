@@ -14,12 +14,17 @@ use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
 use fepr_core::integrators::{integrator_by_name, INTEGRATOR_NAMES};
 use fepr_core::invariants::measure;
 use fepr_core::linalg::Vec3;
-use fepr_core::material::{Arap, Hyperelastic, Material, NeoHookean, StableNeoHookean};
+use fepr_core::material::{
+    Arap, ConstraintNeoHookean, Hyperelastic, Material, NeoHookean, StableNeoHookean,
+};
 use fepr_core::mesh::{MassSpec, TetMesh};
 use fepr_core::model::{ModelBuilder, State};
 use fepr_core::pd::{PdSettings, ProjectiveDynamics};
-use fepr_core::projection::{ActiveRows, ProjectionReport, ProjectionSettings, Projector, Slack};
+use fepr_core::projection::{
+    ActiveRows, Metric, ProjectionReport, ProjectionSettings, Projector, Slack,
+};
 use fepr_core::simulation::{Simulation as CoreSimulation, StepDiagnostics};
+use fepr_core::xpbd::{Xpbd, XpbdSettings};
 use fepr_core::FeprError;
 
 fn value_error(e: FeprError) -> PyErr {
@@ -100,8 +105,11 @@ fn make_material(
         "arap" => Ok(Material::Arap(
             Arap::new(youngs_modulus, poisson_ratio).map_err(value_error)?,
         )),
+        "constraint_neo_hookean" => Ok(Material::ConstraintNeoHookean(
+            ConstraintNeoHookean::new(youngs_modulus, poisson_ratio).map_err(value_error)?,
+        )),
         other => Err(PyValueError::new_err(format!(
-            "material: unknown model '{other}' (known: neo_hookean, stable_neo_hookean, arap)"
+            "material: unknown model '{other}' (known: neo_hookean, stable_neo_hookean, arap, constraint_neo_hookean)"
         ))),
     }
 }
@@ -191,6 +199,9 @@ fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py
     d.set_item("active_rows", r.active_rows)?;
     d.set_item("base_energy", r.base_energy)?;
     d.set_item("warm_start", r.warm_start)?;
+    d.set_item("stiffness_metric", r.stiffness_metric)?;
+    d.set_item("restarts", r.restarts)?;
+    d.set_item("frozen_vertices", r.frozen_vertices)?;
     Ok(d)
 }
 
@@ -230,7 +241,7 @@ const HISTORY_COLUMNS: &[&str] = &[
     "energy_budget",
     "base_energy_error",
     "runaway",
-    "references_reset",
+    "proj_warm_start",
 ];
 
 fn history_row(d: &StepDiagnostics) -> [f64; 35] {
@@ -273,7 +284,7 @@ fn history_row(d: &StepDiagnostics) -> [f64; 35] {
         d.energy_budget,
         d.base_energy_error,
         d.runaway as u8 as f64,
-        d.references_reset as u8 as f64,
+        if has { p.warm_start as u8 as f64 } else { 0.0 },
     ]
 }
 
@@ -284,7 +295,8 @@ impl Simulation {
         vertices, tets, *, material, youngs_modulus, poisson_ratio, j0, mass_kind, mass_value, node_masses,
         integrator, dt, projection, tolerance, max_iterations, rows, c_eps, regularization, max_halvings,
         impact_bound, gravity, pinned, damping, threads, slack = "auto", newton_tolerance = 1e-6,
-        newton_max_iterations = 20, pd_iterations = 10, warm_start_threshold = f64::INFINITY
+        newton_max_iterations = 20, pd_iterations = 10, warm_start_threshold = f64::INFINITY,
+        metric = "auto", xpbd_substeps = 20, xpbd_iterations = 1
     ))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -316,6 +328,9 @@ impl Simulation {
         newton_max_iterations: usize,
         pd_iterations: usize,
         warm_start_threshold: f64,
+        metric: &str,
+        xpbd_substeps: usize,
+        xpbd_iterations: usize,
     ) -> PyResult<Self> {
         let (mesh, _) = build_mesh(&vertices, &tets)?;
         let mat = make_material(material, youngs_modulus, poisson_ratio, j0)?;
@@ -352,6 +367,13 @@ impl Simulation {
                 })
                 .map_err(value_error)?,
             ),
+            "xpbd" => Box::new(
+                Xpbd::new(XpbdSettings {
+                    substeps: xpbd_substeps,
+                    iterations: xpbd_iterations,
+                })
+                .map_err(value_error)?,
+            ),
             other => integrator_by_name(other).ok_or_else(|| {
                 PyValueError::new_err(format!(
                     "integrator: unknown '{other}' (known: {})",
@@ -374,6 +396,11 @@ impl Simulation {
                 rows,
                 impact_bound,
                 warm_start_threshold,
+                metric: Metric::from_name(metric).ok_or_else(|| {
+                    PyValueError::new_err(format!(
+                        "metric: unknown '{metric}' (known: auto, mass, stiffness)"
+                    ))
+                })?,
                 slack: Slack::from_name(slack).ok_or_else(|| {
                     PyValueError::new_err(format!(
                         "slack: unknown '{slack}' (known: auto, on, off)"
