@@ -79,7 +79,32 @@ macro_rules! with_material {
 
 /// Elastic energy only (no gradient), J.
 pub fn elastic_energy(model: &Model, x: &[Vec3]) -> ElasticSummary {
-    with_material!(model, mat => energy_impl(mat, model, x))
+    match &model.material {
+        Material::NeoHookean(nh) => neo_hookean_energy(nh, model, x),
+        _ => with_material!(model, mat => energy_impl(mat, model, x)),
+    }
+}
+
+/// Energy only, with the batched Neo-Hookean kernel (bit-identical to [`energy_impl`]).
+fn neo_hookean_energy(nh: &NeoHookean, model: &Model, x: &[Vec3]) -> ElasticSummary {
+    #[cfg(target_arch = "x86_64")]
+    let avx2 = std::arch::is_x86_feature_detected!("avx2");
+    reduce_chunks(
+        model.num_tets(),
+        TET_CHUNK,
+        |range| {
+            #[cfg(target_arch = "x86_64")]
+            if avx2 {
+                // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
+                return unsafe {
+                    neo_hookean_chunk_avx2::<false>(nh, model, x, range.start, &mut [], range.len())
+                };
+            }
+            neo_hookean_chunk::<false>(nh, model, x, range.start, &mut [], range.len())
+        },
+        ElasticSummary::combine,
+    )
+    .unwrap_or_else(ElasticSummary::zero)
 }
 
 fn energy_impl<M: Hyperelastic + Sync>(mat: &M, model: &Model, x: &[Vec3]) -> ElasticSummary {
@@ -195,9 +220,13 @@ fn neo_hookean_pass(
             #[cfg(target_arch = "x86_64")]
             if avx2 {
                 // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
-                return unsafe { neo_hookean_chunk_avx2(nh, model, x, c * TET_CHUNK, chunk) };
+                let n = chunk.len();
+                return unsafe {
+                    neo_hookean_chunk_avx2::<true>(nh, model, x, c * TET_CHUNK, chunk, n)
+                };
             }
-            neo_hookean_chunk(nh, model, x, c * TET_CHUNK, chunk)
+            let n = chunk.len();
+            neo_hookean_chunk::<true>(nh, model, x, c * TET_CHUNK, chunk, n)
         })
         .collect();
     parts
@@ -208,45 +237,68 @@ fn neo_hookean_pass(
 /// [`neo_hookean_chunk`] compiled for AVX2 (wider lanes; no FMA, so the results are the same bits).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn neo_hookean_chunk_avx2(
+unsafe fn neo_hookean_chunk_avx2<const GRAD: bool>(
     nh: &NeoHookean,
     model: &Model,
     x: &[Vec3],
     base: usize,
     chunk: &mut [[Vec3; 3]],
+    len: usize,
 ) -> ElasticSummary {
-    neo_hookean_chunk(nh, model, x, base, chunk)
+    neo_hookean_chunk::<GRAD>(nh, model, x, base, chunk, len)
 }
 
-/// One chunk of tets `base..base + chunk.len()`, in batches of [`LANES`], the remainder one by one.
+/// One chunk of tets `base..base + len`, in batches of [`LANES`], the remainder one by one. With `GRAD`
+/// the corner gradients go to `chunk` (length `len`); without, only the summary is computed.
 #[inline(always)]
-fn neo_hookean_chunk(
+fn neo_hookean_chunk<const GRAD: bool>(
     nh: &NeoHookean,
     model: &Model,
     x: &[Vec3],
     base: usize,
     chunk: &mut [[Vec3; 3]],
+    len: usize,
 ) -> ElasticSummary {
     let (tets, dm_inv, volume) = (model.mesh.tets(), &model.rest.dm_inv, &model.rest.volume);
     let mut s = ElasticSummary::zero();
-    let mut batches = chunk.chunks_exact_mut(LANES);
-    let mut e0 = base;
-    for batch in &mut batches {
-        let b: &mut [[Vec3; 3]; LANES] = batch.try_into().expect("exact chunk");
-        neo_hookean_batch(
+    let full = len - len % LANES;
+    let mut scratch = [[[0.0; 3]; 3]; LANES];
+    for e0 in (base..base + full).step_by(LANES) {
+        let out: &mut [[Vec3; 3]; LANES] = if GRAD {
+            (&mut chunk[e0 - base..e0 - base + LANES])
+                .try_into()
+                .expect("exact batch")
+        } else {
+            &mut scratch
+        };
+        neo_hookean_batch::<GRAD>(
             nh,
             tets[e0..e0 + LANES].try_into().expect("in range"),
             dm_inv[e0..e0 + LANES].try_into().expect("in range"),
             volume[e0..e0 + LANES].try_into().expect("in range"),
             x,
-            b,
+            out,
             &mut s,
         );
-        e0 += LANES;
     }
-    for (i, o) in batches.into_remainder().iter_mut().enumerate() {
-        let e = e0 + i;
-        element_scalar(nh, &tets[e], &dm_inv[e], volume[e], x, o, &mut s);
+    for e in base + full..base + len {
+        if GRAD {
+            element_scalar(
+                nh,
+                &tets[e],
+                &dm_inv[e],
+                volume[e],
+                x,
+                &mut chunk[e - base],
+                &mut s,
+            );
+        } else {
+            let f = matmul(&edge_matrix(x, &tets[e]), &dm_inv[e]);
+            let j = det(&f);
+            s.energy += volume[e] * nh.energy_density(&f);
+            s.min_j = s.min_j.min(j);
+            s.inverted += (j <= 0.0) as usize;
+        }
     }
     s
 }
@@ -277,7 +329,7 @@ fn element_scalar<M: Hyperelastic>(
 }
 
 #[inline(always)]
-fn neo_hookean_batch(
+fn neo_hookean_batch<const GRAD: bool>(
     nh: &NeoHookean,
     t: &[[usize; 4]; LANES],
     dmi: &[Mat3; LANES],
@@ -356,6 +408,14 @@ fn neo_hookean_batch(
         dg[l] = (-mu + lambda * lg) * dl;
         psi[l] = 0.5 * mu * (ic[l] - 3.0) + g;
     }
+    for l in 0..LANES {
+        s.energy += vol[l] * psi[l];
+        s.min_j = s.min_j.min(jd[l]);
+        s.inverted += (jd[l] <= 0.0) as usize;
+    }
+    if !GRAD {
+        return;
+    }
     // P = mu F + g'(J) cof(F); H = V P D_m^-T, whose columns are the gradients on corners 1..3.
     let mut p = [[z; 3]; 3];
     for i in 0..3 {
@@ -374,11 +434,6 @@ fn neo_hookean_batch(
                 out[l][a][b] = vol[l] * h;
             }
         }
-    }
-    for l in 0..LANES {
-        s.energy += vol[l] * psi[l];
-        s.min_j = s.min_j.min(jd[l]);
-        s.inverted += (jd[l] <= 0.0) as usize;
     }
 }
 
@@ -596,6 +651,14 @@ mod tests {
                 v.iter().flatten().flatten().map(|g| g.to_bits()).collect()
             };
             assert_eq!(bits(&a), bits(&b));
+            let ea = neo_hookean_energy(&mat, &model, &x);
+            let eb = energy_impl(&mat, &model, &x);
+            assert_eq!(ea.energy.to_bits(), eb.energy.to_bits());
+            assert_eq!(
+                (ea.min_j.to_bits(), ea.inverted),
+                (eb.min_j.to_bits(), eb.inverted)
+            );
+            assert_eq!(ea.energy.to_bits(), sa.energy.to_bits());
         }
     }
 
