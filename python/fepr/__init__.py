@@ -34,6 +34,7 @@ from .simulation import (
     SymplecticEuler,
     Xpbd,
 )
+from .viewer import view
 
 __all__ = [
     "Arap",
@@ -62,4 +63,5 @@ __all__ = [
     "mesh_info",
     "meshes",
     "tetrahedralize",
+    "view",
 ]

@@ -265,7 +265,7 @@ GALLERY: Tuple[GalleryItem, ...] = (
     GalleryItem("spinning_l_gravity"),
     GalleryItem("dropped_box"),
     GalleryItem("wobbly_box"),
-    GalleryItem("implicit_ell", integrators=("implicit_euler", "projective_dynamics"), steps=120),
+    GalleryItem("implicit_ell", integrators=("implicit_euler", "projective_dynamics", "xpbd"), steps=120),
     GalleryItem("implicit_cantilever", integrators=("implicit_euler", "projective_dynamics"), steps=90),
 )
 
