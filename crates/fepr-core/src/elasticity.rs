@@ -43,16 +43,16 @@ impl ElasticSummary {
 }
 
 /// Scratch memory for gradient evaluations (reused across calls, no allocation in the step loop): the
-/// gradients on corners 1..3 of every tet (corner 0 gets minus their sum, recomputed in the gather).
+/// gradients on the 4 corners of every tet.
 #[derive(Clone, Debug, Default)]
 pub struct ElasticWorkspace {
-    element_gradients: Vec<[Vec3; 3]>,
+    element_gradients: Vec<[Vec3; 4]>,
 }
 
 impl ElasticWorkspace {
     /// Bytes held by the workspace.
     pub fn bytes(&self) -> usize {
-        self.element_gradients.capacity() * std::mem::size_of::<[Vec3; 3]>()
+        self.element_gradients.capacity() * std::mem::size_of::<[Vec3; 4]>()
     }
 }
 
@@ -146,7 +146,7 @@ pub fn elastic_energy_gradient(
 ) -> ElasticSummary {
     let k = model.num_tets();
     if ws.element_gradients.len() != k {
-        ws.element_gradients.resize(k, [[0.0; 3]; 3]);
+        ws.element_gradients.resize(k, [[0.0; 3]; 4]);
     }
     let summary = match &model.material {
         Material::NeoHookean(nh) => neo_hookean_pass(nh, model, x, &mut ws.element_gradients),
@@ -160,7 +160,7 @@ fn element_pass<M: Hyperelastic + Sync>(
     mat: &M,
     model: &Model,
     x: &[Vec3],
-    out: &mut [[Vec3; 3]],
+    out: &mut [[Vec3; 4]],
 ) -> ElasticSummary {
     let (tets, dm_inv, volume) = (model.mesh.tets(), &model.rest.dm_inv, &model.rest.volume);
     let parts: Vec<ElasticSummary> = out
@@ -183,11 +183,7 @@ fn element_pass<M: Hyperelastic + Sync>(
                 s.inverted += (j <= 0.0) as usize;
                 // H = V P D_m^-T; its columns are the gradients on vertices 1..3.
                 let h = matmul(&p, &transpose(dmi));
-                for a in 0..3 {
-                    for b in 0..3 {
-                        out[a][b] = vol * h[b][a];
-                    }
-                }
+                write_corners(&h, vol, out);
             }
             s
         })
@@ -197,19 +193,14 @@ fn element_pass<M: Hyperelastic + Sync>(
         .fold(ElasticSummary::zero(), ElasticSummary::combine)
 }
 
-/// Tets per batch of the Neo-Hookean kernel (structure of arrays across the batch, so the compiler can use
-/// SIMD lanes for the per-tet arithmetic).
-const LANES: usize = 4;
-type Lanes = [f64; LANES];
-
-/// The Neo-Hookean element pass, batched over [`LANES`] tets. The arithmetic mirrors
+/// The Neo-Hookean element pass, in blocks of [`BLOCK`] tets. The arithmetic mirrors
 /// [`NeoHookean::energy_and_stress`] operation by operation (no fused multiply-adds), so every lane gives
 /// bit-for-bit the scalar result (gated by a test); only the scheduling differs.
 fn neo_hookean_pass(
     nh: &NeoHookean,
     model: &Model,
     x: &[Vec3],
-    out: &mut [[Vec3; 3]],
+    out: &mut [[Vec3; 4]],
 ) -> ElasticSummary {
     #[cfg(target_arch = "x86_64")]
     let avx2 = std::arch::is_x86_feature_detected!("avx2");
@@ -242,13 +233,13 @@ unsafe fn neo_hookean_chunk_avx2<const GRAD: bool>(
     model: &Model,
     x: &[Vec3],
     base: usize,
-    chunk: &mut [[Vec3; 3]],
+    chunk: &mut [[Vec3; 4]],
     len: usize,
 ) -> ElasticSummary {
     neo_hookean_chunk::<GRAD>(nh, model, x, base, chunk, len)
 }
 
-/// One chunk of tets `base..base + len`, in batches of [`LANES`], the remainder one by one. With `GRAD`
+/// One chunk of tets `base..base + len`, in blocks of [`BLOCK`], the remainder one by one. With `GRAD`
 /// the corner gradients go to `chunk` (length `len`); without, only the summary is computed.
 #[inline(always)]
 fn neo_hookean_chunk<const GRAD: bool>(
@@ -256,29 +247,31 @@ fn neo_hookean_chunk<const GRAD: bool>(
     model: &Model,
     x: &[Vec3],
     base: usize,
-    chunk: &mut [[Vec3; 3]],
+    chunk: &mut [[Vec3; 4]],
     len: usize,
 ) -> ElasticSummary {
     let (tets, dm_inv, volume) = (model.mesh.tets(), &model.rest.dm_inv, &model.rest.volume);
     let mut s = ElasticSummary::zero();
-    let full = len - len % LANES;
-    let mut scratch = [[[0.0; 3]; 3]; LANES];
-    for e0 in (base..base + full).step_by(LANES) {
-        let out: &mut [[Vec3; 3]; LANES] = if GRAD {
-            (&mut chunk[e0 - base..e0 - base + LANES])
+    let full = len - len % BLOCK;
+    let mut scratch = [[[0.0; 3]; 4]; BLOCK];
+    let mut w = BlockScratch::new();
+    for e0 in (base..base + full).step_by(BLOCK) {
+        let out: &mut [[Vec3; 4]; BLOCK] = if GRAD {
+            (&mut chunk[e0 - base..e0 - base + BLOCK])
                 .try_into()
-                .expect("exact batch")
+                .expect("exact block")
         } else {
             &mut scratch
         };
-        neo_hookean_batch::<GRAD>(
+        neo_hookean_block::<GRAD>(
             nh,
-            tets[e0..e0 + LANES].try_into().expect("in range"),
-            dm_inv[e0..e0 + LANES].try_into().expect("in range"),
-            volume[e0..e0 + LANES].try_into().expect("in range"),
+            tets[e0..e0 + BLOCK].try_into().expect("in range"),
+            dm_inv[e0..e0 + BLOCK].try_into().expect("in range"),
+            volume[e0..e0 + BLOCK].try_into().expect("in range"),
             x,
             out,
             &mut s,
+            &mut w,
         );
     }
     for e in base + full..base + len {
@@ -311,7 +304,7 @@ fn element_scalar<M: Hyperelastic>(
     dmi: &Mat3,
     vol: f64,
     x: &[Vec3],
-    out: &mut [Vec3; 3],
+    out: &mut [Vec3; 4],
     s: &mut ElasticSummary,
 ) {
     let f = matmul(&edge_matrix(x, t), dmi);
@@ -321,28 +314,80 @@ fn element_scalar<M: Hyperelastic>(
     s.min_j = s.min_j.min(j);
     s.inverted += (j <= 0.0) as usize;
     let h = matmul(&p, &transpose(dmi));
-    for a in 0..3 {
-        for b in 0..3 {
-            out[a][b] = vol * h[b][a];
+    write_corners(&h, vol, out);
+}
+
+/// Tets per block of the Neo-Hookean kernel: the block's data lives in structure-of-arrays form in a
+/// scratch struct (in L1), so each pass is a plain loop over the block that the compiler turns into SIMD lanes.
+const BLOCK: usize = 16;
+type Block = [f64; BLOCK];
+
+/// Per-block arrays, allocated once per chunk (every field is overwritten by each block before it is read).
+struct BlockScratch {
+    ds: [[Block; 3]; 3],
+    dm: [[Block; 3]; 3],
+    f: [[Block; 3]; 3],
+    p: [[Block; 3]; 3],
+    h: [[Block; 3]; 3],
+    jd: Block,
+    lg: Block,
+    dl: Block,
+    ic: Block,
+    psi: Block,
+    dg: Block,
+}
+
+impl BlockScratch {
+    fn new() -> Self {
+        let z = [0.0; BLOCK];
+        let m = [[z; 3]; 3];
+        Self {
+            ds: m,
+            dm: m,
+            f: m,
+            p: m,
+            h: m,
+            jd: z,
+            lg: z,
+            dl: z,
+            ic: z,
+            psi: z,
+            dg: z,
         }
     }
 }
 
+/// One block of [`BLOCK`] tets. Three passes: geometry (`F`, `J`), the logarithms (scalar calls with nothing
+/// else live), then energy, stress and corner gradients. Every operation mirrors
+/// [`NeoHookean::energy_and_stress`] (and `linalg::{matmul, det, cofactor, ddot}`) in order, without fused
+/// multiply-adds, so the results are bit-for-bit those of the scalar path (gated by a test).
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn neo_hookean_batch<const GRAD: bool>(
+fn neo_hookean_block<const GRAD: bool>(
     nh: &NeoHookean,
-    t: &[[usize; 4]; LANES],
-    dmi: &[Mat3; LANES],
-    vol: &[f64; LANES],
+    t: &[[usize; 4]; BLOCK],
+    dmi: &[Mat3; BLOCK],
+    vol: &[f64; BLOCK],
     x: &[Vec3],
-    out: &mut [[Vec3; 3]; LANES],
+    out: &mut [[Vec3; 4]; BLOCK],
     s: &mut ElasticSummary,
+    w: &mut BlockScratch,
 ) {
-    let z: Lanes = [0.0; LANES];
-    // Edge matrices D_s[i][c] = x_{c+1}[i] - x_0[i] and D_m^-1, lane-last.
-    let mut ds = [[z; 3]; 3];
-    let mut dm = [[z; 3]; 3];
-    for l in 0..LANES {
+    let BlockScratch {
+        ds,
+        dm,
+        f,
+        p,
+        h,
+        jd,
+        lg,
+        dl,
+        ic,
+        psi,
+        dg,
+    } = w;
+    // Pass 1: D_s[i][c] = x_{c+1}[i] - x_0[i] and D_m^-1, block-last; F = D_s D_m^-1; J = det F.
+    for l in 0..BLOCK {
         let x0 = x[t[l][0]];
         for c in 0..3 {
             let xc = x[t[l][c + 1]];
@@ -352,50 +397,25 @@ fn neo_hookean_batch<const GRAD: bool>(
             }
         }
     }
-    // F = D_s D_m^-1 (as linalg::matmul).
-    let mut f = [[z; 3]; 3];
     for i in 0..3 {
         for j in 0..3 {
-            for l in 0..LANES {
+            for l in 0..BLOCK {
                 f[i][j][l] = ds[i][0][l] * dm[0][j][l]
                     + ds[i][1][l] * dm[1][j][l]
                     + ds[i][2][l] * dm[2][j][l];
             }
         }
     }
-    // I_C (as linalg::ddot), J (as linalg::det), cofactor (as linalg::cofactor).
-    let mut ic = z;
-    for i in 0..3 {
-        for j in 0..3 {
-            for l in 0..LANES {
-                ic[l] += f[i][j][l] * f[i][j][l];
-            }
-        }
+    for l in 0..BLOCK {
+        jd[l] = f[0][0][l] * (f[1][1][l] * f[2][2][l] - f[1][2][l] * f[2][1][l])
+            - f[0][1][l] * (f[1][0][l] * f[2][2][l] - f[1][2][l] * f[2][0][l])
+            + f[0][2][l] * (f[1][0][l] * f[2][1][l] - f[1][1][l] * f[2][0][l]);
     }
-    let mut jd = z;
-    let mut cof = [[z; 3]; 3];
-    for l in 0..LANES {
-        let m = |i: usize, j: usize| f[i][j][l];
-        jd[l] = m(0, 0) * (m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1))
-            - m(0, 1) * (m(1, 0) * m(2, 2) - m(1, 2) * m(2, 0))
-            + m(0, 2) * (m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0));
-        cof[0][0][l] = m(1, 1) * m(2, 2) - m(1, 2) * m(2, 1);
-        cof[0][1][l] = m(1, 2) * m(2, 0) - m(1, 0) * m(2, 2);
-        cof[0][2][l] = m(1, 0) * m(2, 1) - m(1, 1) * m(2, 0);
-        cof[1][0][l] = m(0, 2) * m(2, 1) - m(0, 1) * m(2, 2);
-        cof[1][1][l] = m(0, 0) * m(2, 2) - m(0, 2) * m(2, 0);
-        cof[1][2][l] = m(0, 1) * m(2, 0) - m(0, 0) * m(2, 1);
-        cof[2][0][l] = m(0, 1) * m(1, 2) - m(0, 2) * m(1, 1);
-        cof[2][1][l] = m(0, 2) * m(1, 0) - m(0, 0) * m(1, 2);
-        cof[2][2][l] = m(0, 0) * m(1, 1) - m(0, 1) * m(1, 0);
-    }
-    // Volumetric part (as NeoHookean::volumetric with the extended logarithm).
+    // Pass 2: the extended logarithm l(J) and l'(J) (NeoHookean::extended_log).
     let (mu, lambda, j0) = (nh.mu, nh.lambda, nh.j0);
-    let mut psi = z;
-    let mut dg = z;
-    for l in 0..LANES {
+    for l in 0..BLOCK {
         let j = jd[l];
-        let (lg, dl) = if j >= j0 {
+        (lg[l], dl[l]) = if j >= j0 {
             (j.ln(), 1.0 / j)
         } else {
             let d = j - j0;
@@ -404,11 +424,24 @@ fn neo_hookean_batch<const GRAD: bool>(
                 1.0 / j0 - d / (j0 * j0),
             )
         };
-        let g = -mu * lg + 0.5 * lambda * lg * lg;
-        dg[l] = (-mu + lambda * lg) * dl;
+    }
+    // Pass 3: energy density (I_C as linalg::ddot), summary in tet order.
+    for l in 0..BLOCK {
+        ic[l] = 0.0;
+    }
+    for i in 0..3 {
+        for j in 0..3 {
+            for l in 0..BLOCK {
+                ic[l] += f[i][j][l] * f[i][j][l];
+            }
+        }
+    }
+    for l in 0..BLOCK {
+        let g = -mu * lg[l] + 0.5 * lambda * lg[l] * lg[l];
+        dg[l] = (-mu + lambda * lg[l]) * dl[l];
         psi[l] = 0.5 * mu * (ic[l] - 3.0) + g;
     }
-    for l in 0..LANES {
+    for l in 0..BLOCK {
         s.energy += vol[l] * psi[l];
         s.min_j = s.min_j.min(jd[l]);
         s.inverted += (jd[l] <= 0.0) as usize;
@@ -416,35 +449,70 @@ fn neo_hookean_batch<const GRAD: bool>(
     if !GRAD {
         return;
     }
-    // P = mu F + g'(J) cof(F); H = V P D_m^-T, whose columns are the gradients on corners 1..3.
-    let mut p = [[z; 3]; 3];
+    // P = mu F + g'(J) cof(F), with cof[i][k] = f[a][b] f[c][d] - f[a][d] f[c][b] for the index pairs of
+    // linalg::cofactor.
+    const PAIRS: [[(usize, usize, usize, usize); 3]; 3] = [
+        [(1, 1, 2, 2), (1, 2, 2, 0), (1, 0, 2, 1)],
+        [(0, 2, 2, 1), (0, 0, 2, 2), (0, 1, 2, 0)],
+        [(0, 1, 1, 2), (0, 2, 1, 0), (0, 0, 1, 1)],
+    ];
     for i in 0..3 {
         for k in 0..3 {
-            for l in 0..LANES {
-                p[i][k][l] = mu * f[i][k][l] + dg[l] * cof[i][k][l];
+            let (a, b, c, d) = PAIRS[i][k];
+            for l in 0..BLOCK {
+                let cof = f[a][b][l] * f[c][d][l] - f[a][d][l] * f[c][b][l];
+                p[i][k][l] = mu * f[i][k][l] + dg[l] * cof;
             }
         }
     }
-    for b in 0..3 {
-        for a in 0..3 {
-            for l in 0..LANES {
-                // h[b][a] = sum_k p[b][k] dm_inv^T[k][a] = sum_k p[b][k] dm_inv[a][k]
-                let h =
-                    p[b][0][l] * dm[a][0][l] + p[b][1][l] * dm[a][1][l] + p[b][2][l] * dm[a][2][l];
-                out[l][a][b] = vol[l] * h;
+    // H = V P D_m^-T; its columns are the gradients on corners 1..3: h[b][a] = sum_k p[b][k] dm_inv[a][k].
+    for a in 0..3 {
+        for b in 0..3 {
+            for l in 0..BLOCK {
+                h[a][b][l] = vol[l]
+                    * (p[b][0][l] * dm[a][0][l]
+                        + p[b][1][l] * dm[a][1][l]
+                        + p[b][2][l] * dm[a][2][l]);
             }
         }
+    }
+    // Corner 0 gets minus the sum of corners 1..3 (in that order, as the scalar path).
+    for b in 0..3 {
+        for l in 0..BLOCK {
+            p[0][b][l] = 0.0 - h[0][b][l] - h[1][b][l] - h[2][b][l];
+        }
+    }
+    for l in 0..BLOCK {
+        out[l][0] = [p[0][0][l], p[0][1][l], p[0][2][l]];
+        for a in 0..3 {
+            for b in 0..3 {
+                out[l][a + 1][b] = h[a][b][l];
+            }
+        }
+    }
+}
+
+/// Corner gradients from `H = P D_m^-T`: corners 1..3 are the columns of `V H`, corner 0 minus their sum.
+#[inline(always)]
+fn write_corners(h: &Mat3, vol: f64, out: &mut [Vec3; 4]) {
+    for a in 0..3 {
+        for b in 0..3 {
+            out[a + 1][b] = vol * h[b][a];
+        }
+    }
+    for b in 0..3 {
+        out[0][b] = 0.0 - out[1][b] - out[2][b] - out[3][b];
     }
 }
 
 /// Vertices per parallel task in the gather.
 const VERTEX_CHUNK: usize = 512;
 
-/// Sum per-tet corner values into vertices, in the fixed incidence order. Corner 0's value is minus the sum
-/// of corners 1..3, evaluated in that order.
-fn gather(model: &Model, element_values: &[[Vec3; 3]], out: &mut [Vec3]) {
+/// Sum per-tet corner values into vertices, in the fixed incidence order (ascending tet index).
+fn gather(model: &Model, element_values: &[[Vec3; 4]], out: &mut [Vec3]) {
     let offsets = &model.incidence_offsets;
     let slots = &model.incidence_slots;
+    let flat = element_values.as_flattened();
     out.par_chunks_mut(VERTEX_CHUNK)
         .enumerate()
         .for_each(|(c, chunk)| {
@@ -453,14 +521,7 @@ fn gather(model: &Model, element_values: &[[Vec3; 3]], out: &mut [Vec3]) {
                 let v = first + i;
                 let mut acc = [0.0; 3];
                 for &slot in &slots[offsets[v]..offsets[v + 1]] {
-                    let s = slot as usize;
-                    let e = &element_values[s >> 2];
-                    let corner = s & 3;
-                    let val = if corner == 0 {
-                        [0, 1, 2].map(|b| 0.0 - e[0][b] - e[1][b] - e[2][b])
-                    } else {
-                        e[corner - 1]
-                    };
+                    let val = flat[slot as usize];
                     acc[0] += val[0];
                     acc[1] += val[1];
                     acc[2] += val[2];
@@ -639,15 +700,15 @@ mod tests {
                 p[2] *= 0.05 + 0.9 * w * w;
             }
             let k = model.num_tets();
-            let mut a = vec![[[0.0; 3]; 3]; k];
-            let mut b = vec![[[0.0; 3]; 3]; k];
+            let mut a = vec![[[0.0; 3]; 4]; k];
+            let mut b = vec![[[0.0; 3]; 4]; k];
             let sa = neo_hookean_pass(&mat, &model, &x, &mut a);
             let sb = element_pass(&mat, &model, &x, &mut b);
             assert!(sa.inverted > 0 && sa.min_j < mat.j0, "{sa:?}");
             assert_eq!(sa.energy.to_bits(), sb.energy.to_bits());
             assert_eq!(sa.min_j.to_bits(), sb.min_j.to_bits());
             assert_eq!(sa.inverted, sb.inverted);
-            let bits = |v: &Vec<[Vec3; 3]>| -> Vec<u64> {
+            let bits = |v: &Vec<[Vec3; 4]>| -> Vec<u64> {
                 v.iter().flatten().flatten().map(|g| g.to_bits()).collect()
             };
             assert_eq!(bits(&a), bits(&b));
