@@ -183,23 +183,23 @@ def _make_sim(scene: Scene, mesh, integrator: str, dt: float, threads: int, proj
 
 
 def stable_dt(scene: Scene, mesh, integrator: str, dt: float, steps: int = 200, halvings: int = 16) -> float:
-    """The scene's step size for an explicit integrator, halved until ``steps`` steps without projection neither
-    run away nor become non-finite, then halved once more as a margin (meshes with sliver tets need far
-    smaller explicit steps than their median edge suggests)."""
+    """The scene's step size for an explicit integrator if ``steps`` steps without projection stay bounded; else
+    halved until they do, then halved once more as a margin (meshes with sliver tets need far smaller explicit
+    steps than their median edge suggests)."""
     import warnings
 
     from .errors import FeprError
 
     if integrator != "symplectic_euler":
         return dt
-    for _ in range(halvings):
+    for k in range(halvings):
         sim = _make_sim(scene, mesh, integrator, dt, 1, projection=False)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 sim.step(steps)
             if not np.any(sim.history["runaway"]) and np.all(np.isfinite(sim.positions)):
-                return 0.5 * dt
+                return dt if k == 0 else 0.5 * dt  # the scene's own dt is kept when it is stable
         except FeprError:
             pass
         dt *= 0.5
@@ -214,12 +214,14 @@ def _time_steps(sim, budget_s: float, min_steps: int, max_steps: int, warmup: in
         sim.step(warmup - 1)
     if first > 1.0:
         min_steps = min(min_steps, 2)
+    # One call for all timed steps: each Python-level step() call also scans the history for runaway flags.
+    t_cal = time.perf_counter()
+    sim.step(1)
+    per = time.perf_counter() - t_cal
+    steps = int(min(max_steps, max(min_steps, budget_s / max(per, 1e-9))))
     n0 = sim.num_steps
-    steps = 0
     t0 = time.perf_counter()
-    while steps < min_steps or (steps < max_steps and time.perf_counter() - t0 < budget_s):
-        sim.step(1)
-        steps += 1
+    sim.step(steps)
     wall = time.perf_counter() - t0
     h = sim.history
     rows = slice(n0, n0 + steps)
