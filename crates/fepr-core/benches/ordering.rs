@@ -1,6 +1,7 @@
 //! Fill and factorisation time of the sparse Cholesky with AMD vs METIS nested dissection, on the vertex
 //! graph of tet meshes at Projective Dynamics size (m x m) and Newton size (3m x 3m):
-//! `cargo bench -p fepr-core --bench ordering` (prints a table; meshes as in `kernels`).
+//! `cargo bench -p fepr-core --bench ordering [-- STEM ...]` (prints a table; meshes as in `kernels`, plus any
+//! TetGen `STEM.node`/`STEM.ele` given as arguments).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -114,6 +115,15 @@ fn main() {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/meshes/seed/bunny2.1");
     if let Some(m) = load_tetgen(&root) {
         meshes.insert(1, ("bunny2".to_string(), m));
+    }
+    // Extra TetGen meshes given as arguments (path stems without .node/.ele).
+    for stem in std::env::args().skip(1).filter(|a| !a.starts_with('-')) {
+        if let Some(m) = load_tetgen(std::path::Path::new(&stem)) {
+            let name = std::path::Path::new(&stem)
+                .file_name()
+                .map_or(stem.clone(), |n| n.to_string_lossy().into_owned());
+            meshes.push((name, m));
+        }
     }
     println!(
         "{:<10} {:>3} {:>8} {:>7} {:>12} {:>10} {:>11} {:>10} {:>7}",
