@@ -47,12 +47,15 @@ impl ElasticSummary {
 #[derive(Clone, Debug, Default)]
 pub struct ElasticWorkspace {
     element_gradients: Vec<[Vec3; 4]>,
+    /// Per-chunk partial summaries, combined in chunk order.
+    partials: Vec<ElasticSummary>,
 }
 
 impl ElasticWorkspace {
     /// Bytes held by the workspace.
     pub fn bytes(&self) -> usize {
         self.element_gradients.capacity() * std::mem::size_of::<[Vec3; 4]>()
+            + self.partials.capacity() * std::mem::size_of::<ElasticSummary>()
     }
 }
 
@@ -148,12 +151,34 @@ pub fn elastic_energy_gradient(
     if ws.element_gradients.len() != k {
         ws.element_gradients.resize(k, [[0.0; 3]; 4]);
     }
+    let (out, parts) = (&mut ws.element_gradients, &mut ws.partials);
     let summary = match &model.material {
-        Material::NeoHookean(nh) => neo_hookean_pass(nh, model, x, &mut ws.element_gradients),
-        _ => with_material!(model, mat => element_pass(mat, model, x, &mut ws.element_gradients)),
+        Material::NeoHookean(nh) => neo_hookean_pass(nh, model, x, out, parts),
+        _ => with_material!(model, mat => element_pass(mat, model, x, out, parts)),
     };
     gather(model, &ws.element_gradients, grad);
     summary
+}
+
+/// Partial summaries of fixed chunks, written in place (no allocation once `parts` has grown), then
+/// combined in chunk order.
+fn chunked_pass<F>(
+    out: &mut [[Vec3; 4]],
+    parts: &mut Vec<ElasticSummary>,
+    chunk_fn: F,
+) -> ElasticSummary
+where
+    F: Fn(usize, &mut [[Vec3; 4]]) -> ElasticSummary + Sync,
+{
+    parts.clear();
+    parts.resize(out.len().div_ceil(TET_CHUNK), ElasticSummary::zero());
+    out.par_chunks_mut(TET_CHUNK)
+        .zip(parts.par_iter_mut())
+        .enumerate()
+        .for_each(|(c, (chunk, part))| *part = chunk_fn(c, chunk));
+    parts.iter().fold(ElasticSummary::zero(), |a, b| {
+        ElasticSummary::combine(a, *b)
+    })
 }
 
 fn element_pass<M: Hyperelastic + Sync>(
@@ -161,36 +186,30 @@ fn element_pass<M: Hyperelastic + Sync>(
     model: &Model,
     x: &[Vec3],
     out: &mut [[Vec3; 4]],
+    parts: &mut Vec<ElasticSummary>,
 ) -> ElasticSummary {
     let (tets, dm_inv, volume) = (model.mesh.tets(), &model.rest.dm_inv, &model.rest.volume);
-    let parts: Vec<ElasticSummary> = out
-        .par_chunks_mut(TET_CHUNK)
-        .enumerate()
-        .map(|(c, chunk)| {
-            let range = c * TET_CHUNK..c * TET_CHUNK + chunk.len();
-            let mut s = ElasticSummary::zero();
-            for (((out, t), dmi), &vol) in chunk
-                .iter_mut()
-                .zip(&tets[range.clone()])
-                .zip(&dm_inv[range.clone()])
-                .zip(&volume[range])
-            {
-                let f = matmul(&edge_matrix(x, t), dmi);
-                let j = det(&f);
-                let (psi, p) = mat.energy_and_stress(&f);
-                s.energy += vol * psi;
-                s.min_j = s.min_j.min(j);
-                s.inverted += (j <= 0.0) as usize;
-                // H = V P D_m^-T; its columns are the gradients on vertices 1..3.
-                let h = matmul(&p, &transpose(dmi));
-                write_corners(&h, vol, out);
-            }
-            s
-        })
-        .collect();
-    parts
-        .into_iter()
-        .fold(ElasticSummary::zero(), ElasticSummary::combine)
+    chunked_pass(out, parts, |c, chunk| {
+        let range = c * TET_CHUNK..c * TET_CHUNK + chunk.len();
+        let mut s = ElasticSummary::zero();
+        for (((out, t), dmi), &vol) in chunk
+            .iter_mut()
+            .zip(&tets[range.clone()])
+            .zip(&dm_inv[range.clone()])
+            .zip(&volume[range])
+        {
+            let f = matmul(&edge_matrix(x, t), dmi);
+            let j = det(&f);
+            let (psi, p) = mat.energy_and_stress(&f);
+            s.energy += vol * psi;
+            s.min_j = s.min_j.min(j);
+            s.inverted += (j <= 0.0) as usize;
+            // H = V P D_m^-T; its columns are the gradients on vertices 1..3.
+            let h = matmul(&p, &transpose(dmi));
+            write_corners(&h, vol, out);
+        }
+        s
+    })
 }
 
 /// The Neo-Hookean element pass, in blocks of [`BLOCK`] tets. The arithmetic mirrors
@@ -201,28 +220,22 @@ fn neo_hookean_pass(
     model: &Model,
     x: &[Vec3],
     out: &mut [[Vec3; 4]],
+    parts: &mut Vec<ElasticSummary>,
 ) -> ElasticSummary {
     #[cfg(target_arch = "x86_64")]
     let avx2 = std::arch::is_x86_feature_detected!("avx2");
-    let parts: Vec<ElasticSummary> = out
-        .par_chunks_mut(TET_CHUNK)
-        .enumerate()
-        .map(|(c, chunk)| {
-            #[cfg(target_arch = "x86_64")]
-            if avx2 {
-                // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
-                let n = chunk.len();
-                return unsafe {
-                    neo_hookean_chunk_avx2::<true>(nh, model, x, c * TET_CHUNK, chunk, n)
-                };
-            }
+    chunked_pass(out, parts, |c, chunk| {
+        #[cfg(target_arch = "x86_64")]
+        if avx2 {
+            // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
             let n = chunk.len();
-            neo_hookean_chunk::<true>(nh, model, x, c * TET_CHUNK, chunk, n)
-        })
-        .collect();
-    parts
-        .into_iter()
-        .fold(ElasticSummary::zero(), ElasticSummary::combine)
+            return unsafe {
+                neo_hookean_chunk_avx2::<true>(nh, model, x, c * TET_CHUNK, chunk, n)
+            };
+        }
+        let n = chunk.len();
+        neo_hookean_chunk::<true>(nh, model, x, c * TET_CHUNK, chunk, n)
+    })
 }
 
 /// [`neo_hookean_chunk`] compiled for AVX2 (wider lanes; no FMA, so the results are the same bits).
@@ -702,8 +715,8 @@ mod tests {
             let k = model.num_tets();
             let mut a = vec![[[0.0; 3]; 4]; k];
             let mut b = vec![[[0.0; 3]; 4]; k];
-            let sa = neo_hookean_pass(&mat, &model, &x, &mut a);
-            let sb = element_pass(&mat, &model, &x, &mut b);
+            let sa = neo_hookean_pass(&mat, &model, &x, &mut a, &mut Vec::new());
+            let sb = element_pass(&mat, &model, &x, &mut b, &mut Vec::new());
             assert!(sa.inverted > 0 && sa.min_j < mat.j0, "{sa:?}");
             assert_eq!(sa.energy.to_bits(), sb.energy.to_bits());
             assert_eq!(sa.min_j.to_bits(), sb.min_j.to_bits());
