@@ -59,6 +59,8 @@ pub struct Xpbd {
     lambdas: Vec<[f64; 2]>,
     /// Per tet of the current colour: corner displacements and new multipliers.
     updates: Vec<([Vec3; 4], [f64; 2])>,
+    /// Positions at the start of the substep (reused, no allocation per step).
+    x_prev: Vec<Vec3>,
 }
 
 impl std::fmt::Debug for Xpbd {
@@ -257,7 +259,8 @@ impl Integrator for Xpbd {
         let g = model.gravity;
         let tets = model.mesh.tets();
         self.lambdas.resize(model.num_tets(), [0.0; 2]);
-        let mut x_prev = state.x.clone();
+        let mut x_prev = std::mem::take(&mut self.x_prev);
+        x_prev.resize(m, [0.0; 3]);
         for _ in 0..self.settings.substeps {
             x_prev.copy_from_slice(&state.x);
             for i in 0..m {
@@ -326,6 +329,7 @@ impl Integrator for Xpbd {
                 }
             }
         }
+        self.x_prev = x_prev;
         state.time += h;
         StepReport {
             impulse: scale(g, h * model.free_mass()),
