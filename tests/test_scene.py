@@ -530,8 +530,8 @@ def test_the_required_examples_exist():
 @pytest.mark.parametrize("path", EXAMPLE_FILES, ids=[p.stem for p in EXAMPLE_FILES])
 def test_example_loads_builds_and_steps(path):
     s = load_scene(path)
-    assert s.mesh.builtin is not None  # examples use builtin meshes only
-    sim = s.build()
+    assert all(b.mesh.builtin is not None for b in s.body_settings())  # examples use builtin meshes only
+    sim = s.build_multibody() if s.is_multibody else s.build()
     sim.step(2)
     assert np.all(np.isfinite(sim.positions))
 

@@ -96,7 +96,15 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
     ),
     "material": ("model", "youngs_modulus", "poisson_ratio", "j0"),
     "mass": ("node_mass", "density"),
-    "initial": ("scale", "scale_about", "velocity", "angular_velocity", "velocities", "alternating_velocity"),
+    "initial": (
+        "scale",
+        "scale_about",
+        "translate",
+        "velocity",
+        "angular_velocity",
+        "velocities",
+        "alternating_velocity",
+    ),
     "integrator": ("name", "dt", "tolerance", "max_iterations", "iterations", "substeps"),
     "projection": (
         "enabled",
@@ -111,10 +119,46 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
         "warm_start",
         "metric",
     ),
-    "world": ("gravity", "pinned", "pin_below", "damping"),
+    "world": (
+        "gravity",
+        "pinned",
+        "pin_below",
+        "damping",
+        "air_damping",
+        "rayleigh_damping",
+        "force",
+        "obstacles",
+        "kinematic_pins",
+    ),
     "run": ("steps", "threads"),
     "export": ("formats", "every"),
 }
+
+#: Keys of a ``[[bodies]]`` table (a multi-body scene); ``mesh``, ``material``, ``mass`` and ``initial`` are
+#: tables with the keys of the sections of the same name.
+BODY_KEYS: Tuple[str, ...] = ("name", "mesh", "material", "mass", "initial", "pinned", "pin_below", "kinematic_pins")
+#: Obstacle types of ``[[world.obstacles]]`` and the geometry keys of each (``box`` takes one of
+#: ``half_extents`` and ``size``; ``rotate`` is optional).
+OBSTACLE_KEYS: Dict[str, Tuple[str, ...]] = {
+    "plane": ("point", "normal"),
+    "sphere": ("center", "radius"),
+    "box": ("center", "half_extents", "size", "rotate"),
+    "capsule": ("a", "b", "radius"),
+}
+#: Keys every obstacle accepts.
+OBSTACLE_COMMON_KEYS: Tuple[str, ...] = ("type", "restitution", "friction")
+#: Keys of a ``[[world.kinematic_pins]]`` table.
+KINEMATIC_PIN_KEYS: Tuple[str, ...] = (
+    "vertices",
+    "below",
+    "motion",
+    "amplitude",
+    "frequency",
+    "phase",
+    "times",
+    "offsets",
+)
+MOTIONS = {"sinusoidal": ("amplitude", "frequency", "phase"), "keyframes": ("times", "offsets")}
 
 MATERIAL_MODELS = ("neo_hookean", "stable_neo_hookean", "arap", "constraint_neo_hookean")
 #: Integrator names planned by the design; the ones actually accepted come from the compiled core.
@@ -189,7 +233,8 @@ class InitialSettings:
     ``velocity`` (m/s), a rigid spin ``angular_velocity`` (rad/s) about the centre of mass of the initial
     positions, a per-vertex array file ``velocities`` (``.npy``, shape (m, 3), m/s) and
     ``alternating_velocity`` (applied to even-index vertices only, the seed's demo 1). Pinned vertices start
-    at rest.
+    at rest. ``translate`` (m) is added to the initial positions last (after ``scale``); the rest shape does not
+    move, so a translated body starts undeformed, only elsewhere (e.g. a box dropped from a height).
     """
 
     scale: float = 1.0
@@ -198,12 +243,18 @@ class InitialSettings:
     angular_velocity: Optional[Vec3] = None
     velocities: Optional[Path] = None
     alternating_velocity: Optional[Vec3] = None
+    translate: Optional[Vec3] = None
 
     def is_rest(self) -> bool:
         """True if the initial state is the rest shape at rest."""
         return self.scale == 1.0 and not any(
-            v is not None for v in (self.velocity, self.angular_velocity, self.velocities, self.alternating_velocity)
+            v is not None
+            for v in (self.velocity, self.angular_velocity, self.velocities, self.alternating_velocity, self.translate)
         )
+
+    def moves_positions(self) -> bool:
+        """True if the initial positions differ from the rest positions (``scale`` or ``translate``)."""
+        return self.scale != 1.0 or (self.translate is not None and any(c != 0.0 for c in self.translate))
 
 
 @dataclass
@@ -283,13 +334,143 @@ class PinBelow:
 
 
 @dataclass
+class ObstacleSettings:
+    """One ``[[world.obstacles]]`` entry: a fixed rigid obstacle the bodies' vertices collide with.
+
+    ``type`` is ``"plane"``, ``"sphere"``, ``"box"`` or ``"capsule"``; ``geometry`` holds the keyword arguments
+    of the matching :mod:`fepr.world` class (``point``/``normal``; ``center``/``radius``;
+    ``center``/``half_extents``/``rotation`` (3x3 rows or ``None``); ``a``/``b``/``radius``; all in m).
+    ``restitution`` is in [0, 1] (1: elastic), ``friction`` the Coulomb coefficient (>= 0). ``label`` names the
+    entry in messages (``[[world.obstacles]] #2``).
+    """
+
+    type: str
+    geometry: Dict[str, Any]
+    restitution: float = 1.0
+    friction: float = 0.0
+    label: str = ""
+
+    def make(self):
+        """The obstacle object (:class:`fepr.Plane`, :class:`fepr.Sphere`, :class:`fepr.Box`, :class:`fepr.Capsule`)."""
+        from . import world
+
+        cls = {"plane": world.Plane, "sphere": world.Sphere, "box": world.Box, "capsule": world.Capsule}[self.type]
+        try:
+            return cls(**self.geometry, restitution=self.restitution, friction=self.friction)
+        except (ConfigError, ValueError, TypeError) as exc:
+            raise ConfigError(f"{self.label}: {exc}") from None
+
+
+@dataclass
+class KinematicPinSettings:
+    """One ``[[world.kinematic_pins]]`` entry: vertices that follow a prescribed motion.
+
+    The vertices are ``vertices`` (indices) or every vertex whose rest coordinate along ``below.axis`` is
+    ``<= below.value`` (m). ``motion`` is ``"sinusoidal"`` (``amplitude`` (3,) m, ``frequency`` Hz, ``phase``
+    rad: displacement ``amplitude (sin(2 pi f t + phase) - sin(phase))``) or ``"keyframes"`` (``times`` (k,) s,
+    strictly increasing, ``offsets`` (k, 3) m: piecewise-linear displacement, held outside the keyframes).
+    Each vertex follows its initial position plus the displacement (see :class:`fepr.KinematicPins`).
+    """
+
+    motion: str
+    vertices: Optional[Tuple[int, ...]] = None
+    below: Optional[PinBelow] = None
+    amplitude: Optional[Vec3] = None
+    frequency: Optional[float] = None
+    phase: float = 0.0
+    times: Optional[Tuple[float, ...]] = None
+    offsets: Optional[Tuple[Vec3, ...]] = None
+    label: str = ""
+
+    def indices(self, rest_vertices: np.ndarray) -> np.ndarray:
+        """Sorted vertex indices (int64) of this pin for a mesh with these rest vertices (m)."""
+        m = len(rest_vertices)
+        if self.vertices is not None:
+            for i in self.vertices:
+                if not 0 <= i < m:
+                    raise ConfigError(f"{self.label}: vertices: vertex index {i} out of range (mesh has {m} vertices)")
+            return np.unique(np.asarray(self.vertices, dtype=np.int64))
+        assert self.below is not None
+        return _vertices_below(rest_vertices, self.below, f"{self.label}: below")
+
+    def make_motion(self):
+        """The motion object (:class:`fepr.Sinusoid` or :class:`fepr.Keyframes`)."""
+        from . import world
+
+        try:
+            if self.motion == "sinusoidal":
+                return world.Sinusoid(amplitude=self.amplitude, frequency=self.frequency, phase=self.phase)
+            return world.Keyframes(
+                times=np.asarray(self.times, dtype=np.float64), offsets=np.asarray(self.offsets, dtype=np.float64)
+            )
+        except (ConfigError, ValueError, TypeError) as exc:
+            raise ConfigError(f"{self.label}: {exc}") from None
+
+    def make(self, rest_vertices: np.ndarray):
+        """The :class:`fepr.KinematicPins` for a mesh with these rest vertices (m)."""
+        idx = self.indices(rest_vertices)
+        from . import world
+
+        try:
+            return world.KinematicPins(vertices=idx, motion=self.make_motion())
+        except (ConfigError, ValueError, TypeError) as exc:
+            raise ConfigError(f"{self.label}: {exc}") from None
+
+
+@dataclass
 class WorldSettings:
-    """``[world]``: gravity (m/s^2), pinned vertices, and damping."""
+    """``[world]``: gravity (m/s^2), pinned vertices, damping, a constant force, obstacles, kinematic pins.
+
+    ``damping`` is the per-step velocity factor ``v <- (1 - damping) v``; ``air_damping`` (1/s) the
+    mass-proportional damping ``dv/dt = -a v``; ``rayleigh_damping`` (s) the stiffness-proportional damping
+    force ``-b K v``. ``force`` (N) is the total constant force on the scene, spread over the free vertices of
+    all bodies in proportion to their masses (a uniform acceleration ``force / m_free``). ``pinned``,
+    ``pin_below`` and ``kinematic_pins`` belong to the single body of a one-body scene (a multi-body scene gives
+    them per body).
+    """
 
     gravity: Vec3 = (0.0, 0.0, 0.0)
     pinned: Tuple[int, ...] = ()
     pin_below: Optional[PinBelow] = None
     damping: float = 0.0
+    air_damping: float = 0.0
+    rayleigh_damping: float = 0.0
+    force: Optional[Vec3] = None
+    obstacles: Tuple[ObstacleSettings, ...] = ()
+    kinematic_pins: Tuple[KinematicPinSettings, ...] = ()
+
+    def make_obstacles(self) -> list:
+        """The obstacle objects of :mod:`fepr.world`, in file order."""
+        return [o.make() for o in self.obstacles]
+
+
+@dataclass
+class BodySettings:
+    """One body: its mesh, material, masses, initial state and pins.
+
+    In a multi-body scene each ``[[bodies]]`` table is one; a one-body scene's top-level ``[mesh]``,
+    ``[material]``, ``[mass]``, ``[initial]`` and the pins of ``[world]`` make the single one
+    (:meth:`Scene.body_settings`). ``label`` names the body in messages (``[[bodies]] #2``; empty for the
+    top-level body).
+    """
+
+    name: str
+    mesh: MeshSettings
+    material: MaterialSettings
+    mass: MassSettings
+    initial: InitialSettings = field(default_factory=InitialSettings)
+    pinned: Tuple[int, ...] = ()
+    pin_below: Optional[PinBelow] = None
+    kinematic_pins: Tuple[KinematicPinSettings, ...] = ()
+    label: str = ""
+
+    def section(self, name: str) -> str:
+        """How messages name a section of this body: ``[mesh]`` or ``[[bodies]] #2 [mesh]``."""
+        return f"[{name}]" if not self.label else f"{self.label} [{name}]"
+
+    def pins_label(self) -> str:
+        """How messages name this body's pin keys: ``[world]`` or ``[[bodies]] #2:``."""
+        return "[world]" if not self.label else f"{self.label}:"
 
 
 @dataclass
@@ -313,14 +494,17 @@ class ExportSettings:
 class Scene:
     """A validated scene. Build a simulation with :meth:`build`; run it with :func:`run_scene`.
 
+    A one-body scene has ``mesh``, ``material``, ``mass`` and ``initial`` (and its pins in ``world``); a
+    multi-body scene has them per body in ``bodies`` (one :class:`BodySettings` per ``[[bodies]]`` table) and
+    ``mesh``, ``material`` and ``mass`` are ``None``. :meth:`body_settings` gives the bodies either way.
     ``source`` is the scene file (used in messages), ``base_dir`` the folder relative paths were resolved
     against.
     """
 
     name: str
-    mesh: MeshSettings
-    material: MaterialSettings
-    mass: MassSettings
+    mesh: Optional[MeshSettings] = None
+    material: Optional[MaterialSettings] = None
+    mass: Optional[MassSettings] = None
     initial: InitialSettings = field(default_factory=InitialSettings)
     integrator: IntegratorSettings = field(default_factory=IntegratorSettings)
     projection: ProjectionSettings = field(default_factory=ProjectionSettings)
@@ -330,6 +514,45 @@ class Scene:
     description: str = ""
     source: Optional[str] = None
     base_dir: Path = field(default_factory=Path.cwd)
+    bodies: Tuple[BodySettings, ...] = ()
+
+    # ---- bodies --------------------------------------------------------------------------------------
+
+    @property
+    def is_multibody(self) -> bool:
+        """True for a scene with ``[[bodies]]`` tables (even a single one)."""
+        return bool(self.bodies)
+
+    def body_settings(self) -> List[BodySettings]:
+        """The bodies of the scene: the ``[[bodies]]`` tables, or the single top-level body."""
+        if self.bodies:
+            return list(self.bodies)
+        if self.mesh is None or self.material is None or self.mass is None:
+            raise ConfigError(f"{self._where()}a scene needs [mesh], [material] and [mass], or [[bodies]] tables")
+        return [
+            BodySettings(
+                name=self.name,
+                mesh=self.mesh,
+                material=self.material,
+                mass=self.mass,
+                initial=self.initial,
+                pinned=self.world.pinned,
+                pin_below=self.world.pin_below,
+                kinematic_pins=self.world.kinematic_pins,
+            )
+        ]
+
+    def _single(self, what: str) -> BodySettings:
+        if self.bodies:
+            raise ConfigError(
+                f"{self._where()}{what} needs a one-body scene; this scene has {len(self.bodies)} [[bodies]] "
+                "(use build_bodies() or build_multibody())"
+            )
+        return self.body_settings()[0]
+
+    def has_supports(self) -> bool:
+        """True if any body has pinned or kinematically pinned vertices."""
+        return any(b.pinned or b.pin_below is not None or b.kinematic_pins for b in self.body_settings())
 
     # ---- building ------------------------------------------------------------------------------------
 
@@ -337,11 +560,15 @@ class Scene:
         return f"{self.source}: " if self.source else ""
 
     def load_mesh(self):
-        """The rest mesh (:class:`fepr.TetMesh`) after the ``[mesh]`` load options."""
+        """The rest mesh (:class:`fepr.TetMesh`) after the ``[mesh]`` load options (one-body scenes)."""
+        return self._load_body_mesh(self._single("load_mesh()"))
+
+    def _load_body_mesh(self, body: BodySettings):
         import fepr
 
-        m = self.mesh
+        m = body.mesh
         where = self._where()
+        sec = body.section("mesh")
         if m.path is not None:
             try:
                 return fepr.load_mesh(str(m.path), **m.load_options())
@@ -349,28 +576,31 @@ class Scene:
                 msg = str(exc)
                 if str(m.path) not in msg and m.path.name not in msg:
                     msg = f"{m.path}: {msg}"
-                raise MeshError(f"{where}[mesh] {msg}") from None
+                raise MeshError(f"{where}{sec} {msg}") from None
         assert m.builtin is not None
         try:
             from . import meshes
 
             mesh = meshes.builtin(m.builtin, **m.builtin_options)
         except (ConfigError, MeshError, ValueError, KeyError, TypeError) as exc:
-            raise ConfigError(f"{where}[mesh] builtin {m.builtin!r}: {exc}") from None
+            raise ConfigError(f"{where}{sec} builtin {m.builtin!r}: {exc}") from None
         if m.load_options():
             from .io import transform_mesh
 
             try:
                 mesh = transform_mesh(mesh, **m.load_options())
             except ConfigError as exc:
-                raise ConfigError(f"{where}[mesh] {exc}") from None
+                raise ConfigError(f"{where}{sec} {exc}") from None
         return mesh
 
     def make_material(self):
-        """The material object (:class:`fepr.NeoHookean`, :class:`fepr.StableNeoHookean`, ...)."""
+        """The material object (:class:`fepr.NeoHookean`, :class:`fepr.StableNeoHookean`, ...), one-body scenes."""
+        return self._make_body_material(self._single("make_material()"))
+
+    def _make_body_material(self, body: BodySettings):
         import fepr
 
-        mat = self.material
+        mat = body.material
         try:
             if mat.model == "neo_hookean":
                 kw: Dict[str, Any] = {}
@@ -384,27 +614,23 @@ class Scene:
             }
             return types[mat.model](youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio)
         except ConfigError as exc:
-            raise ConfigError(f"{self._where()}[material] {exc}") from None
+            raise ConfigError(f"{self._where()}{body.section('material')} {exc}") from None
 
     def pinned_indices(self, rest_vertices: np.ndarray) -> Optional[np.ndarray]:
         """Sorted indices of the pinned vertices (``[world] pinned`` and ``pin_below``), or ``None``."""
+        return self._body_pinned(self._single("pinned_indices()"), rest_vertices)
+
+    def _body_pinned(self, body: BodySettings, rest_vertices: np.ndarray) -> Optional[np.ndarray]:
         where = self._where()
+        label = body.pins_label()
         m = len(rest_vertices)
         idx: List[int] = []
-        for i in self.world.pinned:
+        for i in body.pinned:
             if not 0 <= i < m:
-                raise ConfigError(f"{where}[world] pinned: vertex index {i} out of range (mesh has {m} vertices)")
+                raise ConfigError(f"{where}{label} pinned: vertex index {i} out of range (mesh has {m} vertices)")
             idx.append(i)
-        pb = self.world.pin_below
-        if pb is not None:
-            coord = rest_vertices[:, _AXES[pb.axis]]
-            below = np.flatnonzero(coord <= pb.value)
-            if below.size == 0:
-                raise ConfigError(
-                    f"{where}[world] pin_below: no vertex has {pb.axis} <= {pb.value} "
-                    f"(lowest {pb.axis} is {coord.min():.6g})"
-                )
-            idx.extend(int(i) for i in below)
+        if body.pin_below is not None:
+            idx.extend(int(i) for i in _vertices_below(rest_vertices, body.pin_below, f"{where}{label} pin_below"))
         if not idx:
             return None
         return np.unique(np.asarray(idx, dtype=np.int64))
@@ -413,36 +639,11 @@ class Scene:
         self, rest_vertices: np.ndarray, masses: np.ndarray, pinned: Optional[np.ndarray] = None
     ) -> Tuple[np.ndarray, np.ndarray]:
         """Initial positions and velocities, each (m, 3) float64, from the rest vertices and masses (kg)."""
-        where = self._where()
-        ini = self.initial
-        rest = np.asarray(rest_vertices, dtype=np.float64)
-        m = len(rest)
-        w = _vertex_masses(masses, m)
-        x = rest.copy()
-        if ini.scale != 1.0:
-            if ini.scale_about is None:
-                about = np.zeros(3)
-            elif isinstance(ini.scale_about, str):
-                about = _centre_of_mass(rest, w)
-            else:
-                about = np.asarray(ini.scale_about, dtype=np.float64)
-            x = about + ini.scale * (rest - about)
-        v = np.zeros_like(x)
-        if ini.velocity is not None:
-            v += np.asarray(ini.velocity, dtype=np.float64)
-        if ini.angular_velocity is not None:
-            c = _centre_of_mass(x, w)
-            v += np.cross(np.asarray(ini.angular_velocity, dtype=np.float64), x - c)
-        if ini.velocities is not None:
-            v += _load_velocities(ini.velocities, m, where)
-        if ini.alternating_velocity is not None:
-            v[0::2] += np.asarray(ini.alternating_velocity, dtype=np.float64)
-        if pinned is not None and len(pinned):
-            v[pinned] = 0.0
-        return x, v
+        body = self._single("initial_state()")
+        return _initial_state(body.initial, rest_vertices, masses, pinned, self._where() + body.section("initial"))
 
     def build(self, projection=None):
-        """Build the :class:`fepr.Simulation` this scene describes, in its initial state.
+        """Build the :class:`fepr.Simulation` this (one-body) scene describes, in its initial state.
 
         Parameters
         ----------
@@ -452,49 +653,171 @@ class Scene:
         Raises
         ------
         ConfigError
-            If a value is rejected (the message names the scene file and section).
+            If a value is rejected (the message names the scene file and section), or for a multi-body scene
+            (use :meth:`build_multibody`).
         MeshError
             If the mesh file cannot be read or is invalid.
+        """
+        self._single("build()")
+        return self.build_bodies(projection=projection)[0]
+
+    def build_multibody(self, projection=None):
+        """A :class:`fepr.multibody.MultiBody` of :meth:`build_bodies`, named after the bodies."""
+        from .multibody import MultiBody
+
+        bodies = self.body_settings()
+        return MultiBody(self.build_bodies(projection=projection), names=[b.name for b in bodies])
+
+    def build_bodies(self, projection=None) -> list:
+        """One :class:`fepr.Simulation` per body (:meth:`body_settings`), each in its initial state.
+
+        The shared settings (integrator, projection, gravity, damping, obstacles, run threads) are the same for
+        every body; ``[world] force`` is split over the free vertices of all bodies in proportion to mass.
         """
         import fepr
 
         where = self._where()
-        mesh = self.load_mesh()
-        material = self.make_material()
         if projection is None:
             try:
                 projection = self.projection.make()
             except ConfigError as exc:
                 raise ConfigError(f"{where}[projection] {exc}") from None
-        pinned = self.pinned_indices(np.asarray(mesh.vertices))
-        kwargs: Dict[str, Any] = {}
-        if self.mass.node_mass is not None:
-            kwargs["node_mass"] = self.mass.node_mass
+        obstacles = [o.make() for o in self.world.obstacles]
+        sims = []
+        free_masks = []
+        for body in self.body_settings():
+            mesh = self._load_body_mesh(body)
+            material = self._make_body_material(body)
+            rest = np.asarray(mesh.vertices, dtype=np.float64)
+            pinned = self._body_pinned(body, rest)
+            kin = []
+            for kp in body.kinematic_pins:
+                try:
+                    kin.append(kp.make(rest))
+                except ConfigError as exc:
+                    raise ConfigError(f"{where}{exc}") from None
+            kwargs: Dict[str, Any] = {}
+            if body.mass.node_mass is not None:
+                kwargs["node_mass"] = body.mass.node_mass
+            else:
+                kwargs["density"] = body.mass.density
+            if self.run.threads is not None:
+                kwargs["threads"] = self.run.threads
+            # The world options are passed only when used, so scenes without them need nothing new.
+            if obstacles:
+                kwargs["obstacles"] = obstacles
+            if kin:
+                kwargs["kinematic_pins"] = kin
+            if self.world.air_damping:
+                kwargs["air_damping"] = self.world.air_damping
+            if self.world.rayleigh_damping:
+                kwargs["rayleigh_damping"] = self.world.rayleigh_damping
+            try:
+                sim = fepr.Simulation(
+                    mesh,
+                    material=material,
+                    integrator=self.integrator.make(),
+                    dt=self.integrator.dt,
+                    projection=projection,
+                    gravity=self.world.gravity,
+                    pinned=pinned,
+                    damping=self.world.damping,
+                    **kwargs,
+                )
+            except ConfigError as exc:
+                label = f"{body.label}: " if body.label else ""
+                raise ConfigError(f"{where}{label}{exc}") from None
+            if not body.initial.is_rest():
+                x, v = _initial_state(
+                    body.initial,
+                    np.asarray(sim.rest_positions),
+                    np.asarray(sim.masses),
+                    pinned,
+                    where + body.section("initial"),
+                    kinematic=[np.asarray(k.vertices, dtype=np.int64) for k in kin],
+                )
+                if body.initial.moves_positions():
+                    sim.positions = x
+                if np.any(v):
+                    sim.velocities = v
+            free = np.ones(len(rest), dtype=bool)
+            if pinned is not None:
+                free[pinned] = False
+            for k in kin:
+                free[np.asarray(k.vertices, dtype=np.int64)] = False
+            sims.append(sim)
+            free_masks.append(free)
+        if self.world.force is not None and any(c != 0.0 for c in self.world.force):
+            for sim, f in zip(sims, _distribute_force(self.world.force, sims, free_masks, where)):
+                sim.set_external_forces(f)
+        return sims
+
+
+def _distribute_force(force: Vec3, sims: Sequence[Any], free_masks: Sequence[np.ndarray], where: str) -> list:
+    """Per-body (m, 3) force arrays (N) that spread the total ``force`` (N) over the free vertices of all bodies
+    in proportion to their masses: ``f_i = m_i force / m_free``."""
+    masses = [_vertex_masses(np.asarray(s.masses), len(free)) for s, free in zip(sims, free_masks)]
+    m_free = float(sum(float(w[free].sum()) for w, free in zip(masses, free_masks)))
+    if m_free <= 0.0:
+        raise ConfigError(f"{where}[world] force: every vertex is pinned, so no vertex can carry the force")
+    a = np.asarray(force, dtype=np.float64) / m_free
+    out = []
+    for w, free in zip(masses, free_masks):
+        f = np.zeros((len(free), 3))
+        f[free] = w[free, None] * a
+        out.append(f)
+    return out
+
+
+def _vertices_below(rest_vertices: np.ndarray, pb: PinBelow, label: str) -> np.ndarray:
+    """Indices (int64) of the vertices whose rest coordinate along ``pb.axis`` is ``<= pb.value``; a ConfigError
+    starting with ``label`` when there is none."""
+    coord = np.asarray(rest_vertices)[:, _AXES[pb.axis]]
+    below = np.flatnonzero(coord <= pb.value)
+    if below.size == 0:
+        raise ConfigError(f"{label}: no vertex has {pb.axis} <= {pb.value} (lowest {pb.axis} is {coord.min():.6g})")
+    return below.astype(np.int64)
+
+
+def _initial_state(
+    ini: InitialSettings,
+    rest_vertices: np.ndarray,
+    masses: np.ndarray,
+    pinned: Optional[np.ndarray],
+    where: str,
+    kinematic: Sequence[np.ndarray] = (),
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Initial positions and velocities, each (m, 3) float64 (see :class:`InitialSettings`). Pinned and
+    kinematically pinned vertices start at rest (a kinematic pin then moves them)."""
+    rest = np.asarray(rest_vertices, dtype=np.float64)
+    m = len(rest)
+    w = _vertex_masses(masses, m)
+    x = rest.copy()
+    if ini.scale != 1.0:
+        if ini.scale_about is None:
+            about = np.zeros(3)
+        elif isinstance(ini.scale_about, str):
+            about = _centre_of_mass(rest, w)
         else:
-            kwargs["density"] = self.mass.density
-        if self.run.threads is not None:
-            kwargs["threads"] = self.run.threads
-        try:
-            sim = fepr.Simulation(
-                mesh,
-                material=material,
-                integrator=self.integrator.make(),
-                dt=self.integrator.dt,
-                projection=projection,
-                gravity=self.world.gravity,
-                pinned=pinned,
-                damping=self.world.damping,
-                **kwargs,
-            )
-        except ConfigError as exc:
-            raise ConfigError(f"{where}{exc}") from None
-        if not self.initial.is_rest():
-            x, v = self.initial_state(np.asarray(sim.rest_positions), np.asarray(sim.masses), pinned)
-            if self.initial.scale != 1.0:
-                sim.positions = x
-            if np.any(v):
-                sim.velocities = v
-        return sim
+            about = np.asarray(ini.scale_about, dtype=np.float64)
+        x = about + ini.scale * (rest - about)
+    if ini.translate is not None:
+        x = x + np.asarray(ini.translate, dtype=np.float64)
+    v = np.zeros_like(x)
+    if ini.velocity is not None:
+        v += np.asarray(ini.velocity, dtype=np.float64)
+    if ini.angular_velocity is not None:
+        c = _centre_of_mass(x, w)
+        v += np.cross(np.asarray(ini.angular_velocity, dtype=np.float64), x - c)
+    if ini.velocities is not None:
+        v += _load_velocities(ini.velocities, m, where)
+    if ini.alternating_velocity is not None:
+        v[0::2] += np.asarray(ini.alternating_velocity, dtype=np.float64)
+    if pinned is not None and len(pinned):
+        v[pinned] = 0.0
+    for k in kinematic:
+        v[k] = 0.0
+    return x, v
 
 
 def _vertex_masses(masses: np.ndarray, m: int) -> np.ndarray:
@@ -514,14 +837,14 @@ def _load_velocities(path: Path, m: int, where: str) -> np.ndarray:
     try:
         arr = np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
-        raise ConfigError(f"{where}[initial] velocities: cannot read {path}: {exc}") from None
+        raise ConfigError(f"{where} velocities: cannot read {path}: {exc}") from None
     if not isinstance(arr, np.ndarray):
-        raise ConfigError(f"{where}[initial] velocities: {path} must hold one array (a .npy file)")
+        raise ConfigError(f"{where} velocities: {path} must hold one array (a .npy file)")
     if arr.shape != (m, 3):
-        raise ConfigError(f"{where}[initial] velocities: {path} has shape {arr.shape}, expected ({m}, 3)")
+        raise ConfigError(f"{where} velocities: {path} has shape {arr.shape}, expected ({m}, 3)")
     arr = arr.astype(np.float64)
     if not np.all(np.isfinite(arr)):
-        raise ConfigError(f"{where}[initial] velocities: {path} contains NaN or infinite values")
+        raise ConfigError(f"{where} velocities: {path} contains NaN or infinite values")
     return arr
 
 
@@ -533,17 +856,27 @@ def _load_velocities(path: Path, m: int, where: str) -> np.ndarray:
 class _Table:
     """One section of a scene: typed accessors that raise ConfigError naming the section and key."""
 
-    def __init__(self, data: Mapping[str, Any], section: str, where: str):
+    def __init__(
+        self,
+        data: Mapping[str, Any],
+        section: str,
+        where: str,
+        *,
+        known: Optional[Sequence[str]] = None,
+        label: Optional[str] = None,
+    ):
         self.data = data
         self.section = section
         self.where = where
-        known = SCENE_KEYS[section]
+        #: How messages name this table: ``[mesh]``, ``[[bodies]] #2 [mesh]``, ``[[world.obstacles]] #1:``.
+        self.label = label if label is not None else f"[{section}]"
+        known = SCENE_KEYS[section] if known is None else known
         for key in data:
             if key not in known:
                 raise self.error(f"unknown key {key!r} (known: {', '.join(known)})")
 
     def error(self, msg: str) -> ConfigError:
-        return ConfigError(f"{self.where}[{self.section}] {msg}")
+        return ConfigError(f"{self.where}{self.label} {msg}")
 
     def has(self, key: str) -> bool:
         return key in self.data
@@ -771,6 +1104,7 @@ def _parse_mass(t: _Table) -> MassSettings:
 def _parse_initial(t: _Table, base_dir: Path) -> InitialSettings:
     ini = InitialSettings(
         scale=t.number("scale", 1.0, positive=True),
+        translate=t.vec3("translate", None),
         velocity=t.vec3("velocity", None),
         angular_velocity=t.vec3("angular_velocity", None),
         alternating_velocity=t.vec3("alternating_velocity", None),
@@ -809,32 +1143,179 @@ def _parse_projection(t: _Table) -> ProjectionSettings:
     )
 
 
-def _parse_world(t: _Table) -> WorldSettings:
-    w = WorldSettings(gravity=t.vec3("gravity", (0.0, 0.0, 0.0)), damping=t.number("damping", 0.0, nonnegative=True))
+def _parse_pinned(t: _Table, key: str = "pinned") -> Tuple[int, ...]:
+    raw = t.data[key]
+    ok = isinstance(raw, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in raw)
+    if not ok:
+        raise t.error(f"{key} must be a list of vertex indices (integers), got {raw!r}")
+    if any(i < 0 for i in raw):
+        raise t.error(f"{key}: vertex indices must be >= 0, got {raw!r}")
+    return tuple(raw)
+
+
+def _parse_pin_below(t: _Table, key: str = "pin_below") -> PinBelow:
+    raw = t.data[key]
+    if not isinstance(raw, Mapping):
+        raise t.error(f'{key} must be a table {{axis = "z", value = 0.0}}, got {raw!r}')
+    unknown = [k for k in raw if k not in ("axis", "value")]
+    if unknown:
+        raise t.error(f"{key}: unknown key {unknown[0]!r} (known: axis, value)")
+    axis = raw.get("axis", "z")
+    if axis not in _AXES:
+        raise t.error(f'{key}.axis must be "x", "y" or "z", got {axis!r}')
+    if "value" not in raw:
+        raise t.error(f"{key}: missing required key 'value'")
+    value = raw["value"]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise t.error(f"{key}.value must be a number, got {value!r}")
+    return PinBelow(axis=axis, value=float(value))
+
+
+def _list_of_tables(raw: Any, owner: str, key: str, toml_name: str) -> List[Mapping[str, Any]]:
+    if not isinstance(raw, list) or not all(isinstance(item, Mapping) for item in raw):
+        raise ConfigError(f"{owner} {key} must be a list of tables ([[{toml_name}]] entries), got {raw!r}")
+    return list(raw)
+
+
+def _parse_obstacles(raw: Any, where: str) -> Tuple[ObstacleSettings, ...]:
+    items = _list_of_tables(raw, f"{where}[world]", "obstacles", "world.obstacles")
+    out = []
+    for k, item in enumerate(items, 1):
+        label = f"[[world.obstacles]] #{k}"
+        types = ", ".join(repr(n) for n in OBSTACLE_KEYS)
+        if "type" not in item:
+            raise ConfigError(f"{where}{label}: missing required key 'type' (one of {types})")
+        kind = item["type"]
+        if kind not in OBSTACLE_KEYS:
+            raise ConfigError(f"{where}{label}: unknown obstacle type {kind!r} (known: {types})")
+        t = _Table(item, "obstacle", where, known=OBSTACLE_COMMON_KEYS + OBSTACLE_KEYS[kind], label=f"{label}:")
+        restitution = t.number("restitution", 1.0)
+        if not 0.0 <= restitution <= 1.0:
+            raise t.error(f"restitution must be in [0, 1], got {restitution!r}")
+        friction = t.number("friction", 0.0, nonnegative=True)
+        geometry: Dict[str, Any] = {}
+        if kind == "plane":
+            geometry["point"] = t.vec3("point", (0.0, 0.0, 0.0))
+            normal = t.vec3("normal", (0.0, 0.0, 1.0))
+            if not any(normal):
+                raise t.error("normal must not be the zero vector")
+            geometry["normal"] = normal
+        elif kind == "sphere":
+            geometry["center"] = t.vec3("center")
+            geometry["radius"] = t.number("radius", positive=True)
+        elif kind == "box":
+            geometry["center"] = t.vec3("center")
+            if t.has("half_extents") == t.has("size"):
+                raise t.error(
+                    "give exactly one of 'half_extents' (m, half the edge lengths) and 'size' (m, edge lengths)"
+                )
+            key = "half_extents" if t.has("half_extents") else "size"
+            ext = t.vec3(key)
+            if min(ext) <= 0:
+                raise t.error(f"{key} must be > 0 in every component, got {list(ext)!r}")
+            geometry["half_extents"] = ext if key == "half_extents" else tuple(0.5 * e for e in ext)
+            rotation = None
+            if t.has("rotate"):
+                from .io.transform import _rotation
+
+                try:
+                    r = _rotation(t.data["rotate"])
+                except ConfigError as exc:
+                    raise t.error(str(exc)) from None
+                rotation = tuple(tuple(float(c) for c in row) for row in r)
+            geometry["rotation"] = rotation
+        else:  # capsule
+            geometry["a"] = t.vec3("a")
+            geometry["b"] = t.vec3("b")
+            geometry["radius"] = t.number("radius", positive=True)
+        out.append(
+            ObstacleSettings(type=kind, geometry=geometry, restitution=restitution, friction=friction, label=label)
+        )
+    return tuple(out)
+
+
+def _parse_kinematic_pins(
+    raw: Any, where: str, owner: str, prefix: str, toml_name: str
+) -> Tuple[KinematicPinSettings, ...]:
+    """``owner`` names the table holding the list (``[world]``), ``prefix`` the list in messages
+    (``[[world.kinematic_pins]]``), ``toml_name`` its TOML name (``world.kinematic_pins``)."""
+    items = _list_of_tables(raw, f"{where}{owner}", "kinematic_pins", toml_name)
+    out = []
+    for k, item in enumerate(items, 1):
+        label = f"{prefix} #{k}"
+        t = _Table(item, "kinematic_pin", where, known=KINEMATIC_PIN_KEYS, label=f"{label}:")
+        if t.has("vertices") == t.has("below"):
+            raise t.error("give exactly one of 'vertices' (vertex indices) and 'below' ({axis, value})")
+        kp = KinematicPinSettings(motion="", label=label)
+        if t.has("vertices"):
+            kp.vertices = _parse_pinned(t, "vertices")
+            if not kp.vertices:
+                raise t.error("vertices must not be empty")
+        else:
+            kp.below = _parse_pin_below(t, "below")
+        kp.motion = t.string("motion", choices=tuple(MOTIONS))
+        for other, keys in MOTIONS.items():
+            if other == kp.motion:
+                continue
+            for key in keys:
+                if t.has(key):
+                    raise t.error(
+                        f"{key} does not apply to motion {kp.motion!r} (its keys: {', '.join(MOTIONS[kp.motion])})"
+                    )
+        if kp.motion == "sinusoidal":
+            kp.amplitude = t.vec3("amplitude")
+            kp.frequency = t.number("frequency", positive=True)
+            kp.phase = t.number("phase", 0.0)
+        else:
+            times = t.data.get("times", _MISSING)
+            if times is _MISSING:
+                raise t.error("missing required key 'times'")
+            if not isinstance(times, list) or not times or not all(_is_number(c) for c in times):
+                raise t.error(f"times must be a non-empty list of numbers (s), got {times!r}")
+            if any(b <= a for a, b in zip(times, times[1:])):
+                raise t.error(f"times must be strictly increasing, got {times!r}")
+            offsets = t.data.get("offsets", _MISSING)
+            if offsets is _MISSING:
+                raise t.error("missing required key 'offsets'")
+            if not isinstance(offsets, list):
+                raise t.error(f"offsets must be a list of [x, y, z] vectors (m), got {offsets!r}")
+            if len(offsets) != len(times):
+                raise t.error(f"offsets has {len(offsets)} entries but times has {len(times)}")
+            kp.times = tuple(float(c) for c in times)
+            vecs = []
+            for j, o in enumerate(offsets, 1):
+                bad = t.error(f"offsets #{j} must be a list of 3 numbers (m), got {o!r}")
+                vecs.append(_as_vec3(o, lambda bad=bad: bad))
+            kp.offsets = tuple(vecs)
+        out.append(kp)
+    return tuple(out)
+
+
+_BODY_PIN_KEYS = ("pinned", "pin_below", "kinematic_pins")
+
+
+def _parse_world(t: _Table, multibody: bool = False) -> WorldSettings:
+    w = WorldSettings(
+        gravity=t.vec3("gravity", (0.0, 0.0, 0.0)),
+        damping=t.number("damping", 0.0, nonnegative=True),
+        air_damping=t.number("air_damping", 0.0, nonnegative=True),
+        rayleigh_damping=t.number("rayleigh_damping", 0.0, nonnegative=True),
+        force=t.vec3("force", None),
+    )
+    if multibody:
+        for key in _BODY_PIN_KEYS:
+            if t.has(key):
+                raise t.error(f"{key} is per body in a scene with [[bodies]]: give it in the [[bodies]] tables")
     if t.has("pinned"):
-        raw = t.data["pinned"]
-        ok = isinstance(raw, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in raw)
-        if not ok:
-            raise t.error(f"pinned must be a list of vertex indices (integers), got {raw!r}")
-        if any(i < 0 for i in raw):
-            raise t.error(f"pinned: vertex indices must be >= 0, got {raw!r}")
-        w.pinned = tuple(raw)
+        w.pinned = _parse_pinned(t)
     if t.has("pin_below"):
-        raw = t.data["pin_below"]
-        if not isinstance(raw, dict):
-            raise t.error(f'pin_below must be a table {{axis = "z", value = 0.0}}, got {raw!r}')
-        unknown = [k for k in raw if k not in ("axis", "value")]
-        if unknown:
-            raise t.error(f"pin_below: unknown key {unknown[0]!r} (known: axis, value)")
-        axis = raw.get("axis", "z")
-        if axis not in _AXES:
-            raise t.error(f'pin_below.axis must be "x", "y" or "z", got {axis!r}')
-        if "value" not in raw:
-            raise t.error("pin_below: missing required key 'value'")
-        value = raw["value"]
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise t.error(f"pin_below.value must be a number, got {value!r}")
-        w.pin_below = PinBelow(axis=axis, value=float(value))
+        w.pin_below = _parse_pin_below(t)
+    if t.has("obstacles"):
+        w.obstacles = _parse_obstacles(t.data["obstacles"], t.where)
+    if t.has("kinematic_pins"):
+        w.kinematic_pins = _parse_kinematic_pins(
+            t.data["kinematic_pins"], t.where, "[world]", "[[world.kinematic_pins]]", "world.kinematic_pins"
+        )
     return w
 
 
@@ -853,6 +1334,55 @@ def _parse_export(t: _Table) -> ExportSettings:
     return ex
 
 
+_BODY_SECTIONS = ("mesh", "material", "mass", "initial")
+_NAME_RE = re.compile(r"[A-Za-z0-9_.\-]+")
+
+
+def _parse_bodies(raw: Any, where: str, base: Path) -> Tuple[BodySettings, ...]:
+    if not isinstance(raw, list) or not raw or not all(isinstance(item, Mapping) for item in raw):
+        raise ConfigError(f"{where}bodies must be a non-empty list of tables ([[bodies]] entries), got {raw!r}")
+    items: List[Mapping[str, Any]] = list(raw)
+    out = []
+    seen: Dict[str, int] = {}
+    for k, item in enumerate(items, 1):
+        label = f"[[bodies]] #{k}"
+        bt = _Table(item, "body", where, known=BODY_KEYS, label=f"{label}:")
+        for sec in ("mesh", "material", "mass"):
+            if sec not in item:
+                raise bt.error(f"missing required table {sec!r} (e.g. {sec} = {{ ... }} or [bodies.{sec}])")
+        for sec in _BODY_SECTIONS:
+            if sec in item and not isinstance(item[sec], Mapping):
+                raise bt.error(f"{sec} must be a table of keys, got {item[sec]!r}")
+
+        def sub(sec: str, label: str = label, item: Mapping[str, Any] = item) -> _Table:
+            return _Table(item.get(sec, {}), sec, where, label=f"{label} [{sec}]")
+
+        name = bt.string("name", f"body{k}")
+        if not _NAME_RE.fullmatch(name) or name in (".", ".."):
+            raise bt.error(f"name must be letters, digits, '_', '-' or '.' (it names output files), got {name!r}")
+        if name in seen:
+            raise bt.error(f"name {name!r} is already used by [[bodies]] #{seen[name]}")
+        seen[name] = k
+        body = BodySettings(
+            name=name,
+            mesh=_parse_mesh(sub("mesh"), base),
+            material=_parse_material(sub("material")),
+            mass=_parse_mass(sub("mass")),
+            initial=_parse_initial(sub("initial"), base),
+            label=label,
+        )
+        if bt.has("pinned"):
+            body.pinned = _parse_pinned(bt)
+        if bt.has("pin_below"):
+            body.pin_below = _parse_pin_below(bt)
+        if bt.has("kinematic_pins"):
+            body.kinematic_pins = _parse_kinematic_pins(
+                item["kinematic_pins"], where, f"{label}:", f"{label} [[kinematic_pins]]", "bodies.kinematic_pins"
+            )
+        out.append(body)
+    return tuple(out)
+
+
 def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, source: Optional[str] = None) -> Scene:
     """Validate a scene given as a dict (the parsed TOML) into a :class:`Scene`.
 
@@ -860,7 +1390,9 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
     ----------
     d : mapping
         Sections (``mesh``, ``material``, ``mass``, ``initial``, ``integrator``, ``projection``, ``world``,
-        ``run``, ``scene``), each a mapping of keys to values, as in a scene file.
+        ``run``, ``export``, ``scene``), each a mapping of keys to values, as in a scene file; or, for several
+        bodies, ``bodies``: a list of body tables (:data:`BODY_KEYS`) instead of ``mesh``, ``material``,
+        ``mass`` and ``initial``.
     base_dir : str or Path
         Folder that relative paths (``[mesh] path``, ``[initial] velocities``) are resolved against.
     source : str, optional
@@ -870,20 +1402,32 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
     ------
     ConfigError
         On an unknown section or key, a missing required key, or a value of the wrong type or out of range;
-        the message names the section and the key.
+        the message names the section (and for list entries such as ``[[world.obstacles]] #2`` the position,
+        counted from 1) and the key.
     """
     where = f"{source}: " if source else ""
     base = Path(base_dir)
     if not isinstance(d, Mapping):
         raise ConfigError(f"{where}a scene must be a table of sections, got {type(d).__name__}")
     for name, value in d.items():
+        if name == "bodies":
+            continue
         if name not in SCENE_KEYS:
-            raise ConfigError(f"{where}unknown section [{name}] (known: {', '.join(SCENE_KEYS)})")
+            known = ", ".join(list(SCENE_KEYS) + ["[bodies]"])
+            raise ConfigError(f"{where}unknown section [{name}] (known: {known})")
         if not isinstance(value, Mapping):
             raise ConfigError(f"{where}[{name}] must be a section (a table of keys), got {value!r}")
-    for required in ("mesh", "material", "mass"):
-        if required not in d:
-            raise ConfigError(f"{where}missing section [{required}]")
+    multibody = "bodies" in d
+    if multibody:
+        for sec in _BODY_SECTIONS:
+            if sec in d:
+                raise ConfigError(
+                    f"{where}[{sec}] is not allowed in a scene with [[bodies]]: give {sec} in each [[bodies]] table"
+                )
+    else:
+        for required in ("mesh", "material", "mass"):
+            if required not in d:
+                raise ConfigError(f"{where}missing section [{required}]")
 
     def table(name: str) -> _Table:
         return _Table(d.get(name, {}), name, where)
@@ -893,15 +1437,24 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
     name = meta.string("name", default_name)
     description = meta.string("description", "")
 
+    if multibody:
+        bodies = _parse_bodies(d["bodies"], where, base)
+        one: Dict[str, Any] = {}
+    else:
+        bodies = ()
+        one = {
+            "mesh": _parse_mesh(table("mesh"), base),
+            "material": _parse_material(table("material")),
+            "mass": _parse_mass(table("mass")),
+            "initial": _parse_initial(table("initial"), base),
+        }
     integ = table("integrator")
     run = table("run")
     return Scene(
         name=name,
         description=description,
-        mesh=_parse_mesh(table("mesh"), base),
-        material=_parse_material(table("material")),
-        mass=_parse_mass(table("mass")),
-        initial=_parse_initial(table("initial"), base),
+        bodies=bodies,
+        **one,
         integrator=IntegratorSettings(
             name=integ.string("name", "symplectic_euler", choices=_known_integrators()),
             dt=integ.number("dt", 1.0 / 30.0, positive=True),
@@ -911,7 +1464,7 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
             substeps=integ.integer("substeps", None, minimum=1),
         ),
         projection=_parse_projection(table("projection")),
-        world=_parse_world(table("world")),
+        world=_parse_world(table("world"), multibody=multibody),
         run=RunSettings(steps=run.integer("steps", 100, minimum=0), threads=run.integer("threads", None, minimum=1)),
         export=_parse_export(table("export")),
         source=source,
@@ -983,6 +1536,8 @@ class RunResult:
     export_frames: int = 0
     export_formats: Tuple[str, ...] = ()
     export_fps: Optional[float] = None
+    bodies: Tuple[str, ...] = ()
+    body_diagnostics_paths: Dict[str, Path] = field(default_factory=dict)
 
     @property
     def ms_per_step(self) -> float:
@@ -1063,9 +1618,17 @@ def _measure(
     last = _snapshot(sim)
     hist = sim.history
     totals = [first.total, last.total]
+    # The expected energy is H0 plus the energy budget of the steps so far (damping, contact, pins, forces).
+    expected = [0.0, 0.0]
     tot = _column(hist, "total")
     if tot is not None:
         totals[1:1] = list(tot[rows_before:])
+        bud = _column(hist, "budget_total")
+        if bud is not None and len(bud):
+            base = float(bud[rows_before - 1]) if rows_before > 0 else 0.0
+            expected = [0.0] + list(bud[rows_before:] - base) + [float(bud[-1]) - base]
+        else:
+            expected = [0.0] * len(totals)
     # A body that starts with zero energy (at rest, centre of mass at the origin) still has a physical energy
     # scale under gravity: m_tot |g| r, lifting it by its half bounding-box diagonal.
     rest = np.asarray(sim.rest_positions)
@@ -1076,7 +1639,7 @@ def _measure(
     if h_scale < 1e-12 * e_scale or h_scale < tiny:
         h_scale = max(e_scale, tiny)
     with np.errstate(all="ignore"):
-        err = np.abs(np.asarray(totals) - first.total) / h_scale
+        err = np.abs(np.asarray(totals) - first.total - np.asarray(expected)) / h_scale
         finite = err[np.isfinite(err)]
         result.max_energy_error = float(finite.max()) if finite.size else float("inf")
         result.final_energy_error = float(err[-1])
@@ -1084,7 +1647,8 @@ def _measure(
             masses = _vertex_masses(np.asarray(sim.masses), len(x0))
             m_tot = float(masses.sum())
             g = np.asarray(scene.world.gravity, dtype=np.float64)
-            p_exp = first.momentum + m_tot * g * (last.time - first.time)
+            f = np.zeros(3) if scene.world.force is None else np.asarray(scene.world.force, dtype=np.float64)
+            p_exp = first.momentum + (m_tot * g + f) * (last.time - first.time)
             p_scale = max(
                 float(np.linalg.norm(p_exp)),
                 float(np.linalg.norm(first.momentum)),
@@ -1111,8 +1675,29 @@ def _projection_on(scene: Scene, override) -> bool:
     return scene.projection.enabled
 
 
-def _export_recorder(scene: Scene, sim, out_dir, export, export_every):
-    """The :class:`fepr.export.Recorder` for ``out_dir/export``, or ``None`` when nothing is exported."""
+def _export_recorders(scene: Scene, sim, out_dir, export, export_every) -> list:
+    """The :class:`fepr.export.Recorder` objects of a run (none when nothing is exported).
+
+    One-body scene: one recorder in ``out_dir/export`` named after the scene. Multi-body scene (``sim`` a
+    :class:`fepr.multibody.MultiBody`): one per body in ``out_dir/export/<body>``, named ``<scene>_<body>``,
+    each with its own material (for the energy density field)."""
+    from .multibody import MultiBody
+
+    if not isinstance(sim, MultiBody):
+        rec = _export_recorder(scene, sim, out_dir, export, export_every)
+        return [] if rec is None else [rec]
+    recs = []
+    for name, body in zip(sim.names, sim.bodies):
+        rec = _export_recorder(scene, body, out_dir, export, export_every, body=name)
+        if rec is None:
+            return []
+        recs.append(rec)
+    return recs
+
+
+def _export_recorder(scene: Scene, sim, out_dir, export, export_every, body: Optional[str] = None):
+    """The :class:`fepr.export.Recorder` for ``out_dir/export`` (``out_dir/export/<body>`` for a body of a
+    multi-body scene), or ``None`` when nothing is exported."""
     from .export import parse_formats
 
     formats = scene.export.formats if export is None else parse_formats(export)
@@ -1128,7 +1713,10 @@ def _export_recorder(scene: Scene, sim, out_dir, export, export_every):
     from .export import Recorder
 
     name = re.sub(r"[^A-Za-z0-9_.\-]", "_", scene.name).strip(".") or "frame"
-    return Recorder(sim, Path(out_dir) / "export", formats, every=every, name=name)
+    folder = Path(out_dir) / "export"
+    if body is not None:
+        name, folder = f"{name}_{body}", folder / body
+    return Recorder(sim, folder, formats, every=every, name=name)
 
 
 def run_scene(
@@ -1175,11 +1763,12 @@ def run_scene(
     n = scene.run.steps if steps is None else int(steps)
     if n < 0:
         raise ConfigError(f"steps must be >= 0, got {n}")
-    sim = scene.build(projection=projection)
+    sim = scene.build_multibody(projection=projection) if scene.is_multibody else scene.build(projection=projection)
     x0 = np.array(sim.positions, dtype=np.float64)
     first = _snapshot(sim)
     rows_before = len(sim.history)
-    pinned = scene.world.pinned or scene.world.pin_below is not None
+    # Supports, obstacles and air drag exchange momentum with the bodies: no momentum conservation to measure.
+    pinned = scene.has_supports() or bool(scene.world.obstacles) or scene.world.air_damping > 0
     result = RunResult(
         scene=scene.name,
         projection=_projection_on(scene, projection),
@@ -1187,11 +1776,12 @@ def run_scene(
         steps_completed=0,
         wall_s=0.0,
         simulation=sim,
+        bodies=tuple(sim.names) if scene.is_multibody else (),
     )
     chunk = max(1, n // 10)
     done = 0
     start_steps = int(sim.num_steps)
-    recorder = _export_recorder(scene, sim, out_dir, export, export_every)
+    recorders = _export_recorders(scene, sim, out_dir, export, export_every)
     next_report = chunk
     if progress is not None:
         progress(0, n, sim)
@@ -1199,16 +1789,16 @@ def run_scene(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            if recorder is not None:
-                recorder.record()
+            for rec in recorders:
+                rec.record()
             while done < n:
                 k = min(chunk, n - done)
-                if recorder is not None:  # stop at every frame to export
-                    k = min(k, recorder.steps_to_next())
+                if recorders:  # stop at every frame to export (the recorders share the same frames)
+                    k = min(k, min(rec.steps_to_next() for rec in recorders))
                 sim.step(k)
                 done += k
-                if recorder is not None:
-                    recorder.record()
+                for rec in recorders:
+                    rec.record()
                 if progress is not None and (done >= next_report or done == n):
                     next_report = (done // chunk + 1) * chunk
                     progress(done, n, sim)
@@ -1219,15 +1809,15 @@ def run_scene(
             result.runaway_message = str(exc)
             done = completed
         finally:
-            if recorder is not None:
-                recorder.close()
+            for rec in recorders:
+                rec.close()
     result.wall_s = time.perf_counter() - t_start
-    if recorder is not None:  # the time spent writing exports is not simulation time
-        result.wall_s = max(result.wall_s - recorder.write_s, 0.0)
-        result.export_dir = recorder.out_dir
-        result.export_frames = recorder.num_frames
-        result.export_formats = recorder.formats
-        result.export_fps = recorder.fps
+    if recorders:  # the time spent writing exports is not simulation time
+        result.wall_s = max(result.wall_s - sum(rec.write_s for rec in recorders), 0.0)
+        result.export_dir = recorders[0].out_dir if len(recorders) == 1 else recorders[0].out_dir.parent
+        result.export_frames = recorders[0].num_frames
+        result.export_formats = recorders[0].formats
+        result.export_fps = recorders[0].fps
     result.warnings = [str(w.message) for w in caught]
     # The base step alone was unstable when its energy error exceeded 100% of the energy scale, whether or
     # not a converged projection rescued the step.
@@ -1247,4 +1837,9 @@ def run_scene(
         result.state_path = out / "final_state.npz"
         sim.save_diagnostics(str(result.diagnostics_path))
         sim.save_state(str(result.state_path))
+        if scene.is_multibody:
+            for name, body in zip(sim.names, sim.bodies):
+                path = out / f"diagnostics_{name}.csv"
+                body.save_diagnostics(str(path))
+                result.body_diagnostics_paths[name] = path
     return result

@@ -1,0 +1,359 @@
+"""Several independent bodies stepped together: :class:`MultiBody`.
+
+Each body is its own :class:`fepr.Simulation` (its own mesh, material, masses, pins and FEPR projection); the
+bodies share the time step and step in turn. **Bodies do not collide with each other**: each one collides
+only with the obstacles of its own simulation (a scene gives every body the same obstacles). Because the bodies
+are uncoupled, each conserves its own energy and momenta, so projecting each body separately is exact: the
+trajectory of a body in a :class:`MultiBody` is bit-identical to running it alone.
+
+:attr:`MultiBody.history` holds the totals of the system (energies summed, linear momentum summed, angular
+momentum of the whole system about its centre of mass, energy budgets summed). Units are SI: m, s, kg, J.
+
+Example::
+
+    import fepr
+    from fepr.multibody import MultiBody
+
+    mat = fepr.NeoHookean(youngs_modulus=1e4, poisson_ratio=0.3)
+    a = fepr.Simulation(fepr.meshes.box(), material=mat, density=100.0, dt=0.01)
+    b = fepr.Simulation(fepr.meshes.ell(), material=mat, density=100.0, dt=0.01)
+    system = MultiBody([a, b], names=["box", "ell"])
+    system.step(100)
+    print(system.history["total"][-1])           # J, the sum of both bodies' energies
+    system.save_diagnostics("diagnostics.csv")
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Dict, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+from .errors import ConfigError, SimulationError
+from .simulation import Energy, History, Simulation
+
+__all__ = ["MultiBody", "TOTAL_COLUMNS"]
+
+#: Columns of :attr:`MultiBody.history` summed over the bodies (when every body's history has them).
+SUM_COLUMNS: Tuple[str, ...] = (
+    "kinetic",
+    "elastic",
+    "gravitational",
+    "total",
+    "px",
+    "py",
+    "pz",
+    "budget",
+    "budget_total",
+    "energy_budget",
+    "work_contact",
+    "work_damping",
+    "work_pins",
+    "work_forces",
+    "contacts",
+    "inverted",
+    "base_ms",
+    "proj_ms",
+)
+#: Columns of :attr:`MultiBody.history` that are the largest value over the bodies.
+MAX_COLUMNS: Tuple[str, ...] = (
+    "penetration",
+    "proj_iterations",
+    "proj_residual",
+    "proj_initial_residual",
+    "proj_fallback",
+    "proj_bound_hit",
+    "base_iterations",
+    "base_energy_error",
+    "runaway",
+)
+#: Columns of :attr:`MultiBody.history` that are the smallest value over the bodies.
+MIN_COLUMNS: Tuple[str, ...] = ("min_j", "proj_converged")
+#: Every column :attr:`MultiBody.history` can have, in order (``lx, ly, lz``: angular momentum of the system
+#: about its centre of mass ``cx, cy, cz``).
+TOTAL_COLUMNS: Tuple[str, ...] = (
+    ("step", "time")
+    + SUM_COLUMNS[:7]
+    + ("lx", "ly", "lz", "cx", "cy", "cz")
+    + SUM_COLUMNS[7:]
+    + MAX_COLUMNS
+    + MIN_COLUMNS
+)
+
+
+class MultiBody:
+    """Several independent :class:`fepr.Simulation` bodies stepped together, with the totals of the system.
+
+    Parameters
+    ----------
+    bodies : sequence of fepr.Simulation
+        The bodies (at least one), all with the same time step ``dt`` (s) and at the same step and time.
+    names : sequence of str, optional
+        One unique name per body (default ``body1``, ``body2``, ...); used by :func:`fepr.scene.run_scene` in
+        file names (``diagnostics_<name>.csv``).
+
+    Notes
+    -----
+    Bodies do not collide with each other; each collides with its own obstacles. Each body is projected
+    separately, which is exact: uncoupled bodies conserve their energies and momenta separately, so the
+    projection of the system onto its total energy and momenta is the product of the per-body projections.
+
+    Raises
+    ------
+    ConfigError
+        For no bodies, an object that is not a :class:`fepr.Simulation`, the same simulation twice, different
+        ``dt`` or start times, or bad names.
+    """
+
+    def __init__(self, bodies: Sequence[Simulation], names: Optional[Sequence[str]] = None):
+        if isinstance(bodies, Simulation):
+            raise ConfigError("bodies must be a sequence of fepr.Simulation; got one Simulation (wrap it in a list)")
+        bodies = list(bodies)
+        if not bodies:
+            raise ConfigError("MultiBody needs at least one body")
+        for k, b in enumerate(bodies):
+            if not isinstance(b, Simulation):
+                raise ConfigError(f"bodies[{k}] must be a fepr.Simulation, got {type(b).__name__}")
+        ids = [id(b) for b in bodies]
+        if len(set(ids)) != len(ids):
+            k = next(k for k, i in enumerate(ids) if ids.index(i) != k)
+            raise ConfigError(f"bodies[{k}] is the same Simulation as bodies[{ids.index(ids[k])}]")
+        if names is None:
+            names = [f"body{k + 1}" for k in range(len(bodies))]
+        else:
+            if isinstance(names, str):
+                raise ConfigError(f"names must be a sequence of strings, got the string {names!r}")
+            names = list(names)
+            if len(names) != len(bodies):
+                raise ConfigError(f"names has {len(names)} entries but there are {len(bodies)} bodies")
+            for k, n in enumerate(names):
+                if not isinstance(n, str) or not n:
+                    raise ConfigError(f"names[{k}] must be a non-empty string, got {n!r}")
+            dup = [n for k, n in enumerate(names) if n in names[:k]]
+            if dup:
+                raise ConfigError(f"names must be unique; {dup[0]!r} is given twice")
+        dt0 = bodies[0].dt
+        for k, b in enumerate(bodies[1:], 1):
+            if not math.isclose(b.dt, dt0, rel_tol=1e-12, abs_tol=0.0):
+                raise ConfigError(
+                    f"all bodies must have the same dt: {names[0]!r} has dt = {dt0!r} s, {names[k]!r} has {b.dt!r} s"
+                )
+            if b.num_steps != bodies[0].num_steps or b.time != bodies[0].time:
+                raise ConfigError(
+                    f"all bodies must start at the same step and time: {names[0]!r} is at step "
+                    f"{bodies[0].num_steps} (t = {bodies[0].time!r} s), {names[k]!r} at step {b.num_steps} "
+                    f"(t = {b.time!r} s)"
+                )
+        self._bodies: Tuple[Simulation, ...] = tuple(bodies)
+        self._names: Tuple[str, ...] = tuple(names)
+
+    # --- the bodies --------------------------------------------------------------------------------------
+    @property
+    def bodies(self) -> Tuple[Simulation, ...]:
+        """The bodies, in order."""
+        return self._bodies
+
+    @property
+    def names(self) -> Tuple[str, ...]:
+        """The body names, in order."""
+        return self._names
+
+    def __len__(self) -> int:
+        return len(self._bodies)
+
+    def __getitem__(self, key: Union[int, str]) -> Simulation:
+        """A body by index or by name."""
+        if isinstance(key, str):
+            try:
+                return self._bodies[self._names.index(key)]
+            except ValueError:
+                raise KeyError(f"no body named {key!r} (names: {', '.join(self._names)})") from None
+        return self._bodies[key]
+
+    @property
+    def dt(self) -> float:
+        """Time step, s (the same for every body)."""
+        return float(self._bodies[0].dt)
+
+    @property
+    def num_steps(self) -> int:
+        """Steps every body has completed."""
+        return min(int(b.num_steps) for b in self._bodies)
+
+    @property
+    def time(self) -> float:
+        """Simulated time every body has reached, s."""
+        return min(float(b.time) for b in self._bodies)
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """Where each body's vertices start in the concatenated arrays, (bodies + 1,) int64."""
+        counts = [len(b.rest_positions) for b in self._bodies]
+        return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Positions of all bodies concatenated in order, (n, 3) float64, m (a copy)."""
+        return np.concatenate([np.asarray(b.positions) for b in self._bodies])
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """Velocities of all bodies concatenated in order, (n, 3) float64, m/s (a copy)."""
+        return np.concatenate([np.asarray(b.velocities) for b in self._bodies])
+
+    @property
+    def rest_positions(self) -> np.ndarray:
+        """Rest positions of all bodies concatenated in order, (n, 3) float64, m."""
+        return np.concatenate([np.asarray(b.rest_positions) for b in self._bodies])
+
+    @property
+    def tets(self) -> np.ndarray:
+        """Tets of all bodies, indices into the concatenated vertex arrays, (k, 4) int64."""
+        offs = self.offsets
+        return np.concatenate([np.asarray(b.tets, dtype=np.int64) + offs[k] for k, b in enumerate(self._bodies)])
+
+    @property
+    def masses(self) -> np.ndarray:
+        """Lumped vertex masses of all bodies concatenated in order, (n,) float64, kg."""
+        return np.concatenate([_vertex_masses(b) for b in self._bodies])
+
+    @property
+    def total_mass(self) -> float:
+        """Total mass of the system, kg."""
+        return float(sum(float(b.total_mass) for b in self._bodies))
+
+    # --- stepping ----------------------------------------------------------------------------------------
+    def step(self, n: int = 1) -> None:
+        """Advance every body ``n`` steps (each body in turn; the GIL is released while each steps).
+
+        Raises
+        ------
+        SimulationError
+            If a body runs away; the message names the body, ``err.body`` is its name and ``err.step`` the step
+            that failed. The bodies after it in the list are not stepped, so the bodies before it are ahead:
+            :attr:`num_steps` and :attr:`history` then cover the steps every body completed.
+        """
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+            raise ConfigError(f"n must be a non-negative integer, got {n!r}")
+        for name, b in zip(self._names, self._bodies):
+            try:
+                b.step(int(n))
+            except SimulationError as exc:
+                err = SimulationError(f"body {name!r}: {exc}")
+                err.step = getattr(exc, "step", None)  # type: ignore[attr-defined]
+                err.body = name  # type: ignore[attr-defined]
+                raise err from None
+
+    # --- measurements ------------------------------------------------------------------------------------
+    def energy(self) -> Energy:
+        """Kinetic, elastic, gravitational and total energy of the system (sums over the bodies), J."""
+        parts = [b.energy() for b in self._bodies]
+        return Energy(*(float(sum(getattr(e, f) for e in parts)) for f in Energy._fields))
+
+    def linear_momentum(self) -> np.ndarray:
+        """Total linear momentum, (3,) float64, kg m/s."""
+        return np.sum([np.asarray(b.linear_momentum(), dtype=np.float64) for b in self._bodies], axis=0)
+
+    def center_of_mass(self) -> np.ndarray:
+        """Centre of mass of the system, (3,) float64, m."""
+        w = self.masses
+        return (w[:, None] * self.positions).sum(axis=0) / w.sum()
+
+    def angular_momentum(self) -> np.ndarray:
+        """Angular momentum of the system about its centre of mass, (3,) float64, kg m^2/s.
+
+        ``L = sum_i (x_i - C) x m_i v_i`` over the vertices of all bodies, ``C`` the system centre of mass.
+        """
+        w, x, v = self.masses, self.positions, self.velocities
+        c = (w[:, None] * x).sum(axis=0) / w.sum()
+        return np.cross(x - c, w[:, None] * v).sum(axis=0)
+
+    @property
+    def history(self) -> History:
+        """Per-step totals of the system (row 0: the initial state), as a :class:`fepr.History`.
+
+        Columns (see :data:`TOTAL_COLUMNS`): ``step`` and ``time`` (s); ``kinetic``, ``elastic``,
+        ``gravitational`` and ``total`` (J) and ``px, py, pz`` (kg m/s) summed; ``lx, ly, lz`` the angular
+        momentum of the system about its centre of mass ``cx, cy, cz`` (kg m^2/s, m), from each body's
+        momenta and centre of mass: ``L = sum_b [L_b + (c_b - C) x P_b]`` with ``L_b`` about ``c_b``. Where
+        the bodies' histories have them: the energy budgets ``budget`` and ``budget_total`` (J), the work
+        breakdown ``work_*`` (J), ``contacts``, ``inverted`` and the wall times ``base_ms``, ``proj_ms`` summed;
+        ``penetration`` (m), ``proj_iterations``, residuals, ``base_energy_error`` and the flags ``runaway``,
+        ``proj_fallback`` the largest over the bodies; ``min_j`` and ``proj_converged`` the smallest. Rows are
+        the steps every body completed.
+        """
+        hs = [b.history for b in self._bodies]
+        rows = min(len(h) for h in hs)
+        common = set(hs[0].columns)
+        for h in hs[1:]:
+            common &= set(h.columns)
+        cols: Dict[str, np.ndarray] = {}
+
+        def stack(name: str) -> np.ndarray:
+            return np.stack([np.asarray(h[name][:rows], dtype=np.float64) for h in hs])  # (bodies, rows)
+
+        cols["step"] = np.asarray(hs[0]["step"][:rows], dtype=np.float64)
+        cols["time"] = np.asarray(hs[0]["time"][:rows], dtype=np.float64)
+        for name in SUM_COLUMNS[:7]:
+            cols[name] = stack(name).sum(axis=0)
+        masses = np.array([float(b.total_mass) for b in self._bodies])
+        com = np.stack([stack("cx"), stack("cy"), stack("cz")], axis=-1)  # (bodies, rows, 3)
+        mom = np.stack([stack("px"), stack("py"), stack("pz")], axis=-1)
+        ang = np.stack([stack("lx"), stack("ly"), stack("lz")], axis=-1)
+        c_sys = (masses[:, None, None] * com).sum(axis=0) / masses.sum()  # (rows, 3)
+        l_sys = (ang + np.cross(com - c_sys[None], mom)).sum(axis=0)
+        for a, axis in enumerate("xyz"):
+            cols[f"l{axis}"] = l_sys[:, a]
+        for a, axis in enumerate("xyz"):
+            cols[f"c{axis}"] = c_sys[:, a]
+        for name in SUM_COLUMNS[7:]:
+            if name in common:
+                cols[name] = stack(name).sum(axis=0)
+        for name in MAX_COLUMNS:
+            if name in common:
+                cols[name] = stack(name).max(axis=0)
+        for name in MIN_COLUMNS:
+            if name in common:
+                cols[name] = stack(name).min(axis=0)
+        names = [c for c in TOTAL_COLUMNS if c in cols]
+        data = np.stack([cols[c] for c in names], axis=1) if rows else np.zeros((0, len(names)))
+        return History(data, names)
+
+    def save_diagnostics(self, path: Union[str, Path]) -> None:
+        """Write :attr:`history` (the totals) as CSV (one row per step, header of column names)."""
+        self.history.to_csv(path)
+
+    def save_state(self, path: Union[str, Path]) -> None:
+        """Write the system to a NumPy ``.npz`` file.
+
+        Arrays: ``positions``, ``velocities``, ``rest_positions`` (n, 3), ``tets`` (k, 4) and ``masses`` (n,)
+        of all bodies concatenated (as the properties of the same names), ``offsets`` (bodies + 1,): body ``b``
+        is rows ``offsets[b]:offsets[b+1]``, ``names`` (bodies,) and ``time`` (s).
+        """
+        np.savez(
+            path,
+            positions=self.positions,
+            velocities=self.velocities,
+            rest_positions=self.rest_positions,
+            tets=self.tets,
+            masses=self.masses,
+            offsets=self.offsets,
+            names=np.array(self._names),
+            time=np.float64(self.time),
+        )
+
+    def __repr__(self) -> str:
+        parts = ", ".join(f"{n}: {len(b.rest_positions)} vertices" for n, b in zip(self._names, self._bodies))
+        return f"MultiBody({len(self)} bodies [{parts}], dt={self.dt}, t={self.time:.4g} s)"
+
+
+def _vertex_masses(sim: Simulation) -> np.ndarray:
+    w = np.asarray(sim.masses, dtype=np.float64)
+    m = len(sim.rest_positions)
+    if w.ndim == 2:
+        w = w[:, 0]
+    if w.ndim == 0:
+        w = np.full(m, float(w))
+    return w
