@@ -556,7 +556,7 @@ def test_damping_budget():
     H0 = sim.energy().total
     sim.step(100)
     h = sim.history
-    budget = h["energy_budget"]
+    budget = h["budget"]
     assert budget[0] == 0.0
     assert np.all(budget[1:] < 0)
     assert h["total"][-1] < H0

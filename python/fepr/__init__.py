@@ -35,9 +35,17 @@ from .simulation import (
     Xpbd,
 )
 from .viewer import view
+from .world import Box, Capsule, Keyframes, KinematicPins, Plane, Sinusoid, Sphere
 
 __all__ = [
     "Arap",
+    "Box",
+    "Capsule",
+    "Keyframes",
+    "KinematicPins",
+    "Plane",
+    "Sinusoid",
+    "Sphere",
     "ConstraintNeoHookean",
     "ProjectiveDynamics",
     "ConfigError",

@@ -19,6 +19,7 @@ from ._validate import float_array, integer, real
 from .errors import ConfigError, SimulationError
 from .materials import Arap, ConstraintNeoHookean, NeoHookean, StableNeoHookean, _Material
 from .mesh import TetMesh
+from .world import OBSTACLE_TYPES, KinematicPins, Obstacle
 
 ROWS = ("auto", "energy", "energy_momentum", "all")
 METRICS = ("auto", "mass", "stiffness")
@@ -316,6 +317,19 @@ class Simulation:
         removes enters the step's energy budget, so the projection does not undo it.
     threads : int, optional
         Worker threads (default: all cores). Results are bit-identical for any thread count.
+    obstacles : sequence of Plane, Sphere, Box or Capsule, optional
+        Static obstacles the free vertices collide with (restitution and Coulomb friction per obstacle). The
+        kinetic energy a contact removes enters the step's budget, its impulses the momentum targets, and the
+        projection does not move the positions of vertices in contact.
+    kinematic_pins : sequence of KinematicPins, optional
+        Groups of vertices that follow a prescribed path (they are pinned too); their work enters the budget.
+    air_damping : float
+        Mass-proportional damping rate ``a`` in 1/s (``dv/dt = -a v``, applied exactly per step).
+    rayleigh_damping : float
+        Stiffness-proportional damping coefficient ``b`` in s (force ``-b K(x) v``, applied implicitly: one
+        sparse factorisation per step).
+    external_forces : array_like (m, 3), optional
+        Constant force on each vertex, N (see :meth:`set_external_forces`).
 
     Raises
     ------
@@ -337,6 +351,11 @@ class Simulation:
         pinned=None,
         damping: float = 0.0,
         threads: Optional[int] = None,
+        obstacles: Sequence[Obstacle] = (),
+        kinematic_pins: Sequence[KinematicPins] = (),
+        air_damping: float = 0.0,
+        rayleigh_damping: float = 0.0,
+        external_forces=None,
     ):
         if not isinstance(mesh, TetMesh):
             raise ConfigError(f"mesh must be a fepr.TetMesh, got {type(mesh).__name__}")
@@ -387,6 +406,24 @@ class Simulation:
             raise ConfigError(f"projection must be True, False or fepr.Projection(...), got {projection!r}")
         gravity = _as_float3(gravity, "gravity")
         pinned_idx = self._pinned_indices(pinned, m)
+        obstacles = list(obstacles or ())
+        for k, ob in enumerate(obstacles):
+            if not isinstance(ob, OBSTACLE_TYPES):
+                raise ConfigError(f"obstacles[{k}] must be fepr.Plane, Sphere, Box or Capsule, got {ob!r}")
+        kinematic = list(kinematic_pins or ())
+        groups = []
+        for k, kp in enumerate(kinematic):
+            if not isinstance(kp, KinematicPins):
+                raise ConfigError(f"kinematic_pins[{k}] must be fepr.KinematicPins(vertices, motion), got {kp!r}")
+            groups.append(kp.indices(m))
+        seen: set = set()
+        for k, g in enumerate(groups):
+            if seen & set(g):
+                raise ConfigError(f"kinematic_pins[{k}]: vertex {min(seen & set(g))} is in more than one group")
+            seen |= set(g)
+        pinned_idx = sorted(set(pinned_idx) | seen)
+        air_damping = real(air_damping, "air_damping", lo=0)
+        rayleigh_damping = real(rayleigh_damping, "rayleigh_damping", lo=0)
         damping = real(damping, "damping", lo=0, hi=1, hi_open=True)
         if threads is not None:
             threads = integer(threads, "threads", lo=1, hi=4096)
@@ -427,7 +464,19 @@ class Simulation:
             )
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        try:
+            self._sim.set_obstacles([ob._core() for ob in obstacles])
+            self._sim.set_kinematic_pins([(g, *kp.motion._core()) for g, kp in zip(groups, kinematic)])
+            self._sim.set_damping(float(air_damping), float(rayleigh_damping))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        self.obstacles: tuple = tuple(obstacles)
+        self.kinematic_pins: tuple = tuple(kinematic)
+        self.air_damping = float(air_damping)
+        self.rayleigh_damping = float(rayleigh_damping)
         self.mesh = mesh
+        if external_forces is not None:
+            self.set_external_forces(external_forces)
         self.material = material
         self.projection: Optional[Projection] = proj
         self.integrator_settings = integrator
@@ -549,9 +598,8 @@ class Simulation:
     def _check_runaway(self, before: int) -> None:
         if self._warned_runaway or self.num_steps == before:
             return
-        runaway = self.history["runaway"][before + 1 :]
-        if np.any(runaway > 0):
-            k = before + 1 + int(np.argmax(runaway > 0))
+        k = self._sim.first_runaway(before + 1)
+        if k is not None:
             self._warned_runaway = True
             warnings.warn(
                 f"runaway detected at step {k}: the base integrator's energy error exceeded 100% of the energy "
@@ -559,6 +607,40 @@ class Simulation:
                 RuntimeWarning,
                 stacklevel=3,
             )
+
+    # --- the world: forces and the drag spring ------------------------------------------------------------
+    def set_external_forces(self, forces) -> None:
+        """Set a constant force on each vertex, ``(m, 3)`` float64 in N, or ``(3,)`` for the same force on
+        every vertex; ``None`` removes it. Forces on pinned vertices are ignored (the support takes them).
+        Their work ``sum f . (x_{n+1} - x_n)`` enters each step's budget (history column ``work_forces``)."""
+        m = self.mesh.num_vertices
+        if forces is None:
+            self._sim.set_external_forces(None)
+            return
+        f = float_array(forces, "external_forces", "(m, 3) or (3,)")
+        if f.shape == (3,):
+            f = np.tile(f, (m, 1))
+        if f.shape != (m, 3):
+            raise ConfigError(f"external_forces must have shape ({m}, 3) or (3,), got {f.shape}")
+        try:
+            self._sim.set_external_forces(np.ascontiguousarray(f))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+    def set_drag(self, vertex: int, target, stiffness: float) -> None:
+        """Pull ``vertex`` towards ``target`` ((3,) m) with a spring of ``stiffness`` N/m (the viewer's mouse
+        drag). The force is evaluated at the start of each step; its work enters the budget."""
+        vertex = integer(vertex, "vertex", lo=0, hi=self.mesh.num_vertices - 1)
+        target = _as_float3(target, "target")
+        stiffness = real(stiffness, "stiffness", lo=0)
+        try:
+            self._sim.set_drag((vertex, target, float(stiffness)))
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+    def clear_drag(self) -> None:
+        """Release the drag spring."""
+        self._sim.set_drag(None)
 
     # --- measurements ------------------------------------------------------------------------------------
     def energy(self) -> Energy:

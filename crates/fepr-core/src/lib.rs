@@ -34,12 +34,14 @@ pub mod linalg;
 pub mod material;
 pub mod mesh;
 pub mod model;
+pub mod obstacles;
 pub mod ordering;
 pub mod parallel;
 pub mod pd;
 pub mod projection;
 pub mod simulation;
 pub mod sparse;
+pub mod world;
 pub mod xpbd;
 
 pub use error::{FeprError, Result};

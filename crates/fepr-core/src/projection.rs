@@ -331,6 +331,8 @@ pub struct Projector {
     stiffness_ratio: Vec<f64>,
     /// `a_i = m_i / w_i` of this step's metric.
     metric_factor: Vec<f64>,
+    /// Vertices whose positions this step's projection must not move (in contact with an obstacle).
+    frozen_positions: Vec<u32>,
     /// The full step's trial point while the model step length is tried.
     x_spare: Vec<Vec3>,
     v_spare: Vec<Vec3>,
@@ -374,20 +376,31 @@ impl Projector {
         }
     }
 
-    /// Fill `metric_factor` with `a_i = m_i / w_i` for step size `h`.
+    /// Freeze the positions of these vertices in the next projections (their velocities stay free): the
+    /// simulation passes the vertices that touched an obstacle this step, so that the projection cannot
+    /// push them back into it. Replaces the previous set.
+    pub fn set_frozen_positions(&mut self, vertices: &[u32]) {
+        self.frozen_positions.clear();
+        self.frozen_positions.extend_from_slice(vertices);
+    }
+
+    /// Fill `metric_factor` with `a_i = m_i / w_i` for step size `h` (0 for frozen positions).
     fn prepare_metric(&mut self, model: &Model, h: f64) {
         let m = model.num_vertices();
         self.metric_factor.clear();
-        if !self.uses_stiffness_metric() {
+        if self.uses_stiffness_metric() {
+            if self.stiffness_ratio.len() != m {
+                self.stiffness_ratio = rest_stiffness_ratio(model);
+            }
+            let h2 = h * h;
+            self.metric_factor
+                .extend(self.stiffness_ratio.iter().map(|k| 1.0 / (1.0 + h2 * k)));
+        } else {
             self.metric_factor.resize(m, 1.0);
-            return;
         }
-        if self.stiffness_ratio.len() != m {
-            self.stiffness_ratio = rest_stiffness_ratio(model);
+        for &i in &self.frozen_positions {
+            self.metric_factor[i as usize] = 0.0;
         }
-        let h2 = h * h;
-        self.metric_factor
-            .extend(self.stiffness_ratio.iter().map(|k| 1.0 / (1.0 + h2 * k)));
     }
 
     /// Project `state` (holding the base step's result `(x*, v*)`) in place, for step size `h` and the given

@@ -6,9 +6,11 @@ use std::time::Instant;
 use crate::error::{FeprError, Result};
 use crate::integrators::{Integrator, StepReport};
 use crate::invariants::{center_of_mass, measure, Invariants};
-use crate::linalg::{add, scale, Vec3};
+use crate::linalg::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, State};
+use crate::obstacles::{max_penetration, resolve_contacts, Obstacle};
 use crate::projection::{ProjectionReport, Projector, Targets};
+use crate::world::{Drag, KinematicPins, Work, World};
 
 /// One row of diagnostics (fepr-spec / DESIGN.md), after a step (or for the initial state, step 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -19,8 +21,16 @@ pub struct StepDiagnostics {
     pub invariants: Invariants,
     /// The projection's report (None without projection, and for the initial row).
     pub projection: Option<ProjectionReport>,
-    /// Energy budget of the step (J) that the integrator and world reported.
+    /// Energy budget W of the step (J) that the integrator and the world reported (the sum of `work`).
     pub energy_budget: f64,
+    /// The budget by source, J.
+    pub work: Work,
+    /// Sum of the budgets of every step so far, J (so `H_n` should equal `H_0 + budget_total`).
+    pub budget_total: f64,
+    /// Vertex-obstacle contacts resolved in the step.
+    pub contacts: usize,
+    /// Deepest penetration of a free vertex into an obstacle after the step, m.
+    pub penetration: f64,
     /// The base integrator's report (solver iterations, residual, line-search steps, impulses).
     pub base: StepReport,
     /// Wall time of the base step and of the projection, ms.
@@ -65,6 +75,11 @@ pub struct Simulation {
     energy_scale: f64,
     history: Vec<StepDiagnostics>,
     previous: State,
+    world: World,
+    /// Vertices in contact this step (their positions are frozen in the projection).
+    contact_vertices: Vec<u32>,
+    contact_dv: Vec<(u32, Vec3)>,
+    x_start: Vec<Vec3>,
 }
 
 impl Simulation {
@@ -116,6 +131,10 @@ impl Simulation {
             energy_scale: 0.0,
             history: Vec::new(),
             previous,
+            world: World::default(),
+            contact_vertices: Vec::new(),
+            contact_dv: Vec::new(),
+            x_start: Vec::new(),
         };
         sim.reset_references();
         let inv = measure(&sim.model, &sim.state);
@@ -125,6 +144,10 @@ impl Simulation {
             invariants: inv,
             projection: None,
             energy_budget: 0.0,
+            work: Work::default(),
+            budget_total: 0.0,
+            contacts: 0,
+            penetration: 0.0,
             base: StepReport::default(),
             base_ms: 0.0,
             proj_ms: 0.0,
@@ -145,6 +168,36 @@ impl Simulation {
             only.invariants = inv;
             only.time = self.state.time;
         }
+        // Kinematic pins follow their path from where the state now has them.
+        self.world.anchor_pins(&self.state);
+    }
+
+    // --- the world around the body (see [`crate::world`]) ------------------------------------------------
+
+    /// Static obstacles the free vertices collide with.
+    pub fn set_obstacles(&mut self, obstacles: Vec<Obstacle>) {
+        self.world.obstacles = obstacles;
+    }
+    pub fn obstacles(&self) -> &[Obstacle] {
+        self.world.obstacles()
+    }
+    /// Kinematic pins: groups of pinned vertices that follow a prescribed path from their current
+    /// positions. Their vertices must be pinned in the model.
+    pub fn set_kinematic_pins(&mut self, pins: Vec<KinematicPins>) -> Result<()> {
+        self.world.set_pins(&self.model, &self.state, pins)
+    }
+    /// Mass-proportional damping rate `air` (1/s: `dv/dt = -air v`) and stiffness-proportional (Rayleigh)
+    /// coefficient `rayleigh` (s: `f = -rayleigh K v`).
+    pub fn set_damping(&mut self, air: f64, rayleigh: f64) -> Result<()> {
+        self.world.set_damping(air, rayleigh)
+    }
+    /// Constant external force per vertex, N (an empty vector removes it).
+    pub fn set_external_forces(&mut self, forces: Vec<Vec3>) -> Result<()> {
+        self.world.set_forces(&self.model, forces)
+    }
+    /// The user's drag spring (None releases it).
+    pub fn set_drag(&mut self, drag: Option<Drag>) -> Result<()> {
+        self.world.set_drag(&self.model, drag)
     }
 
     pub fn dt(&self) -> f64 {
@@ -205,13 +258,107 @@ impl Simulation {
         }
     }
 
-    /// Take one step: base integrator, then the projection (if enabled). On a non-finite state the step is
-    /// undone and an error names the step (runaway of an unstable step size).
+    /// Take one step: kinematic pins and external forces, the base integrator, damping and contact, then
+    /// the projection (if enabled). On a non-finite state the step is undone and an error names the step
+    /// (runaway of an unstable step size).
     pub fn step(&mut self) -> Result<&StepDiagnostics> {
         self.previous.clone_from(&self.state);
+        let h = self.dt;
+        let t_next = self.state.time + h;
         let t0 = Instant::now();
-        let report = self.integrator.step(&self.model, &mut self.state, self.dt);
-        let base_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let mut work = Work::default();
+        // Kinematic pins move to their end-of-step path first (a Dirichlet condition at t_{n+1}).
+        work.pins += self.world.pin_work_half(&self.model, &self.state, t_next);
+        if self.world.has_pins() {
+            let (x, v) = (&mut self.state.x, &mut self.state.v);
+            self.world.place_pins(x, v, t_next);
+        }
+        // External forces: a kick h f / m before the base step.
+        self.x_start.clone_from(&self.state.x);
+        let (mut force_impulse, mut force_torque) = ([0.0; 3], [0.0; 3]);
+        let has_forces = match self.world.step_forces(&self.model, &self.state.x) {
+            Some(f) => {
+                let c = center_of_mass(&self.model.masses, self.model.total_mass, &self.state.x);
+                for (i, fi) in f.iter().enumerate() {
+                    if self.model.pinned[i] {
+                        continue;
+                    }
+                    self.state.v[i] = add(self.state.v[i], scale(*fi, h / self.model.masses[i]));
+                    force_impulse = add(force_impulse, scale(*fi, h));
+                    force_torque = add(force_torque, scale(cross(sub(self.state.x[i], c), *fi), h));
+                }
+                true
+            }
+            None => false,
+        };
+        let mut report = self.integrator.step(&self.model, &mut self.state, h);
+        work.damping += report.energy_budget;
+        if self.world.has_pins() {
+            // The integrator left the kinematic vertices in place with zero velocity: give them the path's.
+            let (x, v) = (&mut self.state.x, &mut self.state.v);
+            self.world.place_pins(x, v, t_next);
+        }
+        if has_forces {
+            let f = self
+                .world
+                .step_forces(&self.model, &self.x_start)
+                .expect("forces present");
+            work.forces = f
+                .iter()
+                .zip(self.state.x.iter().zip(&self.x_start))
+                .map(|(fi, (x1, x0))| dot(*fi, sub(*x1, *x0)))
+                .sum();
+            report.impulse = add(report.impulse, force_impulse);
+            // The torque of the forces about the centre of mass, at the start of the step (the kick's moment).
+            report.angular_impulse = add(report.angular_impulse, force_torque);
+        }
+        let base_ms;
+        let mut contacts = 0;
+        self.contact_vertices.clear();
+        if self.state.is_finite() {
+            let (dw, imp, ang) = self.world.damp(&self.model, &mut self.state, h)?;
+            work.damping += dw;
+            report.impulse = add(report.impulse, imp);
+            report.angular_impulse = add(report.angular_impulse, ang);
+            let c = resolve_contacts(
+                &self.world.obstacles,
+                &self.model,
+                &mut self.state,
+                h,
+                &mut self.contact_vertices,
+                &mut self.contact_dv,
+            );
+            if c.contacts > 0 {
+                contacts = c.contacts;
+                work.contact = c.work;
+                report.impulse = add(report.impulse, c.impulse);
+                report.angular_impulse = add(report.angular_impulse, c.angular_impulse);
+                report.impulsive = true;
+            }
+            // The second half of the pins' work, at the free vertices' end-of-step state.
+            if self.world.has_pins() {
+                let mut back = std::mem::take(&mut self.world.scratch_x);
+                let mut back_v = Vec::new();
+                back.clone_from(&self.state.x);
+                back_v.clone_from(&self.state.v);
+                // Pins at their start positions and velocities (those of the previous state).
+                for p in &self.world.pins {
+                    for &i in &p.vertices {
+                        back[i] = self.previous.x[i];
+                        back_v[i] = self.previous.v[i];
+                    }
+                }
+                let start = State {
+                    x: back,
+                    v: back_v,
+                    time: self.previous.time,
+                };
+                work.pins += self.world.pin_work_half(&self.model, &start, t_next);
+                self.world.scratch_x = start.x;
+            }
+        }
+        report.energy_budget = work.total();
+        base_ms = t0.elapsed().as_secs_f64() * 1e3;
         let step = self.num_steps() + 1;
         if !self.state.is_finite() {
             std::mem::swap(&mut self.state, &mut self.previous);
@@ -229,6 +376,7 @@ impl Simulation {
         let t1 = Instant::now();
         let (projection, inv, base_total) = match self.projector.as_mut() {
             Some(p) => {
+                p.set_frozen_positions(&self.contact_vertices);
                 let (rep, inv) = p.project(&self.model, &mut self.state, self.dt, &targets);
                 (Some(rep), inv, rep.base_energy)
             }
@@ -270,12 +418,19 @@ impl Simulation {
             angular_momentum: targets.angular_momentum,
             center_of_mass: targets.center_of_mass,
         };
+        let budget_total =
+            self.history.last().map_or(0.0, |d| d.budget_total) + report.energy_budget;
+        let penetration = max_penetration(&self.world.obstacles, &self.model, &self.state.x);
         self.history.push(StepDiagnostics {
             step,
             time: self.state.time,
             invariants: inv,
             projection,
             energy_budget: report.energy_budget,
+            work,
+            budget_total,
+            contacts,
+            penetration,
             base: report,
             base_ms,
             proj_ms,

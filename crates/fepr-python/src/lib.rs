@@ -19,11 +19,13 @@ use fepr_core::material::{
 };
 use fepr_core::mesh::{MassSpec, TetMesh};
 use fepr_core::model::{ModelBuilder, State};
+use fepr_core::obstacles::{Obstacle, Shape};
 use fepr_core::pd::{PdSettings, ProjectiveDynamics};
 use fepr_core::projection::{
     ActiveRows, Metric, ProjectionReport, ProjectionSettings, Projector, Slack,
 };
 use fepr_core::simulation::{Simulation as CoreSimulation, StepDiagnostics};
+use fepr_core::world::{Drag, KinematicPins, PinMotion};
 use fepr_core::xpbd::{Xpbd, XpbdSettings};
 use fepr_core::FeprError;
 
@@ -238,13 +240,21 @@ const HISTORY_COLUMNS: &[&str] = &[
     "proj_ms",
     "min_j",
     "inverted",
-    "energy_budget",
+    "budget",
     "base_energy_error",
     "runaway",
     "proj_warm_start",
+    "budget_total",
+    "contacts",
+    "penetration",
+    "work_contact",
+    "work_damping",
+    "work_pins",
+    "work_forces",
+    "proj_frozen",
 ];
 
-fn history_row(d: &StepDiagnostics) -> [f64; 35] {
+fn history_row(d: &StepDiagnostics) -> [f64; 43] {
     let i = &d.invariants;
     let p = d.projection.unwrap_or_default();
     let has = d.projection.is_some();
@@ -285,6 +295,14 @@ fn history_row(d: &StepDiagnostics) -> [f64; 35] {
         d.base_energy_error,
         d.runaway as u8 as f64,
         if has { p.warm_start as u8 as f64 } else { 0.0 },
+        d.budget_total,
+        d.contacts as f64,
+        d.penetration,
+        d.work.contact,
+        d.work.damping,
+        d.work.pins,
+        d.work.forces,
+        if has { p.frozen_vertices as f64 } else { 0.0 },
     ]
 }
 
@@ -587,6 +605,122 @@ impl Simulation {
             None => Ok(None),
         }
     }
+    /// First step at or after `start` whose `runaway` flag is set (None if none): lets Python check each
+    /// batch of steps without rebuilding the whole history.
+    fn first_runaway(&self, start: usize) -> Option<usize> {
+        self.inner
+            .history()
+            .iter()
+            .skip(start)
+            .find(|d| d.runaway)
+            .map(|d| d.step)
+    }
+
+    /// Obstacles as `(kind, params, restitution, friction)`: `"plane"` [point, normal], `"sphere"` [center,
+    /// radius], `"box"` [center, half_extents, 9 rotation entries (rows)], `"capsule"` [a, b, radius]; m.
+    fn set_obstacles(&mut self, obstacles: Vec<(String, Vec<f64>, f64, f64)>) -> PyResult<()> {
+        let mut out = Vec::with_capacity(obstacles.len());
+        for (k, (kind, p, restitution, friction)) in obstacles.into_iter().enumerate() {
+            let need = match kind.as_str() {
+                "plane" => 6,
+                "sphere" => 4,
+                "box" => 15,
+                "capsule" => 7,
+                _ => {
+                    return Err(PyValueError::new_err(format!(
+                        "obstacle {k}: unknown type {kind:?} (known: plane, sphere, box, capsule)"
+                    )))
+                }
+            };
+            if p.len() != need {
+                return Err(PyValueError::new_err(format!(
+                    "obstacle {k} ({kind}): needs {need} parameters, got {}",
+                    p.len()
+                )));
+            }
+            let v = |i: usize| [p[i], p[i + 1], p[i + 2]];
+            let shape = match kind.as_str() {
+                "plane" => Shape::Plane {
+                    point: v(0),
+                    normal: v(3),
+                },
+                "sphere" => Shape::Sphere {
+                    center: v(0),
+                    radius: p[3],
+                },
+                "box" => Shape::Box {
+                    center: v(0),
+                    half_extents: v(3),
+                    axes: [v(6), v(9), v(12)],
+                },
+                _ => Shape::Capsule {
+                    a: v(0),
+                    b: v(3),
+                    radius: p[6],
+                },
+            };
+            let ob = Obstacle::new(shape, restitution, friction)
+                .map_err(|e| PyValueError::new_err(format!("obstacle {k} ({kind}): {e}")))?;
+            out.push(ob);
+        }
+        self.inner.set_obstacles(out);
+        Ok(())
+    }
+
+    /// Kinematic pin groups `(vertices, kind, params, times)`: `"sinusoid"` params [amplitude (3), frequency
+    /// Hz, phase rad]; `"keyframes"` params = offsets flattened (k * 3, m) with `times` (k, s).
+    fn set_kinematic_pins(
+        &mut self,
+        groups: Vec<(Vec<usize>, String, Vec<f64>, Vec<f64>)>,
+    ) -> PyResult<()> {
+        let mut pins = Vec::with_capacity(groups.len());
+        for (k, (vertices, kind, p, times)) in groups.into_iter().enumerate() {
+            let motion = match kind.as_str() {
+                "sinusoid" if p.len() == 5 => PinMotion::Sinusoid {
+                    amplitude: [p[0], p[1], p[2]],
+                    frequency: p[3],
+                    phase: p[4],
+                },
+                "keyframes" if p.len() == 3 * times.len() => PinMotion::Keyframes {
+                    offsets: p.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+                    times,
+                },
+                _ => {
+                    return Err(PyValueError::new_err(format!(
+                        "kinematic pin group {k}: bad motion {kind:?} with {} parameters",
+                        p.len()
+                    )))
+                }
+            };
+            pins.push(KinematicPins { vertices, motion });
+        }
+        self.inner.set_kinematic_pins(pins).map_err(value_error)
+    }
+
+    /// Air (mass-proportional, 1/s) and Rayleigh (stiffness-proportional, s) damping.
+    fn set_damping(&mut self, air: f64, rayleigh: f64) -> PyResult<()> {
+        self.inner.set_damping(air, rayleigh).map_err(value_error)
+    }
+
+    /// Constant external force per vertex, (m, 3) N; None removes it.
+    fn set_external_forces(&mut self, forces: Option<PyReadonlyArray2<'_, f64>>) -> PyResult<()> {
+        let f = match forces {
+            Some(a) => self.checked_state_array(&a, "external_forces")?,
+            None => Vec::new(),
+        };
+        self.inner.set_external_forces(f).map_err(value_error)
+    }
+
+    /// The drag spring `(vertex, target (3,) m, stiffness N/m)`, or None to release it.
+    fn set_drag(&mut self, drag: Option<(usize, [f64; 3], f64)>) -> PyResult<()> {
+        let d = drag.map(|(vertex, target, stiffness)| Drag {
+            vertex,
+            target,
+            stiffness,
+        });
+        self.inner.set_drag(d).map_err(value_error)
+    }
+
     #[staticmethod]
     fn history_columns() -> Vec<&'static str> {
         HISTORY_COLUMNS.to_vec()

@@ -1,0 +1,440 @@
+//! Static obstacles (plane, sphere, box, capsule) and vertex contact with them.
+//!
+//! Contact is resolved per vertex after the base step (fepr-spec section 2, "contact"): a vertex found inside
+//! an obstacle is put back outside, its normal velocity is reflected with the restitution coefficient and its
+//! tangential velocity is reduced by Coulomb friction (`|dv_t| <= mu |dv_n|`). What the contact did to the
+//! velocities is what it reports: the kinetic energy it removed (the step's energy budget) and the linear and
+//! angular impulse (the momentum targets). The position correction is not physical work (it repairs the
+//! base step's overshoot); FEPR restores the energy it changes.
+
+use crate::error::{invalid, Result};
+use crate::linalg::{add, cross, dot, norm, scale, sub, Mat3, Vec3};
+use crate::model::{Model, State};
+
+/// Geometry of an obstacle (metres). The solid is where the signed distance is negative.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Shape {
+    /// Half-space below the plane through `point` with unit outward `normal`.
+    Plane { point: Vec3, normal: Vec3 },
+    /// Ball of `radius` about `center`.
+    Sphere { center: Vec3, radius: f64 },
+    /// Box of `half_extents` about `center`; the rows of `axes` are its local x, y, z axes (a rotation).
+    Box {
+        center: Vec3,
+        half_extents: Vec3,
+        axes: Mat3,
+    },
+    /// Points within `radius` of the segment `a`-`b`.
+    Capsule { a: Vec3, b: Vec3, radius: f64 },
+}
+
+/// A static obstacle with its contact coefficients.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Obstacle {
+    pub shape: Shape,
+    /// Coefficient of restitution in [0, 1]: the normal velocity after contact is `-restitution` times the
+    /// normal velocity before.
+    pub restitution: f64,
+    /// Coulomb friction coefficient (>= 0).
+    pub friction: f64,
+}
+
+fn finite3(v: Vec3, what: &'static str) -> Result<()> {
+    if v.iter().all(|c| c.is_finite()) {
+        Ok(())
+    } else {
+        Err(invalid(what, format!("must be finite, got {v:?}")))
+    }
+}
+
+fn positive(x: f64, what: &'static str) -> Result<()> {
+    if x.is_finite() && x > 0.0 {
+        Ok(())
+    } else {
+        Err(invalid(
+            what,
+            format!("must be a positive length in m, got {x}"),
+        ))
+    }
+}
+
+impl Obstacle {
+    /// Validate the geometry and coefficients (normalises a plane's normal).
+    pub fn new(shape: Shape, restitution: f64, friction: f64) -> Result<Self> {
+        if !(restitution.is_finite() && (0.0..=1.0).contains(&restitution)) {
+            return Err(invalid(
+                "restitution",
+                format!("must be in [0, 1], got {restitution}"),
+            ));
+        }
+        if !(friction.is_finite() && friction >= 0.0) {
+            return Err(invalid(
+                "friction",
+                format!("must be a finite coefficient >= 0, got {friction}"),
+            ));
+        }
+        let shape = match shape {
+            Shape::Plane { point, normal } => {
+                finite3(point, "plane point")?;
+                finite3(normal, "plane normal")?;
+                let n = norm(normal);
+                if n < 1e-12 {
+                    return Err(invalid("plane normal", "must not be the zero vector"));
+                }
+                Shape::Plane {
+                    point,
+                    normal: scale(normal, 1.0 / n),
+                }
+            }
+            Shape::Sphere { center, radius } => {
+                finite3(center, "sphere center")?;
+                positive(radius, "sphere radius")?;
+                Shape::Sphere { center, radius }
+            }
+            Shape::Box {
+                center,
+                half_extents,
+                axes,
+            } => {
+                finite3(center, "box center")?;
+                for h in half_extents {
+                    positive(h, "box half_extents")?;
+                }
+                for i in 0..3 {
+                    for j in 0..3 {
+                        let d = dot(axes[i], axes[j]) - if i == j { 1.0 } else { 0.0 };
+                        if !(d.abs() < 1e-6) {
+                            return Err(invalid(
+                                "box rotation",
+                                format!(
+                                    "must be a rotation matrix (orthonormal rows), got {axes:?}"
+                                ),
+                            ));
+                        }
+                    }
+                }
+                if crate::linalg::det(&axes) < 0.0 {
+                    return Err(invalid(
+                        "box rotation",
+                        "must be a rotation (determinant +1), not a reflection",
+                    ));
+                }
+                Shape::Box {
+                    center,
+                    half_extents,
+                    axes,
+                }
+            }
+            Shape::Capsule { a, b, radius } => {
+                finite3(a, "capsule a")?;
+                finite3(b, "capsule b")?;
+                positive(radius, "capsule radius")?;
+                Shape::Capsule { a, b, radius }
+            }
+        };
+        Ok(Self {
+            shape,
+            restitution,
+            friction,
+        })
+    }
+
+    /// Signed distance from `x` to the obstacle's surface (m, negative inside) and the unit outward normal
+    /// of the nearest surface point. Exact for every shape, so `x - d n` lies on the surface.
+    pub fn signed_distance(&self, x: Vec3) -> (f64, Vec3) {
+        match &self.shape {
+            Shape::Plane { point, normal } => (dot(sub(x, *point), *normal), *normal),
+            Shape::Sphere { center, radius } => {
+                let r = sub(x, *center);
+                let d = norm(r);
+                (d - radius, unit_or_up(r, d))
+            }
+            Shape::Capsule { a, b, radius } => {
+                let ab = sub(*b, *a);
+                let len2 = dot(ab, ab);
+                let t = if len2 > 0.0 {
+                    (dot(sub(x, *a), ab) / len2).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                let r = sub(x, add(*a, scale(ab, t)));
+                let d = norm(r);
+                (d - radius, unit_or_up(r, d))
+            }
+            Shape::Box {
+                center,
+                half_extents,
+                axes,
+            } => {
+                let rel = sub(x, *center);
+                let p = [dot(axes[0], rel), dot(axes[1], rel), dot(axes[2], rel)];
+                let q = [0, 1, 2].map(|k| p[k].abs() - half_extents[k]);
+                let outside = [0, 1, 2].map(|k| q[k].max(0.0));
+                let d_out = norm(outside);
+                let local = if d_out > 0.0 {
+                    [0, 1, 2].map(|k| outside[k].copysign(p[k]) / d_out)
+                } else {
+                    // Inside: the nearest face is the one with the largest q.
+                    let k = (0..3)
+                        .max_by(|&i, &j| q[i].total_cmp(&q[j]))
+                        .expect("three axes");
+                    let mut n = [0.0; 3];
+                    n[k] = 1.0f64.copysign(p[k]);
+                    n
+                };
+                let d = if d_out > 0.0 {
+                    d_out
+                } else {
+                    q[0].max(q[1]).max(q[2])
+                };
+                let n = add(
+                    add(scale(axes[0], local[0]), scale(axes[1], local[1])),
+                    scale(axes[2], local[2]),
+                );
+                (d, n)
+            }
+        }
+    }
+}
+
+/// `r / d`, or +z when `x` sits exactly on the centre (any direction is a nearest one).
+fn unit_or_up(r: Vec3, d: f64) -> Vec3 {
+    if d > 0.0 {
+        scale(r, 1.0 / d)
+    } else {
+        [0.0, 0.0, 1.0]
+    }
+}
+
+/// What the contacts of one step did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ContactReport {
+    /// Vertex-obstacle contacts resolved.
+    pub contacts: usize,
+    /// Kinetic energy change of the velocity corrections, J (<= 0 for restitution < 1 or friction).
+    pub work: f64,
+    /// Linear impulse of the contacts, kg m/s.
+    pub impulse: Vec3,
+    /// Angular impulse about the centre of mass after the contacts, kg m^2/s.
+    pub angular_impulse: Vec3,
+}
+
+/// Resolve contacts of the free vertices of `state` (the base step's result for step size `h`) with the
+/// obstacles. Each vertex found inside an obstacle is moved out along the normal (its penetration mirrored
+/// by `1 + restitution` when it was moving in, onto the surface otherwise), its normal velocity is reflected
+/// with the restitution, and Coulomb friction reduces its tangential velocity by at most `friction` times the
+/// normal velocity change (static friction stops it); the tangential position follows the corrected
+/// velocity over the step. The indices of the vertices touched are appended to `touched`.
+pub fn resolve_contacts(
+    obstacles: &[Obstacle],
+    model: &Model,
+    state: &mut State,
+    h: f64,
+    touched: &mut Vec<u32>,
+    dv: &mut Vec<(u32, Vec3)>,
+) -> ContactReport {
+    let mut report = ContactReport::default();
+    if obstacles.is_empty() {
+        return report;
+    }
+    dv.clear();
+    for i in 0..model.num_vertices() {
+        if model.pinned[i] {
+            continue;
+        }
+        let v_before = state.v[i];
+        let mut hit = false;
+        for ob in obstacles {
+            let (phi, n) = ob.signed_distance(state.x[i]);
+            if phi >= 0.0 {
+                continue;
+            }
+            hit = true;
+            report.contacts += 1;
+            let v = state.v[i];
+            let vn = dot(v, n);
+            let vt = sub(v, scale(n, vn));
+            let dvn = if vn < 0.0 {
+                -(1.0 + ob.restitution) * vn
+            } else {
+                0.0
+            };
+            let vt_len = norm(vt);
+            let vt_new = if ob.friction > 0.0 && vt_len > 0.0 {
+                let cut = ob.friction * dvn;
+                if vt_len <= cut {
+                    [0.0; 3]
+                } else {
+                    scale(vt, 1.0 - cut / vt_len)
+                }
+            } else {
+                vt
+            };
+            state.v[i] = add(scale(n, vn + dvn), vt_new);
+            // Out of the solid: a vertex moving in is reflected (a free particle's exact bounce for
+            // restitution 1), one already moving out is put on the surface.
+            let push = if vn < 0.0 {
+                -(1.0 + ob.restitution) * phi
+            } else {
+                -phi
+            };
+            let mut x = add(state.x[i], scale(n, push));
+            x = add(x, scale(sub(vt_new, vt), h));
+            // The tangential move can re-enter a curved or corner surface: put it back on the surface.
+            let (phi2, n2) = ob.signed_distance(x);
+            if phi2 < 0.0 {
+                x = sub(x, scale(n2, phi2));
+            }
+            state.x[i] = x;
+        }
+        if hit {
+            touched.push(i as u32);
+            let d = sub(state.v[i], v_before);
+            let m = model.masses[i];
+            report.work += 0.5 * m * (dot(state.v[i], state.v[i]) - dot(v_before, v_before));
+            report.impulse = add(report.impulse, scale(d, m));
+            dv.push((i as u32, d));
+        }
+    }
+    if !dv.is_empty() {
+        let c = crate::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+        for &(i, d) in dv.iter() {
+            let i = i as usize;
+            report.angular_impulse = add(
+                report.angular_impulse,
+                scale(cross(sub(state.x[i], c), d), model.masses[i]),
+            );
+        }
+    }
+    report
+}
+
+/// Deepest penetration of a free vertex into any obstacle, m (0 when none penetrates).
+pub fn max_penetration(obstacles: &[Obstacle], model: &Model, x: &[Vec3]) -> f64 {
+    let mut worst = 0.0f64;
+    for (i, xi) in x.iter().enumerate() {
+        if model.pinned[i] {
+            continue;
+        }
+        for ob in obstacles {
+            worst = worst.max(-ob.signed_distance(*xi).0);
+        }
+    }
+    worst
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() < 1e-12
+    }
+
+    #[test]
+    fn signed_distances_are_exact_for_every_shape() {
+        let plane = Obstacle::new(
+            Shape::Plane {
+                point: [0.0, 0.0, 1.0],
+                normal: [0.0, 0.0, 2.0],
+            },
+            1.0,
+            0.0,
+        )
+        .unwrap();
+        let (d, n) = plane.signed_distance([3.0, 4.0, 0.5]);
+        assert!(close(d, -0.5) && n == [0.0, 0.0, 1.0]);
+        let sphere = Obstacle::new(
+            Shape::Sphere {
+                center: [1.0, 0.0, 0.0],
+                radius: 0.5,
+            },
+            1.0,
+            0.0,
+        )
+        .unwrap();
+        let (d, n) = sphere.signed_distance([1.0, 0.2, 0.0]);
+        assert!(close(d, -0.3) && close(n[1], 1.0));
+        let capsule = Obstacle::new(
+            Shape::Capsule {
+                a: [0.0; 3],
+                b: [2.0, 0.0, 0.0],
+                radius: 0.1,
+            },
+            1.0,
+            0.0,
+        )
+        .unwrap();
+        assert!(close(capsule.signed_distance([1.0, 0.0, 0.3]).0, 0.2));
+        assert!(close(capsule.signed_distance([3.0, 0.0, 0.0]).0, 0.9));
+        // A box turned 90 degrees about z: local x is world y.
+        let bx = Obstacle::new(
+            Shape::Box {
+                center: [0.0; 3],
+                half_extents: [1.0, 2.0, 3.0],
+                axes: [[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
+            },
+            1.0,
+            0.0,
+        )
+        .unwrap();
+        let (d, n) = bx.signed_distance([0.0, 0.9, 0.0]);
+        assert!(close(d, -0.1) && close(n[1], 1.0));
+        let (d, _) = bx.signed_distance([3.0, 2.0, 0.0]);
+        assert!(close(d, (1.0f64 + 1.0).sqrt()));
+        // On every shape, x - d n lands on the surface.
+        for ob in [&plane, &sphere, &capsule, &bx] {
+            for x in [[0.3, -0.2, 0.7], [1.1, 0.05, -0.02], [2.5, 1.5, 0.4]] {
+                let (d, n) = ob.signed_distance(x);
+                let on = sub(x, scale(n, d));
+                assert!(ob.signed_distance(on).0.abs() < 1e-12, "{ob:?} at {x:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn bad_coefficients_and_geometry_are_named_errors() {
+        let plane = || Shape::Plane {
+            point: [0.0; 3],
+            normal: [0.0, 0.0, 1.0],
+        };
+        let e = Obstacle::new(plane(), -0.5, 0.0).unwrap_err().to_string();
+        assert!(e.contains("restitution"), "{e}");
+        let e = Obstacle::new(plane(), 0.5, -1.0).unwrap_err().to_string();
+        assert!(e.contains("friction"), "{e}");
+        let e = Obstacle::new(
+            Shape::Plane {
+                point: [0.0; 3],
+                normal: [0.0; 3],
+            },
+            0.5,
+            0.0,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("normal"), "{e}");
+        let e = Obstacle::new(
+            Shape::Sphere {
+                center: [0.0; 3],
+                radius: f64::NAN,
+            },
+            0.5,
+            0.0,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("radius"), "{e}");
+        let e = Obstacle::new(
+            Shape::Box {
+                center: [0.0; 3],
+                half_extents: [1.0; 3],
+                axes: [[2.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            },
+            0.5,
+            0.0,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("rotation"), "{e}");
+    }
+}
