@@ -5,16 +5,21 @@ scenes that use them."""
 from __future__ import annotations
 
 import copy
+import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import fepr
 from fepr.errors import ConfigError
 from fepr.scene import (
     BODY_KEYS,
     KinematicPinSettings,
     ObstacleSettings,
+    load_scene,
+    run_scene,
     scene_from_dict,
 )
 
@@ -90,8 +95,9 @@ def test_obstacles_parse_with_defaults_and_geometry():
     assert (obs[1].restitution, obs[1].friction) == (0.5, 0.2)
     assert obs[1].geometry == {"center": (0.0, 0.0, -1.0), "radius": 0.5}
     assert obs[2].geometry["half_extents"] == (1.0, 0.5, 0.25)  # size is the full edge lengths
-    r = np.array(obs[2].geometry["rotation"])
-    np.testing.assert_allclose(r @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-15)  # 90 degrees about z
+    rows = np.array(obs[2].geometry["rotation"])  # the box's axes in world coordinates (fepr.Box's convention)
+    np.testing.assert_allclose(rows[0], [0.0, 1.0, 0.0], atol=1e-15)  # 90 degrees about z: local x -> world y
+    np.testing.assert_allclose(rows[1], [-1.0, 0.0, 0.0], atol=1e-15)
     assert obs[3].geometry["rotation"] is None
     assert obs[4].geometry == {"a": (0.0, 0.0, 0.0), "b": (1.0, 0.0, 0.0), "radius": 0.1}
     assert [o.label for o in obs] == [f"[[world.obstacles]] #{k}" for k in range(1, 6)]
@@ -396,9 +402,159 @@ def test_build_of_a_multibody_scene_points_to_build_multibody():
         s.build()
 
 
-def test_force_with_every_vertex_pinned_is_an_error():
-    pin = _with(SINE, vertices=None, below={"axis": "z", "value": 10.0})  # every vertex moves kinematically
-    d = with_world(force=[1.0, 0.0, 0.0], kinematic_pins=[pin])
+# ---- building ------------------------------------------------------------------------------------------
+
+
+def test_translate_moves_the_initial_positions_not_the_rest_shape():
+    d = minimal()
+    d["initial"] = {"translate": [0.0, 0.0, 2.0], "scale": 1.1, "scale_about": "centroid"}
+    s = scene_from_dict(d, ".")
+    sim = s.build()
+    rest = np.asarray(s.load_mesh().vertices)
+    np.testing.assert_array_equal(sim.rest_positions, rest)
+    c = rest.mean(axis=0)  # uniform lumped masses of a regular box: the centroid
+    np.testing.assert_allclose(sim.positions, c + 1.1 * (rest - c) + [0.0, 0.0, 2.0], atol=1e-12)
+    assert sim.energy().gravitational == 0.0  # no gravity in this scene
+    assert not np.any(sim.velocities)
+
+
+def test_translate_alone_keeps_the_body_undeformed():
+    d = minimal()
+    d["initial"] = {"translate": [1.0, -2.0, 3.0]}
+    d["world"] = {"gravity": [0.0, 0.0, -9.81]}
+    sim = scene_from_dict(d, ".").build()
+    np.testing.assert_allclose(sim.positions, np.asarray(sim.rest_positions) + [1.0, -2.0, 3.0], atol=1e-15)
+    assert abs(sim.energy().elastic) < 1e-12
+    sim.step(10)  # free fall: the centre of mass follows the exact parabola (FEPR's c_C row)
+    t = sim.time
+    c0 = np.asarray(sim.rest_positions).mean(axis=0) + [1.0, -2.0, 3.0]
+    np.testing.assert_allclose(sim.center_of_mass(), c0 + [0.0, 0.0, -0.5 * 9.81 * t * t], atol=1e-9)
+
+
+def test_build_passes_obstacles_pins_and_damping_to_the_simulation():
+    d = with_world(
+        gravity=[0.0, 0.0, -9.81],
+        air_damping=0.3,
+        rayleigh_damping=0.01,
+        obstacles=[
+            {"type": "plane", "point": [0, 0, -1], "restitution": 0.5, "friction": 0.2},
+            {"type": "box", "center": [0, 0, -3], "size": [2, 4, 6], "rotate": [0, 0, 90]},
+            {"type": "sphere", "center": [5, 0, 0], "radius": 0.5},
+            {"type": "capsule", "a": [0, 5, 0], "b": [1, 5, 0], "radius": 0.25, "restitution": 0.0},
+        ],
+        kinematic_pins=[_with(KEYS, vertices=[0, 1])],
+    )
+    sim = scene_from_dict(d, ".").build()
+    plane, box, sphere, capsule = sim.obstacles
+    assert plane == fepr.Plane(point=(0, 0, -1), normal=(0, 0, 1), restitution=0.5, friction=0.2)
+    assert isinstance(box, fepr.Box) and box.half_extents == (1.0, 2.0, 3.0)
+    np.testing.assert_allclose(box.rotation, [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-15)
+    assert sphere == fepr.Sphere(center=(5, 0, 0), radius=0.5)
+    assert capsule == fepr.Capsule(a=(0, 5, 0), b=(1, 5, 0), radius=0.25, restitution=0.0)
+    (kp,) = sim.kinematic_pins
+    assert list(kp.vertices) == [0, 1] and kp.motion == fepr.Keyframes(times=[0.0, 1.0], offsets=[[0, 0, 0], [0, 0, 1]])
+    assert sim.air_damping == 0.3 and sim.rayleigh_damping == 0.01
+    assert bool(sim.pinned[0]) and bool(sim.pinned[1]) and not bool(sim.pinned[2])
+
+
+def test_kinematic_pins_follow_their_translated_start_plus_the_motion():
+    s = load_scene(EXAMPLES / "hanging_bar.toml")
+    top = [32, 33, 34, 35]
+    rest = np.asarray(s.load_mesh().vertices)
+    assert np.all(rest[top, 2] == rest[:, 2].max())  # the example's comment: the top face
+    s.initial = dataclasses.replace(s.initial, translate=(1.0, 0.0, 2.0))
+    sim = s.build()
+    x0 = np.asarray(sim.positions)[top]
+    np.testing.assert_allclose(x0, rest[top] + [1.0, 0.0, 2.0], atol=1e-15)
+    for _ in range(3):
+        sim.step(13)
+        d = np.array([0.05, 0.0, 0.0]) * math.sin(2 * math.pi * 1.0 * sim.time)
+        np.testing.assert_allclose(np.asarray(sim.positions)[top], x0 + d, atol=1e-14)
+    assert np.any(sim.history["work_pins"][1:] != 0.0)
+
+
+def test_keyframed_pins_are_piecewise_linear_and_held_after_the_last_key():
+    pin = {
+        "below": {"axis": "z", "value": -0.19},
+        "motion": "keyframes",
+        "times": [0.0, 0.1],
+        "offsets": [[0, 0, 0], [0.1, 0, 0]],
+    }
+    d = with_world(kinematic_pins=[pin])
+    d["integrator"] = {"dt": 0.01}
+    s = scene_from_dict(d, ".")
+    sim = s.build()
+    idx = s.world.kinematic_pins[0].indices(np.asarray(sim.rest_positions))
+    assert len(idx) == 9  # the bottom face of the 2x2 box
+    x0 = np.asarray(sim.positions)[idx]
+    sim.step(5)
+    np.testing.assert_allclose(np.asarray(sim.positions)[idx], x0 + [0.05, 0.0, 0.0], atol=1e-14)
+    sim.step(10)
+    np.testing.assert_allclose(np.asarray(sim.positions)[idx], x0 + [0.1, 0.0, 0.0], atol=1e-14)
+
+
+def test_force_is_spread_over_the_free_vertices_of_all_bodies_by_mass():
+    force = np.array([3.0, -1.0, 2.0])
+    d = two_bodies(gravity=[0.0, 0.0, -9.81], force=list(force))
+    d["bodies"][0]["pinned"] = [0]  # a pinned vertex carries no part of the force
     s = scene_from_dict(d, ".", source="scene.toml")
-    with pytest.raises(ConfigError, match=r"scene.toml: \[world\] force: every vertex is pinned"):
-        s.build()
+    a, b = s.build_bodies()
+    pinned_mass = float(np.asarray(a.masses)[0])
+    m_free = a.total_mass + b.total_mass - pinned_mass
+    # The free body b accelerates by g + force / m_free exactly: P_b(t) = P_b(0) + m_b (g + force / m_free) t.
+    p0 = b.linear_momentum()
+    b.step(20)
+    g = np.array([0.0, 0.0, -9.81])
+    expected = p0 + b.total_mass * (g + force / m_free) * b.time
+    np.testing.assert_allclose(b.linear_momentum(), expected, rtol=1e-8)  # the projection's tolerance
+    assert b.history["work_forces"][1:].sum() != 0.0
+
+
+def test_force_on_a_single_body_gives_the_exact_momentum_and_energy_budget():
+    force = [0.5, 0.0, 0.0]
+    d = with_world(force=force)
+    d["initial"] = {"angular_velocity": [0.0, 0.0, 1.0]}
+    result = run_scene(scene_from_dict(d, ".", source="push.toml"), steps=40)
+    assert result.momentum_error < 1e-10 and result.angular_momentum_error < 1e-10
+    assert result.final_energy_error < 1e-9  # measured against H0 + budget_total
+    h = result.simulation.history
+    assert h["budget_total"][-1] > 0.0  # the push did positive work
+    np.testing.assert_allclose(h["budget_total"], np.cumsum(h["budget"]), rtol=1e-12, atol=1e-15)
+
+
+def test_air_damping_takes_energy_out_and_the_budget_accounts_for_it():
+    d = with_world(air_damping=2.0)
+    d["initial"] = {"velocity": [1.0, 0.0, 0.0]}
+    result = run_scene(scene_from_dict(d, ".", source="drag.toml"), steps=30)
+    h = result.simulation.history
+    assert h["kinetic"][-1] < 0.5 * h["kinetic"][0]
+    assert np.all(h["work_damping"][1:] < 0.0)
+    assert result.final_energy_error < 1e-9
+    assert result.momentum_error is None  # air drag exchanges momentum with the surroundings
+
+
+def test_dropped_box_never_penetrates_the_ground():
+    s = load_scene(EXAMPLES / "drop_box.toml")
+    sim = s.build()
+    assert np.asarray(sim.positions)[:, 2].min() == pytest.approx(1.0)  # translated 1 m up
+    lowest = []
+    for _ in range(s.run.steps):
+        sim.step(1)
+        lowest.append(float(np.asarray(sim.positions)[:, 2].min()))
+    h = sim.history
+    assert min(lowest) >= -1e-3
+    assert h["penetration"].max() <= 1e-3
+    assert h["contacts"].sum() > 0 and h["work_contact"].min() < 0.0  # it hit the ground, inelastically
+    first = int(np.argmax(np.asarray(lowest) < 1e-3))
+    assert max(lowest[first:]) > 0.05  # and bounced
+    # FEPR holds H0 + the budget (the energy the impacts took out)
+    err = np.abs(h["total"] - h["total"][0] - h["budget_total"]) / h["total"][0]
+    assert err.max() < 1e-8
+
+
+@pytest.mark.parametrize("name", ["drop_box", "hanging_bar", "two_bodies"])
+def test_new_examples_run_and_keep_the_budgeted_energy(name, tmp_path):
+    result = run_scene(load_scene(EXAMPLES / f"{name}.toml"), out_dir=tmp_path)
+    assert not result.runaway and result.steps_completed == load_scene(EXAMPLES / f"{name}.toml").run.steps
+    assert result.max_energy_error < 1e-8
+    assert result.wall_s < 10.0

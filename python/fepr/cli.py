@@ -82,7 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
         "run",
         help="run a scene file and write diagnostics.csv and final_state.npz",
         description="Run a scene file (TOML). Writes DIR/diagnostics.csv (one row per step plus the initial "
-        "state) and DIR/final_state.npz, and prints a one-line summary.",
+        "state; the totals for a scene with [[bodies]], plus DIR/diagnostics_<body>.csv per body) and "
+        "DIR/final_state.npz, and prints a one-line summary.",
     )
     run.add_argument("scene", metavar="SCENE.toml", help="scene file")
     run.add_argument(
@@ -258,8 +259,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
             return
         if done == 0:
             proj = "off" if (args.no_projection or not scene.projection.enabled) else "on"
+            bodies = f"{len(scene.bodies)} bodies, " if scene.is_multibody else ""
             print(
-                f"fepr run {scene.name}: {len(sim.rest_positions)} vertices, {len(sim.tets)} tets, "
+                f"fepr run {scene.name}: {bodies}{len(sim.rest_positions)} vertices, {len(sim.tets)} tets, "
                 f"{scene.integrator.name} dt={scene.integrator.dt:.6g} s, FEPR {proj}, {total} steps "
                 f"-> {out}",
                 flush=True,
@@ -287,6 +289,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     print(result.summary(), flush=True)
     if not args.quiet:
         print(f"wrote {result.diagnostics_path} and {result.state_path}", flush=True)
+        if result.body_diagnostics_paths:
+            names = ", ".join(p.name for p in result.body_diagnostics_paths.values())
+            print(f"wrote per-body diagnostics {names}", flush=True)
         if result.export_dir is not None:
             print(
                 f"exported {result.export_frames} frames ({', '.join(result.export_formats)}), "

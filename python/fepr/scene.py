@@ -339,7 +339,8 @@ class ObstacleSettings:
 
     ``type`` is ``"plane"``, ``"sphere"``, ``"box"`` or ``"capsule"``; ``geometry`` holds the keyword arguments
     of the matching :mod:`fepr.world` class (``point``/``normal``; ``center``/``radius``;
-    ``center``/``half_extents``/``rotation`` (3x3 rows or ``None``); ``a``/``b``/``radius``; all in m).
+    ``center``/``half_extents``/``rotation`` (3x3, rows the box's axes in world coordinates, or ``None``);
+    ``a``/``b``/``radius``; all in m).
     ``restitution`` is in [0, 1] (1: elastic), ``friction`` the Coulomb coefficient (>= 0). ``label`` names the
     entry in messages (``[[world.obstacles]] #2``).
     """
@@ -748,18 +749,17 @@ class Scene:
             sims.append(sim)
             free_masks.append(free)
         if self.world.force is not None and any(c != 0.0 for c in self.world.force):
-            for sim, f in zip(sims, _distribute_force(self.world.force, sims, free_masks, where)):
+            for sim, f in zip(sims, _distribute_force(self.world.force, sims, free_masks)):
                 sim.set_external_forces(f)
         return sims
 
 
-def _distribute_force(force: Vec3, sims: Sequence[Any], free_masks: Sequence[np.ndarray], where: str) -> list:
+def _distribute_force(force: Vec3, sims: Sequence[Any], free_masks: Sequence[np.ndarray]) -> list:
     """Per-body (m, 3) force arrays (N) that spread the total ``force`` (N) over the free vertices of all bodies
     in proportion to their masses: ``f_i = m_i force / m_free``."""
     masses = [_vertex_masses(np.asarray(s.masses), len(free)) for s, free in zip(sims, free_masks)]
+    # > 0: fepr.Simulation rejects a body whose vertices are all pinned.
     m_free = float(sum(float(w[free].sum()) for w, free in zip(masses, free_masks)))
-    if m_free <= 0.0:
-        raise ConfigError(f"{where}[world] force: every vertex is pinned, so no vertex can carry the force")
     a = np.asarray(force, dtype=np.float64) / m_free
     out = []
     for w, free in zip(masses, free_masks):
@@ -1222,7 +1222,8 @@ def _parse_obstacles(raw: Any, where: str) -> Tuple[ObstacleSettings, ...]:
                     r = _rotation(t.data["rotate"])
                 except ConfigError as exc:
                     raise t.error(str(exc)) from None
-                rotation = tuple(tuple(float(c) for c in row) for row in r)
+                # fepr.Box takes the box's local axes in world coordinates as rows: the columns of R.
+                rotation = tuple(tuple(float(c) for c in row) for row in np.asarray(r).T)
             geometry["rotation"] = rotation
         else:  # capsule
             geometry["a"] = t.vec3("a")

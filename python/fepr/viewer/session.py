@@ -4,12 +4,14 @@ publishes snapshots (positions and a time series of energies and momenta) for th
 
 No viser here: the session is plain Python and testable on its own.
 
-Drag spring. While a vertex ``i`` is dragged towards an anchor ``a`` (m), every step first applies the impulse of
-the spring force ``F = k (a - x_i)`` (N) over the step, ``dv_i = h F / m_i``, by assigning the velocities; the
-simulation then resets its projection references to that state, so FEPR conserves the energy *including* the
-spring's work. The work of each impulse, ``W = m_i/2 (|v_i + dv_i|^2 - |v_i|^2)`` (J), is summed in
-:attr:`Snapshot.drag_work`: the step's energy budget. The stiffness is ``k = min(20 M, m_i / (2 h^2))`` (N/m,
-M the total mass), below the explicit stability limit of the spring alone.
+Drag spring. While a vertex ``i`` is dragged towards an anchor ``a`` (m), the simulation carries a spring
+(:meth:`fepr.Simulation.set_drag`): a force ``F = k (a - x_i)`` (N), evaluated at the start of each step and
+applied by the integrator like any external force. Its work ``W = F . (x_i* - x_i)`` (J, ``x_i*`` the base
+step's result) enters the step's energy budget (history column ``work_forces``), so FEPR conserves the energy
+*including* the spring's work instead of undoing the pull; :attr:`Snapshot.drag_work` sums ``work_forces`` over
+the steps taken while dragging (with a constant scene ``force``, its work in those steps is included). Releasing calls
+:meth:`fepr.Simulation.clear_drag`. The stiffness is ``k = min(20 M, m_i / (2 h^2))`` (N/m, M the total mass),
+below the explicit stability limit of the spring alone. Pinned vertices cannot be dragged.
 """
 
 from __future__ import annotations
@@ -224,6 +226,7 @@ class ViewerSession:
             self._sim.positions = x
             self._sim.velocities = v
             self._t_offset = t
+        self._sync_drag()
         self._wall0 = time.perf_counter() - self._sim_time
 
     def _apply_commands(self) -> None:
@@ -268,42 +271,45 @@ class ViewerSession:
             elif kind == "drag":
                 i, anchor = value
                 self._drag = (int(i), anchor)
+                self._sync_drag()
                 self._log(f"drag: vertex {i}")
             elif kind == "anchor":
                 if self._drag is not None:
                     self._drag = (self._drag[0], value)
+                    self._sync_drag()
             elif kind == "release":
                 if self._drag is not None:
                     self._log(f"drag released: work {self._drag_work:.6g} J")
                 self._drag = None
+                self._sync_drag()
         if changed:
             self._publish()
 
-    def _apply_drag(self) -> None:
-        """Impulse of the drag spring over one step; adds its work to the budget (see the module docstring)."""
-        if self._drag is None:
-            return
-        i, anchor = self._drag
+    def _drag_stiffness(self, i: int) -> float:
+        """``k = min(20 M, m_i / (2 h^2))``, N/m (see the module docstring)."""
         sim = self._sim
-        if bool(sim.pinned[i]):
-            return
-        x = sim.positions
-        v = sim.velocities
-        m_i = float(sim.masses[i])
         h = float(sim.dt)
-        k = min(20.0 * float(sim.total_mass), 0.5 * m_i / (h * h))
-        force = k * (anchor - x[i])
-        dv = h * force / m_i
-        before = 0.5 * m_i * float(v[i] @ v[i])
-        v[i] = v[i] + dv
-        self._drag_work += 0.5 * m_i * float(v[i] @ v[i]) - before
-        sim.velocities = v
+        return min(20.0 * float(sim.total_mass), 0.5 * float(sim.masses[i]) / (h * h))
+
+    def _dragged(self) -> Optional[int]:
+        """The vertex the spring pulls now (None: no drag, or a pinned vertex)."""
+        if self._drag is None or bool(self._sim.pinned[self._drag[0]]):
+            return None
+        return self._drag[0]
+
+    def _sync_drag(self) -> None:
+        """Give the simulation the session's drag spring (or release it)."""
+        i = self._dragged()
+        if i is None:
+            self._sim.clear_drag()
+        else:
+            self._sim.set_drag(i, self._drag[1], self._drag_stiffness(i))
 
     def _advance(self) -> None:
         sim = self._sim
         t0 = time.perf_counter()
+        dragging = self._dragged() is not None
         try:
-            self._apply_drag()
             sim.step(1)
         except (SimulationError, ConfigError) as exc:
             self._error = str(exc)
@@ -313,6 +319,8 @@ class ViewerSession:
             return
         if self._pending_steps:
             self._pending_steps -= 1
+        if dragging:  # the spring's work, as the simulation put it into this step's budget
+            self._drag_work += float(sim.history["work_forces"][-1])
         self._steps += 1
         self._sim_time += float(sim.dt)
         rep = sim.last_projection
