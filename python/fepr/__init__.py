@@ -23,6 +23,7 @@ from .materials import Arap, ConstraintNeoHookean, NeoHookean, StableNeoHookean
 from .mesh import TetMesh
 from .mesh_report import MeshInfo, mesh_info
 from .mesher import tetrahedralize
+from .multibody import MultiBody
 from .simulation import (
     Energy,
     History,
@@ -56,6 +57,7 @@ __all__ = [
     "MeshError",
     "MeshInfo",
     "MissingDependencyError",
+    "MultiBody",
     "NeoHookean",
     "Projection",
     "ProjectionReport",

@@ -103,7 +103,7 @@ impl Obstacle {
                 for i in 0..3 {
                     for j in 0..3 {
                         let d = dot(axes[i], axes[j]) - if i == j { 1.0 } else { 0.0 };
-                        if !(d.abs() < 1e-6) {
+                        if d.abs() >= 1e-6 || d.is_nan() {
                             return Err(invalid(
                                 "box rotation",
                                 format!(
@@ -307,6 +307,35 @@ pub fn resolve_contacts(
         }
     }
     report
+}
+
+/// Append to `out` the free vertices not in `touched` (sorted) that lie within `2 h |v_i|` plus a thousandth
+/// of the body's size of an obstacle: the projection freezes their positions too, so that it cannot push a
+/// vertex that is about to touch into the obstacle.
+pub fn near_obstacles(
+    obstacles: &[Obstacle],
+    model: &Model,
+    state: &State,
+    h: f64,
+    out: &mut Vec<u32>,
+) {
+    if obstacles.is_empty() {
+        return;
+    }
+    let n_touched = out.len();
+    let floor = 1e-3 * model.length_scale;
+    for i in 0..model.num_vertices() {
+        if model.pinned[i] || out[..n_touched].binary_search(&(i as u32)).is_ok() {
+            continue;
+        }
+        let margin = floor + 2.0 * h * crate::linalg::norm(state.v[i]);
+        if obstacles
+            .iter()
+            .any(|ob| ob.signed_distance(state.x[i]).0 < margin)
+        {
+            out.push(i as u32);
+        }
+    }
 }
 
 /// Deepest penetration of a free vertex into any obstacle, m (0 when none penetrates).

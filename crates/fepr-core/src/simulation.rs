@@ -8,7 +8,7 @@ use crate::integrators::{Integrator, StepReport};
 use crate::invariants::{center_of_mass, measure, Invariants};
 use crate::linalg::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, State};
-use crate::obstacles::{max_penetration, resolve_contacts, Obstacle};
+use crate::obstacles::{max_penetration, near_obstacles, resolve_contacts, Obstacle};
 use crate::projection::{ProjectionReport, Projector, Targets};
 use crate::world::{Drag, KinematicPins, Work, World};
 
@@ -266,9 +266,13 @@ impl Simulation {
         let h = self.dt;
         let t_next = self.state.time + h;
         let t0 = Instant::now();
-        let mut work = Work::default();
-        // Kinematic pins move to their end-of-step path first (a Dirichlet condition at t_{n+1}).
-        work.pins += self.world.pin_work_half(&self.model, &self.state, t_next);
+        // Kinematic pins move to their end-of-step path first (a Dirichlet condition at t_{n+1}), with the free
+        // vertices held: that is their work. The base step then moves the free vertices with the pins held
+        // there, which conserves H (to the integrator's accuracy, and exactly with the projection).
+        let mut work = Work {
+            pins: self.world.pin_work(&self.model, &self.state, t_next),
+            ..Default::default()
+        };
         if self.world.has_pins() {
             let (x, v) = (&mut self.state.x, &mut self.state.v);
             self.world.place_pins(x, v, t_next);
@@ -312,7 +316,6 @@ impl Simulation {
             // The torque of the forces about the centre of mass, at the start of the step (the kick's moment).
             report.angular_impulse = add(report.angular_impulse, force_torque);
         }
-        let base_ms;
         let mut contacts = 0;
         self.contact_vertices.clear();
         if self.state.is_finite() {
@@ -328,6 +331,13 @@ impl Simulation {
                 &mut self.contact_vertices,
                 &mut self.contact_dv,
             );
+            near_obstacles(
+                &self.world.obstacles,
+                &self.model,
+                &self.state,
+                h,
+                &mut self.contact_vertices,
+            );
             if c.contacts > 0 {
                 contacts = c.contacts;
                 work.contact = c.work;
@@ -335,30 +345,9 @@ impl Simulation {
                 report.angular_impulse = add(report.angular_impulse, c.angular_impulse);
                 report.impulsive = true;
             }
-            // The second half of the pins' work, at the free vertices' end-of-step state.
-            if self.world.has_pins() {
-                let mut back = std::mem::take(&mut self.world.scratch_x);
-                let mut back_v = Vec::new();
-                back.clone_from(&self.state.x);
-                back_v.clone_from(&self.state.v);
-                // Pins at their start positions and velocities (those of the previous state).
-                for p in &self.world.pins {
-                    for &i in &p.vertices {
-                        back[i] = self.previous.x[i];
-                        back_v[i] = self.previous.v[i];
-                    }
-                }
-                let start = State {
-                    x: back,
-                    v: back_v,
-                    time: self.previous.time,
-                };
-                work.pins += self.world.pin_work_half(&self.model, &start, t_next);
-                self.world.scratch_x = start.x;
-            }
         }
         report.energy_budget = work.total();
-        base_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let base_ms = t0.elapsed().as_secs_f64() * 1e3;
         let step = self.num_steps() + 1;
         if !self.state.is_finite() {
             std::mem::swap(&mut self.state, &mut self.previous);
@@ -372,7 +361,17 @@ impl Simulation {
                 step - 1
             )));
         }
-        let targets = self.targets(&report);
+        let mut targets = self.targets(&report);
+        if has_forces && !report.impulsive {
+            // The work of the forces' resultant belongs to the centre of mass's path, which the projection
+            // puts on the exact target (uniform fields: exactly F . (C_target - C_n)), not on the base
+            // step's own centre of mass: symplectic Euler's path would add h^2 |F|^2 / (2 m) per step.
+            let c_star = center_of_mass(&self.model.masses, self.model.total_mass, &self.state.x);
+            let correction = dot(force_impulse, sub(targets.center_of_mass, c_star)) / h;
+            work.forces += correction;
+            report.energy_budget += correction;
+            targets.energy += correction;
+        }
         let t1 = Instant::now();
         let (projection, inv, base_total) = match self.projector.as_mut() {
             Some(p) => {
@@ -409,6 +408,17 @@ impl Simulation {
         };
         let scale_h = targets.energy.abs().max(targets.energy_scale);
         let base_energy_error = (base_total - targets.energy).abs() / scale_h;
+        if contacts > 0 && projection.is_some_and(|p| !p.converged) {
+            // A body resting on an obstacle is in static equilibrium: H is stationary there (forces and
+            // velocities vanish), so no small correction can change it and the projection cannot converge.
+            // The energy the contact resolution left (its position correction against gravity) is then
+            // booked as contact work, so the bookkeeping H_n = H_0 + sum W stays exact and the next step
+            // does not chase an unreachable target.
+            let residual = inv.total - targets.energy;
+            work.contact += residual;
+            report.energy_budget += residual;
+            targets.energy = inv.total;
+        }
         // The references advance to this step's targets even when the projection did not converge: a failed
         // step does not lower the bar (re-basing on the measured state would make a one-step failure a
         // permanent loss of energy); the next projection starts from the fallback state and tries again.

@@ -8,9 +8,11 @@
 //! - external forces: a velocity kick `h f / m` before the base step (for symplectic Euler, backward Euler
 //!   and Projective Dynamics this is exactly the force term in their equations); work `sum f . (x* - x_n)`,
 //!   exact for a force constant over the step;
-//! - kinematic pins: moved to their path before the base step, their velocity set after it; the work is the
-//!   change of H caused by moving them, averaged over the start and the end state of the free vertices (second
-//!   order, and exactly 0 for static pins);
+//! - kinematic pins: moved to their end-of-step path before the base step (every integrator then holds them
+//!   there), their velocity set after it; the work is the change of H caused by moving them with the free
+//!   vertices held at the start of the step. This splitting matches what the integrators do (the free
+//!   vertices then move with the pins fixed at their new place), so the energy balance has no drift from
+//!   the bookkeeping itself; it is exactly 0 for static pins;
 //! - damping: an operator on the velocities after the base step; its work is the kinetic energy it removes;
 //! - contact ([`crate::obstacles`]): after damping.
 
@@ -369,9 +371,9 @@ impl World {
         e
     }
 
-    /// Half of the pins' work: the change of H when the pins move from where `state` has them to their
-    /// positions and velocities at time `t`, with the free vertices held at `state`.
-    pub(crate) fn pin_work_half(&mut self, model: &Model, state: &State, t: f64) -> f64 {
+    /// The pins' work: the change of H when the pins move from where `state` has them to their positions
+    /// and velocities at time `t`, with the free vertices held at `state`.
+    pub(crate) fn pin_work(&mut self, model: &Model, state: &State, t: f64) -> f64 {
         if self.pins.is_empty() {
             return 0.0;
         }
@@ -384,7 +386,7 @@ impl World {
         let after = self.pin_energy(model, &x, &v);
         self.scratch_x = x;
         self.scratch_v = v;
-        0.5 * (after - before)
+        after - before
     }
 
     /// Put the kinematic vertices at their path's position and velocity at time `t`.

@@ -29,6 +29,9 @@ use fepr_core::world::{Drag, KinematicPins, PinMotion};
 use fepr_core::xpbd::{Xpbd, XpbdSettings};
 use fepr_core::FeprError;
 
+/// A kinematic pin group from Python: `(vertices, motion kind, motion parameters, keyframe times)`.
+type PinGroupArgs = (Vec<usize>, String, Vec<f64>, Vec<f64>);
+
 fn value_error(e: FeprError) -> PyErr {
     PyValueError::new_err(e.to_string())
 }
@@ -669,10 +672,7 @@ impl Simulation {
 
     /// Kinematic pin groups `(vertices, kind, params, times)`: `"sinusoid"` params [amplitude (3), frequency
     /// Hz, phase rad]; `"keyframes"` params = offsets flattened (k * 3, m) with `times` (k, s).
-    fn set_kinematic_pins(
-        &mut self,
-        groups: Vec<(Vec<usize>, String, Vec<f64>, Vec<f64>)>,
-    ) -> PyResult<()> {
+    fn set_kinematic_pins(&mut self, groups: Vec<PinGroupArgs>) -> PyResult<()> {
         let mut pins = Vec::with_capacity(groups.len());
         for (k, (vertices, kind, p, times)) in groups.into_iter().enumerate() {
             let motion = match kind.as_str() {
