@@ -309,16 +309,12 @@ pub fn resolve_contacts(
     report
 }
 
-/// Append to `out` the free vertices not in `touched` (sorted) that lie within `2 h |v_i|` plus a thousandth
-/// of the body's size of an obstacle: the projection freezes their positions too, so that it cannot push a
-/// vertex that is about to touch into the obstacle.
-pub fn near_obstacles(
-    obstacles: &[Obstacle],
-    model: &Model,
-    state: &State,
-    h: f64,
-    out: &mut Vec<u32>,
-) {
+/// Append to `out` the free vertices not already in it (sorted) that lie within a thousandth of the body's
+/// size of an obstacle: the projection freezes their positions too, so that its (small) position correction
+/// cannot push a vertex that touches the surface into the obstacle. Vertices further out are left free: the
+/// next step's contact resolution catches them, and freezing a whole approaching face would leave the
+/// projection too few positions to work with.
+pub fn near_obstacles(obstacles: &[Obstacle], model: &Model, state: &State, out: &mut Vec<u32>) {
     if obstacles.is_empty() {
         return;
     }
@@ -328,10 +324,9 @@ pub fn near_obstacles(
         if model.pinned[i] || out[..n_touched].binary_search(&(i as u32)).is_ok() {
             continue;
         }
-        let margin = floor + 2.0 * h * crate::linalg::norm(state.v[i]);
         if obstacles
             .iter()
-            .any(|ob| ob.signed_distance(state.x[i]).0 < margin)
+            .any(|ob| ob.signed_distance(state.x[i]).0 < floor)
         {
             out.push(i as u32);
         }

@@ -335,7 +335,6 @@ impl Simulation {
                 &self.world.obstacles,
                 &self.model,
                 &self.state,
-                h,
                 &mut self.contact_vertices,
             );
             if c.contacts > 0 {
