@@ -54,8 +54,9 @@ if __name__ == "__main__":
         ("implicit_euler", 0.01, 1.0, False),
     ]:
         r = run(integ, dt, e, proj)
+        conv = "-" if r["converged"] is None else f"{r['converged']:.0%}"
         print(
             f"| {integ} | {dt:g} | {e} | {'on' if proj else 'off'} | {r['peaks']} | {r['H_end/H0']:.6f} | "
             f"{r['max|H-H0-W|/H0']:.1e} | {r['budget_total/H0']:.4f} | {r['max_penetration_m']:.1e} | "
-            f"{'-' if r['converged'] is None else f'{r[\"converged\"]:.0%}'} | {r['ms_per_step']:.2f} |"
+            f"{conv} | {r['ms_per_step']:.2f} |"
         )
