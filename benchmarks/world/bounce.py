@@ -45,7 +45,10 @@ def run(integrator, dt, restitution, projection, seconds=4.0):
 
 
 if __name__ == "__main__":
-    print("| integrator | dt (s) | restitution | FEPR | CoM peak heights (m; drop from 0.5) | H_end/H0 | max abs(H-H0-W)/H0 | W_total/H0 | max penetration (m) | converged | ms/step |")
+    print(
+        "| integrator | dt (s) | restitution | FEPR | CoM peak heights (m; drop from 0.5) | H_end/H0 | "
+        "max abs(H-H0-W)/H0 | W_total/H0 | max penetration (m) | converged | ms/step |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for integ, dt, e, proj in [
         ("symplectic_euler", 2.5e-4, 1.0, True),
