@@ -220,8 +220,8 @@ pub struct ContactReport {
 }
 
 /// Resolve contacts of the free vertices of `state` (the base step's result for step size `h`) with the
-/// obstacles. Each vertex found inside an obstacle is moved out along the normal (its penetration mirrored
-/// by `1 + restitution` when it was moving in, onto the surface otherwise), its normal velocity is reflected
+/// obstacles. Each vertex found inside an obstacle is moved out along the normal onto the surface, its
+/// normal velocity is reflected
 /// with the restitution, and Coulomb friction reduces its tangential velocity by at most `friction` times the
 /// normal velocity change (static friction stops it); the tangential position follows the corrected
 /// velocity over the step. The indices of the vertices touched are appended to `touched`.
@@ -271,14 +271,10 @@ pub fn resolve_contacts(
                 vt
             };
             state.v[i] = add(scale(n, vn + dvn), vt_new);
-            // Out of the solid: a vertex moving in is reflected (a free particle's exact bounce for
-            // restitution 1), one already moving out is put on the surface.
-            let push = if vn < 0.0 {
-                -(1.0 + ob.restitution) * phi
-            } else {
-                -phi
-            };
-            let mut x = add(state.x[i], scale(n, push));
+            // Out of the solid, onto the surface. (Mirroring the penetration, a free particle's exact bounce,
+            // moves a vertex by twice the depth; at the large steps of implicit integrators that is a large
+            // fraction of an element and puts spikes of elastic energy into the body.)
+            let mut x = sub(state.x[i], scale(n, phi));
             x = add(x, scale(sub(vt_new, vt), h));
             // The tangential move can re-enter a curved or corner surface: put it back on the surface.
             let (phi2, n2) = ob.signed_distance(x);
