@@ -12,7 +12,7 @@
 use rayon::prelude::*;
 
 use crate::elasticity::deformation_gradient;
-use crate::linalg::{symmetric_eigen, Vec3};
+use crate::linalg::{symmetric_eigen_fixed, Vec3};
 use crate::material::{Hyperelastic, StressDerivative};
 use crate::model::Model;
 use crate::sparse::LowerPattern;
@@ -68,8 +68,7 @@ pub fn project_psd(d: &StressDerivative) -> StressDerivative {
     if is_positive_definite(d) {
         return *d;
     }
-    let flat: Vec<f64> = d.iter().flatten().copied().collect();
-    let (w, v) = symmetric_eigen(&flat, 9);
+    let (w, v) = symmetric_eigen_fixed(d);
     if w.iter().all(|x| *x >= 0.0) {
         return *d;
     }
@@ -79,9 +78,9 @@ pub fn project_psd(d: &StressDerivative) -> StressDerivative {
             continue;
         }
         for i in 0..9 {
-            let vi = v[i * 9 + k] * wk;
+            let vi = v[i][k] * wk;
             for j in 0..9 {
-                out[i][j] += vi * v[j * 9 + k];
+                out[i][j] += vi * v[j][k];
             }
         }
     }
@@ -91,10 +90,11 @@ pub fn project_psd(d: &StressDerivative) -> StressDerivative {
 /// Element Hessian of tet `e` at positions `x`; `psd` projects `dP/dF` to positive semi-definite first.
 pub fn element_hessian(model: &Model, x: &[Vec3], e: usize, psd: bool) -> ElementMatrix {
     let f = deformation_gradient(model, x, e);
-    let mut d = model.material.stress_derivative(&f);
-    if psd {
-        d = project_psd(&d);
-    }
+    let d = if psd {
+        model.material.stress_derivative_psd(&f)
+    } else {
+        model.material.stress_derivative(&f)
+    };
     let g = shape_gradients(model, e);
     let vol = model.rest.volume[e];
     // t[3i+j][3b+k] = sum_l D[3i+j][3k+l] g_b[l]
@@ -259,6 +259,7 @@ impl HessianAssembler {
 mod tests {
     use super::*;
     use crate::elasticity::{elastic_energy_gradient, ElasticWorkspace};
+    use crate::linalg::symmetric_eigen;
     use crate::material::{Material, NeoHookean, StableNeoHookean};
     use crate::mesh::{tests::cube, MassSpec, TetMesh};
     use crate::model::ModelBuilder;

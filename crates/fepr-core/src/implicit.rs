@@ -5,9 +5,15 @@
 //! v_{n+1} = (x_{n+1} - x_n) / h
 //! ```
 //!
-//! solved by Newton's method with element Hessians projected to positive semi-definite, a sparse Cholesky
-//! factorisation whose symbolic analysis is done once per model (mesh and pin set) and reused for every
-//! numeric factorisation, and a backtracking (Armijo) line search. Pinned degrees of freedom are eliminated.
+//! solved by Newton's method, a sparse Cholesky factorisation whose symbolic analysis is done once per model
+//! (mesh and pin set) and reused for every numeric factorisation, and a backtracking (Armijo) line search.
+//! Pinned degrees of freedom are eliminated. Each iteration first factorises the exact Hessian
+//! `M/h^2 + d2E_el`; only when that is not positive definite are the element Hessians projected to positive
+//! semi-definite (and the matrix refactorised). The projected Hessian always gives a descent direction, but it
+//! is not the Hessian: where many elements are compressed (typically after FEPR has put the dissipated energy
+//! back), projected Newton converges only linearly (about 0.8 per iteration on the 0.5 m bunny, so 20
+//! iterations reached a relative decrement of 1e-3 to 1e-2), while the exact Hessian, positive definite
+//! thanks to the mass term in most iterations, converges quadratically near the solution.
 //! Backward Euler is unconditionally stable but numerically dissipative: FEPR on top restores the energy.
 
 use crate::elasticity::{elastic_energy, elastic_energy_gradient, ElasticWorkspace};
@@ -26,7 +32,8 @@ pub struct NewtonSettings {
     pub tolerance: f64,
     /// Maximum Newton iterations per step (default 20).
     pub max_iterations: usize,
-    /// Project element Hessians to positive semi-definite (default true; false only for tests).
+    /// Project element Hessians to positive semi-definite when the exact Hessian is not positive definite
+    /// (default true; false only for tests: then a failed factorisation ends the step).
     pub project_psd: bool,
 }
 
@@ -74,6 +81,7 @@ pub struct ImplicitEuler {
     y: Vec<Vec3>,
     x_trial: Vec<Vec3>,
     rhs: Vec<f64>,
+    neg_grad: Vec<f64>,
 }
 
 impl ImplicitEuler {
@@ -177,18 +185,20 @@ impl Integrator for ImplicitEuler {
         for it in 0..self.settings.max_iterations {
             let (phi, phi_magnitude) = self.objective_gradient(model, &x, h);
             let asm = self.assembler.as_mut().expect("initialised above");
-            asm.assemble(
-                model,
-                &x,
-                1.0 / (h * h),
-                self.settings.project_psd,
-                &mut self.values,
-            );
             let Some(chol) = self.cholesky.as_mut() else {
                 break;
             };
+            // The exact Hessian first: when the mass term keeps it positive definite, Newton converges
+            // quadratically; only when its factorisation fails are the element Hessians projected.
+            asm.assemble(model, &x, 1.0 / (h * h), false, &mut self.values);
             if chol.factorize(&self.values).is_err() {
-                break; // not positive definite (only without PSD projection): keep the current iterate
+                if !self.settings.project_psd {
+                    break; // not positive definite: keep the current iterate
+                }
+                asm.assemble(model, &x, 1.0 / (h * h), true, &mut self.values);
+                if chol.factorize(&self.values).is_err() {
+                    break;
+                }
             }
             let n = asm.ndof();
             self.rhs.clear();
@@ -200,10 +210,11 @@ impl Integrator for ImplicitEuler {
                     }
                 }
             }
-            let neg_grad = self.rhs.clone();
+            self.neg_grad.clone_from(&self.rhs);
             chol.solve_in_place(&mut self.rhs, 1);
             // Newton decrement squared: g^T H^-1 g = -g . dx.
-            let dec: f64 = neg_grad
+            let dec: f64 = self
+                .neg_grad
                 .iter()
                 .zip(&self.rhs)
                 .map(|(g, d)| g * d)

@@ -312,28 +312,200 @@ mod tests {
     }
 }
 
-/// Polar decomposition `F = R S` with `R` a rotation (det +1) and `S` symmetric, via the eigen-decomposition
-/// of `F^T F` (`F = U Sigma V^T`, `R = U V^T`). For inverted `F` (det < 0) the smallest singular value takes
-/// the sign, so that `R` stays a rotation (the closest rotation in the Frobenius norm). Returns `(R, S)`.
-pub fn polar_rotation(f: &Mat3) -> (Mat3, Mat3) {
-    let ftf = matmul(&transpose(f), f);
-    let flat: Vec<f64> = ftf.iter().flatten().copied().collect();
-    let (w, vflat) = symmetric_eigen(&flat, 3);
-    // Sort eigenpairs by decreasing eigenvalue.
+/// Maximum number of Jacobi sweeps of [`symmetric_eigen_fixed`]; convergence is quadratic, so a well-scaled
+/// 3x3 or 9x9 matrix needs 4 to 8; the cap only bounds pathological (non-finite) input.
+pub const JACOBI_MAX_SWEEPS: usize = 50;
+
+/// Cyclic Jacobi eigen-decomposition of a fixed-size symmetric matrix, without allocation: returns the
+/// eigenvalues (unsorted) and the eigenvectors as the columns of `v` (`a = v diag(w) v^T`). Only the upper
+/// triangle of `a` is read.
+///
+/// Rutishauser's variant (Numerical Recipes' `jacobi`): the diagonal is updated through accumulated
+/// corrections, and after the first sweeps an off-diagonal entry is set to zero when it is negligible
+/// against *both* diagonal entries it couples, so every eigenvalue is accurate relative to its own size
+/// (graded matrices such as `F^T F` of a nearly flat tet keep their small eigenvalues), not only relative
+/// to the largest. It stops when every off-diagonal entry is exactly zero, or after
+/// [`JACOBI_MAX_SWEEPS`] sweeps. Repeated eigenvalues need no special case (an orthonormal basis of the
+/// eigenspace is returned). Sequential, so the result does not depend on the thread count.
+pub fn symmetric_eigen_fixed<const N: usize>(a: &[[f64; N]; N]) -> ([f64; N], [[f64; N]; N]) {
+    let mut m = *a;
+    let mut v = [[0.0; N]; N];
+    let mut d = [0.0; N];
+    for i in 0..N {
+        v[i][i] = 1.0;
+        d[i] = m[i][i];
+    }
+    let mut b = d;
+    let mut z = [0.0; N];
+    #[inline(always)]
+    fn rot(g: f64, h: f64, s: f64, tau: f64) -> (f64, f64) {
+        (g - s * (h + g * tau), h + s * (g - h * tau))
+    }
+    for sweep in 0..JACOBI_MAX_SWEEPS {
+        let mut sm = 0.0;
+        for p in 0..N {
+            for q in (p + 1)..N {
+                sm += m[p][q].abs();
+            }
+        }
+        if sm == 0.0 || !sm.is_finite() {
+            break;
+        }
+        // Early sweeps skip the small entries (they shrink by themselves as the large ones are rotated).
+        let thresh = if sweep < 3 {
+            0.2 * sm / (N * N) as f64
+        } else {
+            0.0
+        };
+        for p in 0..N {
+            for q in (p + 1)..N {
+                let apq = m[p][q];
+                let g = 100.0 * apq.abs();
+                if sweep > 3 && d[p].abs() + g == d[p].abs() && d[q].abs() + g == d[q].abs() {
+                    m[p][q] = 0.0;
+                } else if apq.abs() > thresh {
+                    let hd = d[q] - d[p];
+                    let t = if hd.abs() + g == hd.abs() {
+                        apq / hd
+                    } else {
+                        let theta = 0.5 * hd / apq;
+                        let t = 1.0 / (theta.abs() + (1.0 + theta * theta).sqrt());
+                        if theta < 0.0 {
+                            -t
+                        } else {
+                            t
+                        }
+                    };
+                    let c = 1.0 / (1.0 + t * t).sqrt();
+                    let s = t * c;
+                    let tau = s / (1.0 + c);
+                    let hh = t * apq;
+                    z[p] -= hh;
+                    z[q] += hh;
+                    d[p] -= hh;
+                    d[q] += hh;
+                    m[p][q] = 0.0;
+                    for j in 0..p {
+                        (m[j][p], m[j][q]) = rot(m[j][p], m[j][q], s, tau);
+                    }
+                    for j in (p + 1)..q {
+                        (m[p][j], m[j][q]) = rot(m[p][j], m[j][q], s, tau);
+                    }
+                    for j in (q + 1)..N {
+                        (m[p][j], m[q][j]) = rot(m[p][j], m[q][j], s, tau);
+                    }
+                    for row in v.iter_mut() {
+                        (row[p], row[q]) = rot(row[p], row[q], s, tau);
+                    }
+                }
+            }
+        }
+        for i in 0..N {
+            b[i] += z[i];
+            d[i] = b[i];
+            z[i] = 0.0;
+        }
+    }
+    (d, v)
+}
+
+/// Eigen-decomposition of a symmetric 3x3 matrix ([`symmetric_eigen_fixed`]): eigenvalues sorted in
+/// decreasing order and the matching eigenvectors as the columns of a rotation (det +1).
+pub fn symmetric_eigen3(a: &Mat3) -> (Vec3, Mat3) {
+    let (w, vv) = symmetric_eigen_fixed(a);
+    // Sort by decreasing eigenvalue (a fixed 3-element network; NaN-safe: comparisons with NaN are false).
     let mut order = [0usize, 1, 2];
-    order.sort_by(|&a, &b| w[b].partial_cmp(&w[a]).unwrap_or(std::cmp::Ordering::Equal));
+    if w[order[0]] < w[order[1]] {
+        order.swap(0, 1);
+    }
+    if w[order[1]] < w[order[2]] {
+        order.swap(1, 2);
+    }
+    if w[order[0]] < w[order[1]] {
+        order.swap(0, 1);
+    }
     let mut v = [[0.0; 3]; 3];
-    let mut sigma = [0.0; 3];
+    let mut ws = [0.0; 3];
     for (c, &k) in order.iter().enumerate() {
-        sigma[c] = w[k].max(0.0).sqrt();
+        ws[c] = w[k];
         for r in 0..3 {
-            v[r][c] = vflat[r * 3 + k];
+            v[r][c] = vv[r][k];
         }
     }
     if det(&v) < 0.0 {
-        for r in 0..3 {
-            v[r][2] = -v[r][2];
+        for row in v.iter_mut() {
+            row[2] = -row[2];
         }
+    }
+    (ws, v)
+}
+
+/// Polar decomposition `F = R S` with `R` a rotation (det +1) and `S` symmetric. Returns `(R, S)`.
+///
+/// Fast path, for `det F > 0` and not nearly singular: Higham's scaled Newton iteration
+/// `X <- (g X + X^-T / g) / 2` (`X^-T = cof(X) / det X`, `g` the Frobenius-norm scaling, switched off near
+/// convergence), which converges quadratically to the rotation for any positive-determinant F and is
+/// insensitive to repeated singular values; it stops when an update changes X by less than 1e-8 (the error left,
+/// about its square, is then below round-off) and `S = sym(R^T F)`. Otherwise (inverted, nearly singular, or no
+/// convergence in 30 iterations) it falls back to [`polar_rotation_svd`]. Allocation-free.
+pub fn polar_rotation(f: &Mat3) -> (Mat3, Mat3) {
+    let scale2 = ddot(f, f);
+    let d0 = det(f);
+    // |det F| <= (|F|_F^2 / 3)^{3/2}; below 1e-9 of that, F is nearly singular (or inverted): use the SVD.
+    let bound = (scale2 / 3.0) * (scale2 / 3.0).sqrt();
+    if d0 > 1e-9 * bound && bound.is_finite() {
+        let mut x = *f;
+        let mut scaled = true;
+        for _ in 0..30 {
+            let c = cofactor(&x);
+            let dx = x[0][0] * c[0][0] + x[0][1] * c[0][1] + x[0][2] * c[0][2];
+            if dx <= 0.0 || !dx.is_finite() {
+                break;
+            }
+            let g = if scaled {
+                // g^2 = |X^-1|_F / |X|_F = |cof X|_F / (det X |X|_F)
+                ((ddot(&c, &c).sqrt() / dx) / ddot(&x, &x).sqrt()).sqrt()
+            } else {
+                1.0
+            };
+            let (a, b) = (0.5 * g, 0.5 / (g * dx));
+            let mut diff = 0.0;
+            for i in 0..3 {
+                for j in 0..3 {
+                    let nx = a * x[i][j] + b * c[i][j];
+                    let e = nx - x[i][j];
+                    diff += e * e;
+                    x[i][j] = nx;
+                }
+            }
+            if diff <= 1e-16 {
+                let rtf = matmul(&transpose(&x), f);
+                let mut s = [[0.0; 3]; 3];
+                for i in 0..3 {
+                    for j in 0..3 {
+                        s[i][j] = 0.5 * (rtf[i][j] + rtf[j][i]);
+                    }
+                }
+                return (x, s);
+            }
+            if diff <= 1e-4 {
+                scaled = false;
+            }
+        }
+    }
+    polar_rotation_svd(f)
+}
+
+/// Rotation-variant singular value decomposition `F = U diag(sigma) V^T` with `U`, `V` rotations (det +1),
+/// through the eigen-decomposition of `F^T F`: `sigma` in decreasing order of magnitude, and for inverted `F`
+/// (det < 0) the last singular value is negative; for singular `F` the missing directions of `U` complete a
+/// right-handed frame. Allocation-free. Returns `(U, sigma, V)`.
+pub fn svd3(f: &Mat3) -> (Mat3, Vec3, Mat3) {
+    let ftf = matmul(&transpose(f), f);
+    let (w, v) = symmetric_eigen3(&ftf);
+    let mut sigma = [0.0; 3];
+    for c in 0..3 {
+        sigma[c] = w[c].max(0.0).sqrt();
     }
     // U columns: F v_c / sigma_c for the two largest; the third completes a right-handed frame.
     let fv = matmul(f, &v);
@@ -361,14 +533,26 @@ pub fn polar_rotation(f: &Mat3) -> (Mat3, Mat3) {
         scale(p, 1.0 / norm(p))
     };
     let u2 = cross(u0, u1);
-    // det F < 0: the third singular value is negative in the rotation-variant SVD.
-    let s2 = dot(u2, col(&fv, 2));
-    sigma[2] = s2;
+    // Singular values from F V (not from the square roots of the eigenvalues of F^T F, which lose the small
+    // ones); det F < 0: the third singular value is negative in the rotation-variant SVD.
+    if n0 > 0.0 {
+        sigma[0] = n0;
+    }
+    sigma[1] = dot(u1, col(&fv, 1));
+    sigma[2] = dot(u2, col(&fv, 2));
     let u = [
         [u0[0], u1[0], u2[0]],
         [u0[1], u1[1], u2[1]],
         [u0[2], u1[2], u2[2]],
     ];
+    (u, sigma, v)
+}
+
+/// Polar decomposition through [`svd3`] (`R = U V^T`, `S = V diag(sigma) V^T`), defined for every F: for
+/// inverted `F` (det < 0) the smallest singular value takes the sign, so that `R` stays a rotation (the
+/// closest rotation in the Frobenius norm). Allocation-free. Returns `(R, S)`.
+pub fn polar_rotation_svd(f: &Mat3) -> (Mat3, Mat3) {
+    let (u, sigma, v) = svd3(f);
     let r = matmul(&u, &transpose(&v));
     let mut s = [[0.0; 3]; 3];
     for i in 0..3 {
@@ -401,6 +585,257 @@ mod polar_tests {
                     assert!((rs[i][j] - f[i][j]).abs() < 1e-10, "{f:?}: RS = {rs:?}");
                     assert!((rtr[i][j] - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12);
                     assert!((s[i][j] - s[j][i]).abs() < 1e-12);
+                }
+            }
+        }
+    }
+
+    /// xorshift64*: a deterministic generator for the randomised tests.
+    struct Rng(u64);
+    impl Rng {
+        fn uniform(&mut self) -> f64 {
+            self.0 ^= self.0 >> 12;
+            self.0 ^= self.0 << 25;
+            self.0 ^= self.0 >> 27;
+            ((self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 11) as f64) / (1u64 << 53) as f64 * 2.0
+                - 1.0
+        }
+    }
+
+    /// A random rotation of size N (Gram-Schmidt of a random matrix, twice for orthogonality).
+    fn random_orthogonal<const N: usize>(rng: &mut Rng) -> [[f64; N]; N] {
+        let mut q = [[0.0; N]; N];
+        for row in q.iter_mut() {
+            for x in row.iter_mut() {
+                *x = rng.uniform();
+            }
+        }
+        for _ in 0..2 {
+            for c in 0..N {
+                for k in 0..c {
+                    let d: f64 = (0..N).map(|r| q[r][c] * q[r][k]).sum();
+                    for r in 0..N {
+                        q[r][c] -= d * q[r][k];
+                    }
+                }
+                let n: f64 = (0..N).map(|r| q[r][c] * q[r][c]).sum::<f64>().sqrt();
+                for row in q.iter_mut() {
+                    row[c] /= n;
+                }
+            }
+        }
+        q
+    }
+
+    /// `Q diag(w) Q^T`, symmetrised exactly.
+    fn with_spectrum<const N: usize>(q: &[[f64; N]; N], w: &[f64; N]) -> [[f64; N]; N] {
+        let mut a = [[0.0; N]; N];
+        for i in 0..N {
+            for j in 0..=i {
+                let s: f64 = (0..N).map(|k| q[i][k] * w[k] * q[j][k]).sum();
+                a[i][j] = s;
+                a[j][i] = s;
+            }
+        }
+        a
+    }
+
+    fn sorted(mut w: Vec<f64>) -> Vec<f64> {
+        w.sort_by(|a, b| a.partial_cmp(b).unwrap());
+        w
+    }
+
+    /// Checks the fixed-size decomposition of `a` against its definition and the general Jacobi solver.
+    fn check_eigen<const N: usize>(a: &[[f64; N]; N], label: &str) {
+        let (w, v) = symmetric_eigen_fixed(a);
+        let norm_a = a.iter().flatten().map(|x| x * x).sum::<f64>().sqrt();
+        let tol = 1e-14 * norm_a.max(f64::MIN_POSITIVE);
+        for i in 0..N {
+            for j in 0..N {
+                let rec: f64 = (0..N).map(|k| v[i][k] * w[k] * v[j][k]).sum();
+                assert!(
+                    (rec - a[i][j]).abs() <= 4.0 * tol,
+                    "{label}: V W V^T [{i}][{j}]"
+                );
+                let vtv: f64 = (0..N).map(|k| v[k][i] * v[k][j]).sum();
+                let e = if i == j { 1.0 } else { 0.0 };
+                assert!(
+                    (vtv - e).abs() <= 1e-14,
+                    "{label}: V^T V [{i}][{j}] = {vtv}"
+                );
+            }
+        }
+        let flat: Vec<f64> = a.iter().flatten().copied().collect();
+        let (w_old, _) = symmetric_eigen(&flat, N);
+        for (x, y) in sorted(w.to_vec()).iter().zip(sorted(w_old)) {
+            assert!(
+                (x - y).abs() <= 4.0 * tol,
+                "{label}: eigenvalue {x} vs old {y}"
+            );
+        }
+    }
+
+    #[test]
+    fn fixed_size_eigen_matches_the_general_solver_on_random_and_degenerate_matrices() {
+        let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+        for trial in 0..200 {
+            let q3 = random_orthogonal::<3>(&mut rng);
+            let q9 = random_orthogonal::<9>(&mut rng);
+            let r = [rng.uniform(), rng.uniform(), rng.uniform()];
+            let spectra3 = [
+                r,                               // random
+                [r[0], r[0], r[1]],              // a repeated pair
+                [r[0], r[0], r[0]],              // a multiple of the identity (rotated)
+                [0.0, 0.0, r[0]],                // rank 1
+                [0.0, 0.0, 0.0],                 // zero
+                [1e12, 1.0, 1e-12],              // condition number 1e24
+                [1.0, 1.0 + 1e-13, 1.0 - 1e-13], // nearly repeated
+                [-2.0 * r[0].abs(), 1e-15, 3.0], // indefinite
+            ];
+            for (k, w) in spectra3.iter().enumerate() {
+                check_eigen(
+                    &with_spectrum(&q3, w),
+                    &format!("3x3 trial {trial} spectrum {k}"),
+                );
+            }
+            let mut w9 = [0.0; 9];
+            for x in w9.iter_mut() {
+                *x = rng.uniform();
+            }
+            check_eigen(&with_spectrum(&q9, &w9), &format!("9x9 random {trial}"));
+            // Neo-Hookean-like: a repeated block, zeros and negatives.
+            let w9 = [1.0, 1.0, 1.0, -0.3, -0.3, 0.0, 0.0, 5.0, 1e-9];
+            check_eigen(&with_spectrum(&q9, &w9), &format!("9x9 degenerate {trial}"));
+        }
+        // Already diagonal, and exactly zero: no rotation at all.
+        let (w, v) = symmetric_eigen_fixed(&[[2.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 0.0]]);
+        assert_eq!(w, [2.0, -1.0, 0.0]);
+        assert_eq!(v, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
+        let (w, _) = symmetric_eigen_fixed(&[[0.0; 9]; 9]);
+        assert_eq!(w, [0.0; 9]);
+    }
+
+    #[test]
+    fn fixed_size_eigen_keeps_small_eigenvalues_of_graded_matrices_accurate() {
+        // A = D H D with H well conditioned and D = diag(1e6, 1, 1e-6): the eigenvalues span 24 orders of
+        // magnitude and are each determined to relative accuracy by the entries; their product is det A.
+        let h = [[2.0, 0.5, 0.3], [0.5, 1.5, -0.2], [0.3, -0.2, 1.0]];
+        let dd = [1e6, 1.0, 1e-6];
+        let mut a = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                a[i][j] = dd[i] * h[i][j] * dd[j];
+            }
+        }
+        let (w, _) = symmetric_eigen3(&a);
+        let det_a = det(&h); // det(D)^2 = 1
+        let prod = w[0] * w[1] * w[2];
+        assert!(w[2] > 0.0 && w[2] < 1e-11, "{w:?}");
+        assert!((prod - det_a).abs() <= 1e-12 * det_a, "{prod} vs {det_a}");
+    }
+
+    /// `cond` = sigma_1 / (sigma_2 + sigma_3) (>= 1): the sensitivity of R to F.
+    fn check_polar(f: &Mat3, cond: f64, label: &str) -> (Mat3, Mat3) {
+        let (r, s) = polar_rotation(f);
+        let rs = matmul(&r, &s);
+        let rtr = matmul(&transpose(&r), &r);
+        let nf = ddot(f, f).sqrt();
+        assert!(
+            (det(&r) - 1.0).abs() < 1e-14,
+            "{label}: det R = {}",
+            det(&r)
+        );
+        for i in 0..3 {
+            for j in 0..3 {
+                let e = if i == j { 1.0 } else { 0.0 };
+                assert!((rtr[i][j] - e).abs() < 2e-15, "{label}: R^T R");
+                let err = (rs[i][j] - f[i][j]).abs();
+                assert!(err < 1e-14 * nf * cond, "{label}: RS - F = {err}");
+                assert!(
+                    (s[i][j] - s[j][i]).abs() < 1e-15 * nf,
+                    "{label}: S symmetric"
+                );
+            }
+        }
+        (r, s)
+    }
+
+    #[test]
+    fn polar_newton_path_matches_the_eigen_path() {
+        let mut rng = Rng(12345);
+        for trial in 0..500 {
+            let q = random_orthogonal::<3>(&mut rng);
+            let mut p = random_orthogonal::<3>(&mut rng);
+            if det(&p) < 0.0 {
+                p = [
+                    [-p[0][0], p[0][1], p[0][2]],
+                    [-p[1][0], p[1][1], p[1][2]],
+                    [-p[2][0], p[2][1], p[2][2]],
+                ];
+            }
+            let mut qq = q;
+            if det(&qq) < 0.0 {
+                qq = [
+                    [-q[0][0], q[0][1], q[0][2]],
+                    [-q[1][0], q[1][1], q[1][2]],
+                    [-q[2][0], q[2][1], q[2][2]],
+                ];
+            }
+            let r = [rng.uniform(), rng.uniform(), rng.uniform()];
+            let sigmas = [
+                [1.0 + 0.1 * r[0], 1.0 + 0.1 * r[1], 1.0 + 0.1 * r[2]], // within 10% of a rotation
+                [1.0, 1.0, 1.0],                                        // a pure rotation
+                [1.1, 1.1, 0.9],                                        // repeated singular values
+                [3.0 + r[0], 1.0, 1e-6],                                // nearly flat
+                [1e3, 1.0, 1e-3],                                       // condition 1e6
+                [1.0 + r[0].abs(), 0.5, 0.5 + 1e-13],                   // nearly repeated
+            ];
+            for (k, sg) in sigmas.iter().enumerate() {
+                // F = P diag(sigma) Q^T with P, Q rotations: R = P Q^T exactly.
+                let mut f = [[0.0; 3]; 3];
+                for i in 0..3 {
+                    for j in 0..3 {
+                        f[i][j] = (0..3).map(|m| p[i][m] * sg[m] * qq[j][m]).sum();
+                    }
+                }
+                let label = format!("trial {trial} sigma {k}");
+                // dR is bounded by eps |F| / (sigma_2 + sigma_3).
+                let cond = (sg[0] / (sg[1] + sg[2])).max(1.0);
+                let sens = 1e-14 * cond;
+                let (rn, sn) = check_polar(&f, cond, &label);
+                let (re, _) = polar_rotation_svd(&f);
+                let r_exact = matmul(&p, &transpose(&qq));
+                for i in 0..3 {
+                    for j in 0..3 {
+                        assert!(
+                            (rn[i][j] - r_exact[i][j]).abs() <= sens,
+                            "{label}: R vs exact"
+                        );
+                        // The eigen path works on F^T F (condition number squared): looser.
+                        let sens_eig = 1e-14 * (sg[0] / sg[2]).max(1.0);
+                        assert!(
+                            (re[i][j] - r_exact[i][j]).abs() <= sens_eig,
+                            "{label}: eigen path R vs exact {}",
+                            (re[i][j] - r_exact[i][j]).abs()
+                        );
+                    }
+                }
+                let (ws, _) = symmetric_eigen3(&sn);
+                assert!(ws[2] >= -1e-14 * sg[0], "{label}: S not PSD {ws:?}");
+            }
+        }
+        // Inverted and singular deformation gradients go through the eigen path and stay rotations.
+        for f in [
+            [[-0.9, 0.1, 0.0], [0.05, 1.0, 0.1], [0.0, 0.2, 0.9]],
+            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]],
+            [[0.0; 3]; 3],
+        ] {
+            let (r, s) = polar_rotation(&f);
+            assert!((det(&r) - 1.0).abs() < 1e-14);
+            let rs = matmul(&r, &s);
+            for i in 0..3 {
+                for j in 0..3 {
+                    assert!((rs[i][j] - f[i][j]).abs() < 1e-14);
                 }
             }
         }

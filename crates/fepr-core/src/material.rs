@@ -7,7 +7,10 @@
 //! Every material is gated by finite-difference tests of its stress and stress derivative (see `tests`).
 
 use crate::error::{invalid, Result};
-use crate::linalg::{cofactor, ddot, det, inverse, matmul, polar_rotation, transpose, Mat3};
+use crate::linalg::{
+    cofactor, ddot, det, inverse, matmul, polar_rotation, svd3, symmetric_eigen_fixed, transpose,
+    Mat3,
+};
 
 /// A 9x9 stress derivative `dP_ij / dF_kl` at `[3*i + j][3*k + l]`.
 pub type StressDerivative = [[f64; 9]; 9];
@@ -24,6 +27,12 @@ pub trait Hyperelastic {
     fn energy_and_stress(&self, f: &Mat3) -> (f64, Mat3);
     /// Stress derivative `dP/dF` (the energy density's Hessian with respect to F).
     fn stress_derivative(&self, f: &Mat3) -> StressDerivative;
+    /// `dP/dF` projected to positive semi-definite (negative eigenvalues clamped to zero). The default
+    /// eigen-decomposes the 9x9 matrix ([`crate::hessian::project_psd`]); materials with a known eigen-system
+    /// override it.
+    fn stress_derivative_psd(&self, f: &Mat3) -> StressDerivative {
+        crate::hessian::project_psd(&self.stress_derivative(f))
+    }
 }
 
 /// Lame parameters `(mu, lambda)` from Young's modulus and Poisson ratio, validated
@@ -49,28 +58,25 @@ pub fn lame_parameters(youngs_modulus: f64, poisson_ratio: f64) -> Result<(f64, 
     ))
 }
 
-/// `d cof(F)_ij / dF_kl = eps_ikn eps_jlq F_nq`: the (F-linear) second derivative of `det F`.
+/// `d cof(F)_ij / dF_kl = eps_ikn eps_jlq F_nq`: the (F-linear) second derivative of `det F`. Nonzero only
+/// for `i != k` and `j != l`, where `n` and `q` are the remaining indices (36 entries).
 fn cofactor_derivative(f: &Mat3) -> StressDerivative {
-    // Levi-Civita symbol of (a, b, c) in 0..3.
-    fn eps(a: usize, b: usize, c: usize) -> f64 {
-        ((a as i32 - b as i32) * (b as i32 - c as i32) * (c as i32 - a as i32)) as f64 / 2.0
-    }
+    // eps(a, b, 3 - a - b) for a != b: +1 for (0,1), (1,2), (2,0), -1 otherwise.
+    const SIGN: [[f64; 3]; 3] = [[0.0, 1.0, -1.0], [-1.0, 0.0, 1.0], [1.0, -1.0, 0.0]];
     let mut d = [[0.0; 9]; 9];
     for i in 0..3 {
-        for j in 0..3 {
-            for k in 0..3 {
+        for k in 0..3 {
+            if i == k {
+                continue;
+            }
+            let n = 3 - i - k;
+            for j in 0..3 {
                 for l in 0..3 {
-                    let mut s = 0.0;
-                    for n in 0..3 {
-                        let e1 = eps(i, k, n);
-                        if e1 == 0.0 {
-                            continue;
-                        }
-                        for q in 0..3 {
-                            s += e1 * eps(j, l, q) * f[n][q];
-                        }
+                    if j == l {
+                        continue;
                     }
-                    d[3 * i + j][3 * k + l] = s;
+                    let q = 3 - j - l;
+                    d[3 * i + j][3 * k + l] = SIGN[i][k] * SIGN[j][l] * f[n][q];
                 }
             }
         }
@@ -174,6 +180,66 @@ impl Hyperelastic for NeoHookean {
                 d[a][b] = dg * d[a][b] + ddg * c[a] * c[b];
             }
             d[a][a] += self.mu;
+        }
+        d
+    }
+
+    /// Analytic eigen-system (after Smith, de Goes, Kim 2019). With the rotation-variant SVD
+    /// `F = U diag(s) V^T` and the orthonormal basis `vec(U E_ij V^T)`, `dP/dF = mu I + g'(J) d2J + g''(J) c c^T`
+    /// (`c = cof F`) is block diagonal: for each pair `i < j` (`k` the third index) the twist
+    /// `(E_ij - E_ji)/sqrt 2` and flip `(E_ij + E_ji)/sqrt 2` modes have eigenvalues `mu + g' s_k` and
+    /// `mu - g' s_k`, and the diagonal modes span the 3x3 block
+    /// `mu I + g' [[0, s2, s1], [s2, 0, s0], [s1, s0, 0]] + g'' (s1 s2, s0 s2, s0 s1)(...)^T`.
+    /// The projection subtracts `lambda q q^T` for each negative eigenvalue, so an element that is already
+    /// positive semi-definite is returned unchanged.
+    fn stress_derivative_psd(&self, f: &Mat3) -> StressDerivative {
+        let mut d = self.stress_derivative(f);
+        let (_, dg, ddg) = self.volumetric(det(f));
+        let (u, s, v) = svd3(f);
+        // Adds `-lambda vec(U Q V^T) vec(U Q V^T)^T`.
+        let mut remove = |lambda: f64, q: &Mat3| {
+            let uq = matmul(&u, q);
+            let m = matmul(&uq, &transpose(&v));
+            let flat = flatten(&m);
+            for a in 0..9 {
+                let fa = -lambda * flat[a];
+                for b in 0..9 {
+                    d[a][b] += fa * flat[b];
+                }
+            }
+        };
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        for (i, j, k) in [(0, 1, 2), (0, 2, 1), (1, 2, 0)] {
+            for (sign, lambda) in [(-1.0, self.mu + dg * s[k]), (1.0, self.mu - dg * s[k])] {
+                if lambda < 0.0 {
+                    let mut q = [[0.0; 3]; 3];
+                    q[i][j] = h;
+                    q[j][i] = sign * h;
+                    remove(lambda, &q);
+                }
+            }
+        }
+        let c = [s[1] * s[2], s[0] * s[2], s[0] * s[1]];
+        let mut a3 = [
+            [0.0, dg * s[2], dg * s[1]],
+            [dg * s[2], 0.0, dg * s[0]],
+            [dg * s[1], dg * s[0], 0.0],
+        ];
+        for (i, row) in a3.iter_mut().enumerate() {
+            row[i] += self.mu;
+            for (j, x) in row.iter_mut().enumerate() {
+                *x += ddg * c[i] * c[j];
+            }
+        }
+        let (w, vecs) = symmetric_eigen_fixed(&a3);
+        for (n, &lambda) in w.iter().enumerate() {
+            if lambda < 0.0 {
+                let mut q = [[0.0; 3]; 3];
+                for (i, row) in q.iter_mut().enumerate() {
+                    row[i] = vecs[i][n];
+                }
+                remove(lambda, &q);
+            }
         }
         d
     }
@@ -440,6 +506,14 @@ impl Hyperelastic for Material {
             Material::ConstraintNeoHookean(m) => m.stress_derivative(f),
         }
     }
+    fn stress_derivative_psd(&self, f: &Mat3) -> StressDerivative {
+        match self {
+            Material::NeoHookean(m) => m.stress_derivative_psd(f),
+            Material::StableNeoHookean(m) => m.stress_derivative_psd(f),
+            Material::Arap(m) => m.stress_derivative_psd(f),
+            Material::ConstraintNeoHookean(m) => m.stress_derivative_psd(f),
+        }
+    }
 }
 
 #[cfg(test)]
@@ -476,6 +550,54 @@ mod tests {
         let mut g = *f;
         g[idx / 3][idx % 3] += h;
         g
+    }
+
+    #[test]
+    fn analytic_psd_projection_matches_the_eigen_decomposition() {
+        let mut cases = samples();
+        cases.extend([
+            // repeated singular values (compressed and stretched), a rotation, nearly singular, flat
+            [[0.8, 0.0, 0.0], [0.0, 0.8, 0.0], [0.0, 0.0, 1.3]],
+            [[1.1, 0.0, 0.0], [0.0, 1.1, 0.0], [0.0, 0.0, 1.1]],
+            [[0.0, -0.9, 0.0], [0.9, 0.0, 0.0], [0.0, 0.0, 0.95]],
+            [[1.0, 0.2, 0.0], [0.0, 1.0, 0.1], [0.0, 0.0, 1e-7]],
+            [[1.0, 0.2, 0.0], [0.0, 1.0, 0.1], [0.0, 0.0, 0.0]],
+            [[-0.3, 0.2, 0.1], [0.1, -0.4, 0.1], [0.05, 0.0, -0.2]],
+        ]);
+        for k in 0..40 {
+            let t = k as f64;
+            let (a, b, c) = ((0.7 * t).sin(), (1.3 * t).cos(), (0.4 * t).sin());
+            cases.push([
+                [1.0 + 0.5 * a, 0.3 * b, -0.2 * c],
+                [0.2 * c, 0.9 - 0.6 * b * c, 0.25 * a],
+                [-0.1 * a, 0.3 * c, 1.0 + 0.4 * b],
+            ]);
+        }
+        for m in [
+            NeoHookean::new(1e3, 0.3).unwrap(),
+            NeoHookean::with_j0(5e4, 0.45, 0.3).unwrap(),
+            NeoHookean::new(1e5, -0.5).unwrap(),
+        ] {
+            for f in &cases {
+                let analytic = m.stress_derivative_psd(f);
+                let reference = crate::hessian::project_psd(&m.stress_derivative(f));
+                let scale = reference
+                    .iter()
+                    .flatten()
+                    .fold(0.0f64, |s, v| s.max(v.abs()));
+                for r in 0..9 {
+                    for c in 0..9 {
+                        let err = (analytic[r][c] - reference[r][c]).abs();
+                        assert!(
+                            err <= 1e-11 * scale,
+                            "{m:?} F = {f:?}: [{r}][{c}] {} vs {} (err {err:e})",
+                            analytic[r][c],
+                            reference[r][c]
+                        );
+                    }
+                }
+            }
+        }
     }
 
     #[test]
