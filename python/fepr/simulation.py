@@ -108,7 +108,8 @@ class SymplecticEuler:
 class ImplicitEuler:
     """Backward Euler as minimisation of ``1/(2h^2)|x - x_n - h v_n|_M^2 + U(x)`` by Newton's method.
 
-    Element Hessians are projected to positive semi-definite, the sparse Cholesky symbolic analysis is done once
+    Each Newton iteration factorises the exact Hessian and falls back to element Hessians projected to positive
+    semi-definite only when that is not positive definite; the sparse Cholesky symbolic analysis is done once
     per simulation, and a backtracking line search keeps every step a descent. Unconditionally stable but
     numerically dissipative; FEPR on top restores the energy.
 
