@@ -25,6 +25,8 @@ pub struct StepReport {
     pub residual: f64,
     /// Line-search step halvings taken by the base step's solver.
     pub line_search_steps: usize,
+    /// Substeps the simulation split the step into for an impact (0: the step was not split).
+    pub substeps: usize,
 }
 
 /// A base time integrator.

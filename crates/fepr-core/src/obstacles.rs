@@ -217,6 +217,8 @@ pub struct ContactReport {
     pub impulse: Vec3,
     /// Angular impulse about the centre of mass after the contacts, kg m^2/s.
     pub angular_impulse: Vec3,
+    /// Deepest penetration resolved, m.
+    pub max_depth: f64,
 }
 
 /// Resolve contacts of the free vertices of `state` (the base step's result for step size `h`) with the
@@ -251,6 +253,7 @@ pub fn resolve_contacts(
             }
             hit = true;
             report.contacts += 1;
+            report.max_depth = report.max_depth.max(-phi);
             let v = state.v[i];
             let vn = dot(v, n);
             let vt = sub(v, scale(n, vn));

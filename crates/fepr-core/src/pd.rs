@@ -47,6 +47,8 @@ struct Prefactored {
     /// Coupling of free rows to pinned vertices: (free row, pinned vertex, coefficient).
     pinned_coupling: Vec<(usize, usize, f64)>,
     weights: Vec<f64>,
+    /// The step size the matrix `M / h^2 + L` was factorised for, s.
+    h: f64,
     grads: Vec<[Vec3; 4]>,
 }
 
@@ -159,6 +161,7 @@ impl ProjectiveDynamics {
             chol,
             pinned_coupling,
             weights,
+            h,
             grads,
         })
     }
@@ -185,6 +188,10 @@ impl Integrator for ProjectiveDynamics {
     }
 
     fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
+        // The matrix depends on h: refactorise when the simulation changes it (impact substeps).
+        if self.pre.as_ref().is_some_and(|p| p.h != h) {
+            self.pre = None;
+        }
         if self.pre.is_none() {
             match Self::prefactor(model, h) {
                 Ok(p) => {

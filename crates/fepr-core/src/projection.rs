@@ -73,9 +73,6 @@ pub const ROWS: usize = 10;
 /// Attempts per projection (the first plus restarts with frozen vertices, see [`ProjectionReport::restarts`]).
 const MAX_ATTEMPTS: usize = 3;
 
-/// Iterations in a row without a new best residual after which an attempt stops (see `project`).
-const STALL_LIMIT: usize = 4;
-
 /// Projection settings, with the defaults of fepr-spec section 3.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ProjectionSettings {
@@ -526,13 +523,7 @@ impl Projector {
             }
 
             if base_finite {
-                // Iterations in a row that did not improve on the best residual: on a stationary point of
-                // H (a body resting in static equilibrium) no step can, and iterating on costs for nothing.
-                let mut stalled = 0;
                 for _ in 0..self.settings.max_iterations {
-                    if stalled >= STALL_LIMIT {
-                        break;
-                    }
                     if max_scaled(&pb, &cur.c) <= tol {
                         // On the manifold; with new inversions, iterating further cannot help: restart.
                         report.converged = cur.el.inverted <= base_inverted;
@@ -591,7 +582,6 @@ impl Projector {
                     cur_norm = n;
                     s = s_new;
                     t = t_new;
-                    stalled = if n < best_norm { 0 } else { stalled + 1 };
                     if n < best_norm && cur.el.inverted <= base_inverted {
                         best_norm = n;
                         best_is_base = false;

@@ -12,6 +12,43 @@ use crate::obstacles::{max_penetration, near_obstacles, resolve_contacts, Obstac
 use crate::projection::{ProjectionReport, Projector, Targets};
 use crate::world::{Drag, KinematicPins, Work, World};
 
+/// Contact push-outs deeper than this fraction of the mean rest edge length make the step redo itself in
+/// substeps (see [`Simulation::step`]).
+const IMPACT_DEPTH_FRACTION: f64 = 0.1;
+const MAX_IMPACT_SUBSTEPS: usize = 16;
+
+/// What a step did before its projection (one or several [`Simulation::advance`] calls).
+#[derive(Clone, Copy, Debug, Default)]
+struct Advance {
+    report: StepReport,
+    work: Work,
+    contacts: usize,
+    max_depth: f64,
+    has_forces: bool,
+    force_impulse: Vec3,
+}
+
+impl Advance {
+    /// Accumulate a substep.
+    fn add(&mut self, a: &Advance) {
+        let (r, s) = (&mut self.report, &a.report);
+        r.impulse = add(r.impulse, s.impulse);
+        r.angular_impulse = add(r.angular_impulse, s.angular_impulse);
+        r.impulsive |= s.impulsive;
+        r.iterations += s.iterations;
+        r.residual = r.residual.max(s.residual);
+        r.line_search_steps += s.line_search_steps;
+        self.work.contact += a.work.contact;
+        self.work.damping += a.work.damping;
+        self.work.pins += a.work.pins;
+        self.work.forces += a.work.forces;
+        self.contacts += a.contacts;
+        self.max_depth = self.max_depth.max(a.max_depth);
+        self.has_forces |= a.has_forces;
+        self.force_impulse = add(self.force_impulse, a.force_impulse);
+    }
+}
+
 /// Resting-contact bound, relative to the step's energy scale: a non-converged contact step whose energy
 /// residual, or whose kinetic energy, is below it books the residual as contact work (a body resting in static
 /// equilibrium; see `Simulation::step`).
@@ -46,6 +83,18 @@ pub struct StepDiagnostics {
     /// Runaway detected: the base step's energy error exceeded 100% of the energy scale (an unstable step)
     /// and the projection (if any) did not converge back onto the targets.
     pub runaway: bool,
+}
+
+/// Mean length of the tets' edges in the rest shape, m (each edge counted once per tet).
+fn mean_edge_length(model: &Model) -> f64 {
+    let x = model.mesh.vertices();
+    let mut sum = 0.0;
+    for t in model.mesh.tets() {
+        for (a, b) in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)] {
+            sum += crate::linalg::norm(sub(x[t[a]], x[t[b]]));
+        }
+    }
+    sum / (6.0 * model.num_tets().max(1) as f64)
 }
 
 /// Running references (fepr-spec section 2): initial values advanced by every step's budget and impulses.
@@ -85,6 +134,8 @@ pub struct Simulation {
     contact_vertices: Vec<u32>,
     contact_dv: Vec<(u32, Vec3)>,
     x_start: Vec<Vec3>,
+    /// Mean rest edge length, m (the scale of an impact's push-out).
+    mean_edge: f64,
 }
 
 impl Simulation {
@@ -140,7 +191,9 @@ impl Simulation {
             contact_vertices: Vec::new(),
             contact_dv: Vec::new(),
             x_start: Vec::new(),
+            mean_edge: 0.0,
         };
+        sim.mean_edge = mean_edge_length(&sim.model);
         sim.reset_references();
         let inv = measure(&sim.model, &sim.state);
         sim.history.push(StepDiagnostics {
@@ -266,11 +319,11 @@ impl Simulation {
     /// Take one step: kinematic pins and external forces, the base integrator, damping and contact, then
     /// the projection (if enabled). On a non-finite state the step is undone and an error names the step
     /// (runaway of an unstable step size).
-    pub fn step(&mut self) -> Result<&StepDiagnostics> {
-        self.previous.clone_from(&self.state);
-        let h = self.dt;
+    /// Everything of a step before the projection, over `h` seconds from the current state: kinematic pins,
+    /// the force kick, the base step, damping and contact. Appends the vertices to freeze to
+    /// `contact_vertices`.
+    fn advance(&mut self, h: f64) -> Result<Advance> {
         let t_next = self.state.time + h;
-        let t0 = Instant::now();
         // Kinematic pins move to their end-of-step path first (a Dirichlet condition at t_{n+1}), with the free
         // vertices held: that is their work. The base step then moves the free vertices with the pins held
         // there, which conserves H (to the integrator's accuracy, and exactly with the projection).
@@ -322,7 +375,7 @@ impl Simulation {
             report.angular_impulse = add(report.angular_impulse, force_torque);
         }
         let mut contacts = 0;
-        self.contact_vertices.clear();
+        let mut max_depth = 0.0;
         if self.state.is_finite() {
             let (dw, imp, ang) = self.world.damp(&self.model, &mut self.state, h)?;
             work.damping += dw;
@@ -336,20 +389,75 @@ impl Simulation {
                 &mut self.contact_vertices,
                 &mut self.contact_dv,
             );
-            near_obstacles(
-                &self.world.obstacles,
-                &self.model,
-                &self.state,
-                &mut self.contact_vertices,
-            );
             if c.contacts > 0 {
                 contacts = c.contacts;
+                max_depth = c.max_depth;
                 work.contact = c.work;
                 report.impulse = add(report.impulse, c.impulse);
                 report.angular_impulse = add(report.angular_impulse, c.angular_impulse);
                 report.impulsive = true;
             }
         }
+        report.energy_budget = work.total();
+        Ok(Advance {
+            report,
+            work,
+            contacts,
+            max_depth,
+            has_forces,
+            force_impulse,
+        })
+    }
+
+    /// Take one step: kinematic pins and external forces, the base integrator, damping and contact, then
+    /// the projection (if enabled). On a non-finite state the step is undone and an error names the step
+    /// (runaway of an unstable step size).
+    ///
+    /// Impacts: when the contact resolution had to move a vertex out by more than a tenth of the mean rest
+    /// edge length (a large step hitting an obstacle fast), the push-out would strain the contact layer hard
+    /// (spikes of elastic energy with implicit integrators at large steps). The step is then redone from its
+    /// start in substeps small enough for the depth, up to 16; the projection runs once, at the end.
+    pub fn step(&mut self) -> Result<&StepDiagnostics> {
+        self.previous.clone_from(&self.state);
+        let h = self.dt;
+        let t0 = Instant::now();
+        self.contact_vertices.clear();
+        let mut adv = self.advance(h)?;
+        let limit = IMPACT_DEPTH_FRACTION * self.mean_edge;
+        if adv.max_depth > limit && self.state.is_finite() {
+            let k = ((adv.max_depth / limit).ceil() as usize).clamp(2, MAX_IMPACT_SUBSTEPS);
+            self.state.clone_from(&self.previous);
+            self.contact_vertices.clear();
+            let mut total = Advance::default();
+            for _ in 0..k {
+                let a = self.advance(h / k as f64)?;
+                total.add(&a);
+                if !self.state.is_finite() {
+                    break;
+                }
+            }
+            total.report.energy_budget = total.work.total();
+            adv = total;
+            adv.report.substeps = k;
+        }
+        self.contact_vertices.sort_unstable();
+        self.contact_vertices.dedup();
+        if self.state.is_finite() {
+            near_obstacles(
+                &self.world.obstacles,
+                &self.model,
+                &self.state,
+                &mut self.contact_vertices,
+            );
+        }
+        let Advance {
+            mut report,
+            mut work,
+            contacts,
+            has_forces,
+            force_impulse,
+            ..
+        } = adv;
         report.energy_budget = work.total();
         let base_ms = t0.elapsed().as_secs_f64() * 1e3;
         let step = self.num_steps() + 1;

@@ -255,9 +255,10 @@ const HISTORY_COLUMNS: &[&str] = &[
     "work_pins",
     "work_forces",
     "proj_frozen",
+    "base_substeps",
 ];
 
-fn history_row(d: &StepDiagnostics) -> [f64; 43] {
+fn history_row(d: &StepDiagnostics) -> [f64; 44] {
     let i = &d.invariants;
     let p = d.projection.unwrap_or_default();
     let has = d.projection.is_some();
@@ -306,6 +307,7 @@ fn history_row(d: &StepDiagnostics) -> [f64; 43] {
         d.work.pins,
         d.work.forces,
         if has { p.frozen_vertices as f64 } else { 0.0 },
+        d.base.substeps as f64,
     ]
 }
 
