@@ -384,6 +384,18 @@ impl Projector {
         self.frozen_positions.extend_from_slice(vertices);
     }
 
+    /// The rows this projection enforces. `Auto` also drops the centre-of-mass rows in a step with an
+    /// impulsive event (contact): its centre of mass comes from impulses that act at unknown times within the
+    /// step, and with the contact vertices' positions frozen, holding it at the base step's value
+    /// over-constrains the correction (a box rocking on a frictional corner failed a quarter of its projections).
+    fn active_rows(&self, model: &Model, targets: &Targets) -> [bool; ROWS] {
+        let mut m = self.settings.rows.mask(model.num_pinned() > 0);
+        if self.settings.rows == ActiveRows::Auto && targets.uncertain_impulses {
+            m[7..10].iter_mut().for_each(|r| *r = false);
+        }
+        m
+    }
+
     /// Fill `metric_factor` with `a_i = m_i / w_i` for step size `h` (0 for frozen positions).
     fn prepare_metric(&mut self, model: &Model, h: f64) {
         let m = model.num_vertices();
@@ -461,7 +473,7 @@ impl Projector {
             targets,
             dp_star,
             dl_star,
-            active: self.settings.rows.mask(model.num_pinned() > 0),
+            active: self.active_rows(model, targets),
             row_scale: [1.0; ROWS],
             eps: self.settings.c_eps * mt * r * r,
         };
