@@ -147,14 +147,16 @@ def test_bunny_projective_dynamics_loses_half_alone_and_fepr_holds_it(bunny):
     assert dh <= 1e-8 and p <= 1e-10 * scale and ang <= 1e-10 * scale * 0.5
 
 
-# XPBD's settings for the bunny: one extra Gauss-Seidel sweep per substep (see the test below).
-BUNNY_XPBD = fepr.Xpbd(substeps=20, iterations=2)
+# XPBD's default settings (20 substeps x 1 sweep); the projection warm-starts after XPBD by default.
+BUNNY_XPBD = fepr.Xpbd(substeps=20, iterations=1)
 
 
 def test_bunny_xpbd_loses_half_alone_and_fepr_holds_it(bunny):
     """Issue 3 on the sliver-rich bunny: XPBD alone loses more than half of H within 2 s, and with FEPR keeps
-    |H/H0 - 1| <= 1e-8 and P, L conserved at every converged step (at least 95% of them). Tets that invert (the mesh has
-    slivers; the constraint energy has no barrier) are survived: finite states, no fallback."""
+    |H/H0 - 1| <= 1e-8 with every projection converged and P, L conserved. XPBD loses about a quarter of H per
+    step here, so the projection's default warm start after XPBD rescales the velocities first (without it a few
+    projections per 300 steps fail on the slivers). Tets that invert (the mesh has slivers; the constraint energy
+    has no barrier) are survived: finite states, no fallback."""
     plain = bunny_run(bunny, BUNNY_XPBD, False, 60)
     h = plain.history
     assert np.all(np.isfinite(h["total"]))
@@ -163,16 +165,11 @@ def test_bunny_xpbd_loses_half_alone_and_fepr_holds_it(bunny):
     h = sim.history
     assert isinstance(sim.material, fepr.ConstraintNeoHookean)
     assert np.all(np.isfinite(h["total"])) and np.all(np.isfinite(sim.positions))
-    # A rare step whose projection does not converge on these slivers (1 or 2 in 300 at 20 x 2; which ones
-    # depends on the last bits of the arithmetic) is transient: the references stay at the targets and the next
-    # step lands on them again. Every converged step is on the manifold, and so is the end of the run.
-    ok = h["proj_converged"] == 1
-    ok[0] = True
-    assert ok.mean() >= 0.95, f"{(~ok).sum()} of {len(ok) - 1} projections did not converge"
-    assert ok[-1]
-    dh = np.abs(h["total"][ok] / h["total"][0] - 1).max()
-    p = np.abs(np.stack([h["px"], h["py"], h["pz"]])[:, ok]).max()
-    ang = np.abs(np.stack([h["lx"], h["ly"], h["lz"]])[:, ok]).max()
+    assert np.all(h["proj_converged"][1:] == 1) and np.all(h["proj_fallback"][1:] == 0)
+    assert h["proj_warm_start"][1:].sum() > 0
+    dh = np.abs(h["total"] / h["total"][0] - 1).max()
+    p = np.abs(np.stack([h["px"], h["py"], h["pz"]])).max()
+    ang = np.abs(np.stack([h["lx"], h["ly"], h["lz"]])).max()
     scale = sim.total_mass * 0.5 * 10  # kg * m * (1/s): momentum scale of a 0.5 m body moving at 10 m/s
     print(
         f"\nbunny XPBD + FEPR 2 s: max |H/H0-1| {dh:.2e}, |P| {p:.1e}, |L| {ang:.1e}, min J {h['min_j'].min():.3f}, "
