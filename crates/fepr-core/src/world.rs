@@ -16,11 +16,11 @@
 //! - damping: an operator on the velocities after the base step; its work is the kinetic energy it removes;
 //! - contact ([`crate::obstacles`]): after damping.
 
+use crate::elasticity::deformation_gradient;
 use crate::error::{invalid, Result};
 use crate::hessian::{element_hessian, HessianAssembler};
 use crate::linalg::{add, cross, dot, scale, sub, Vec3};
 use crate::material::Hyperelastic;
-use crate::mesh::edge_matrix;
 use crate::model::{Model, State};
 use crate::obstacles::Obstacle;
 use crate::sparse::SparseCholesky;
@@ -356,10 +356,7 @@ impl World {
     fn pin_energy(&self, model: &Model, x: &[Vec3], v: &[Vec3]) -> f64 {
         let mut e = 0.0;
         for &t in &self.pin_tets {
-            let f = crate::linalg::matmul(
-                &edge_matrix(x, &model.mesh.tets()[t]),
-                &model.rest.dm_inv[t],
-            );
+            let f = deformation_gradient(model, x, t);
             e += model.rest.volume[t] * model.material.energy_density(&f);
         }
         for p in &self.pins {
