@@ -6,6 +6,8 @@
 //! TetGen mesh `STEM.node`/`STEM.ele` (Neo-Hookean E = 1e5 Pa, nu = 0.3, 1000 kg/m^3, 10% stretch about the
 //! centre of mass, dt = 1/30 s; `fepr` after STEPS: with the FEPR projection) and prints every step's
 //! Newton decrements (for convergence studies).
+//! `cargo bench -p fepr-core --bench eg_loop -- pd STEM STEPS [fepr]`: the same set-up with the ARAP material
+//! and Projective Dynamics (10 iterations), ms per step and the local / right-hand side / solve times.
 
 use std::time::Instant;
 
@@ -55,6 +57,14 @@ fn small_kernels() {
     println!(
         "polar_rotation (Newton)     {:8.1} ns",
         time_ns(&fs, polar_rotation)
+    );
+    let mut rs = vec![[[0.0; 3]; 3]; fs.len()];
+    let batch = time_ns(&[()], |_| {
+        fepr_core::batch_polar::polar_rotations(&fs, &mut rs)
+    });
+    println!(
+        "polar_rotations (batched)   {:8.1} ns",
+        batch / fs.len() as f64
     );
     println!(
         "polar_rotation_svd (Jacobi) {:8.1} ns",
@@ -191,10 +201,152 @@ fn newton_study(stem: &str, steps: usize, project: bool) {
     }
 }
 
+/// Projective Dynamics (10 iterations) on a TetGen mesh as in `newton_study`, but with the
+/// ARAP material; prints ms per step and the phase times (`fepr` after STEPS: with the FEPR projection).
+struct TimedPd(fepr_core::pd::ProjectiveDynamics);
+
+impl fepr_core::integrators::Integrator for TimedPd {
+    fn name(&self) -> &'static str {
+        self.0.name()
+    }
+    fn check(&self, model: &fepr_core::model::Model) -> fepr_core::error::Result<()> {
+        self.0.check(model)
+    }
+    fn is_implicit(&self) -> bool {
+        true
+    }
+    fn step(
+        &mut self,
+        model: &fepr_core::model::Model,
+        state: &mut fepr_core::model::State,
+        dt: f64,
+    ) -> fepr_core::integrators::StepReport {
+        let r = self.0.step(model, state, dt);
+        let t = self.0.timing;
+        print!(
+            "local {:.2} ms, rhs {:.2} ms, solve {:.2} ms; ",
+            t.local * 1e3,
+            t.rhs * 1e3,
+            t.solve * 1e3
+        );
+        r
+    }
+}
+
+/// The vertex-graph Cholesky of `model` (a Laplacian-like SPD matrix): size, fill, solve time with 3
+/// right-hand sides.
+fn solve_study(model: &fepr_core::model::Model) {
+    use fepr_core::sparse::{LowerPattern, SparseCholesky};
+    let n = model.num_vertices();
+    let mut columns = vec![Vec::new(); n];
+    for t in model.mesh.tets() {
+        for &p in t {
+            for &q in t {
+                if p > q {
+                    columns[q].push(p);
+                }
+            }
+        }
+    }
+    let pattern = LowerPattern::from_columns(n, columns);
+    let mut values = vec![-1e-3; pattern.nnz()];
+    for c in 0..n {
+        values[pattern.position(c, c).unwrap()] = 100.0;
+    }
+    let mut chol = SparseCholesky::analyse(&pattern, 3).unwrap();
+    chol.factorize(&values).unwrap();
+    let mut rhs = vec![1.0; 3 * n];
+    let t0 = Instant::now();
+    for _ in 0..50 {
+        chol.solve_in_place(&mut rhs, 3);
+    }
+    let faer_ms = t0.elapsed().as_secs_f64() * 1e3 / 50.0;
+    let mut rhs3 = vec![[1.0; 3]; n];
+    let t0 = Instant::now();
+    for _ in 0..50 {
+        chol.solve3_in_place(&mut rhs3);
+    }
+    let ours_ms = t0.elapsed().as_secs_f64() * 1e3 / 50.0;
+    println!(
+        "vertex Cholesky: n {n}, nnz(A lower) {}, nnz(L) {}, solve with 3 rhs: faer {faer_ms:.3} ms, \
+         interleaved {ours_ms:.3} ms",
+        pattern.nnz(),
+        chol.factor_nnz(),
+    );
+}
+
+fn pd_study(stem: &str, steps: usize, project: bool) {
+    use fepr_core::material::Arap;
+    use fepr_core::model::State;
+    let model = ModelBuilder::new(
+        load_tetgen(stem),
+        Material::Arap(Arap::new(1e5, 0.3).unwrap()),
+    )
+    .mass(MassSpec::Density(1000.0))
+    .build()
+    .unwrap();
+    let mut state = State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+    for p in state.x.iter_mut() {
+        *p = [0, 1, 2].map(|a| c[a] + 1.1 * (p[a] - c[a]));
+    }
+    solve_study(&model);
+    let pd = TimedPd(fepr_core::pd::ProjectiveDynamics::default());
+    let projector = project.then(|| {
+        fepr_core::projection::Projector::new(Default::default()).expect("default projection")
+    });
+    let mut sim =
+        fepr_core::simulation::Simulation::new(model, state, Box::new(pd), 1.0 / 30.0, projector)
+            .unwrap();
+    let mut total = 0.0;
+    for step in 0..steps {
+        let t0 = Instant::now();
+        let d = *sim.step().unwrap();
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        if step > 0 {
+            total += ms;
+        }
+        let its = d.projection.map_or(0, |p| p.iterations);
+        println!("step {step}: {ms:.1} ms (projection {its} iterations)");
+    }
+    println!(
+        "mean after the first: {:.1} ms/step",
+        total / (steps - 1).max(1) as f64
+    );
+    // The polar decompositions of the final state, batched and one by one.
+    let fs: Vec<fepr_core::linalg::Mat3> = (0..sim.model.num_tets())
+        .map(|e| fepr_core::elasticity::deformation_gradient(&sim.model, &sim.state.x, e))
+        .collect();
+    let inverted = fs
+        .iter()
+        .filter(|f| fepr_core::linalg::det(f) <= 0.0)
+        .count();
+    let mut rs = vec![[[0.0; 3]; 3]; fs.len()];
+    let batched = time_ns(&[()], |_| {
+        fepr_core::batch_polar::polar_rotations(&fs, &mut rs)
+    });
+    let scalar = time_ns(&fs, fepr_core::linalg::polar_rotation);
+    println!(
+        "final state: {} tets ({inverted} inverted): polar batched {:.1} ns/tet, scalar {:.1} ns/tet",
+        fs.len(),
+        batched / fs.len() as f64,
+        scalar
+    );
+}
+
 fn main() {
     let raw: Vec<String> = std::env::args().skip(1).collect();
     if raw.first().map(String::as_str) == Some("small") {
         small_kernels();
+        return;
+    }
+    if raw.first().map(String::as_str) == Some("pd") {
+        let steps = raw.get(2).and_then(|s| s.parse().ok()).unwrap_or(10);
+        pd_study(
+            &raw[1],
+            steps,
+            raw.get(3).map(String::as_str) == Some("fepr"),
+        );
         return;
     }
     if raw.first().map(String::as_str) == Some("newton") {

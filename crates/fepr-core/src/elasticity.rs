@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 
 use crate::linalg::{det, matmul, transpose, Mat3, Vec3};
-use crate::material::{Hyperelastic, Material, NeoHookean};
+use crate::material::{Hyperelastic, Material, NeoHookean, LANES};
 use crate::mesh::edge_matrix;
 use crate::model::Model;
 use crate::parallel::{reduce_chunks, TET_CHUNK};
@@ -118,16 +118,26 @@ fn energy_impl<M: Hyperelastic + Sync>(mat: &M, model: &Model, x: &[Vec3]) -> El
         TET_CHUNK,
         |range| {
             let mut s = ElasticSummary::zero();
-            for ((t, dmi), vol) in tets[range.clone()]
-                .iter()
-                .zip(&dm_inv[range.clone()])
-                .zip(&volume[range])
-            {
-                let f = matmul(&edge_matrix(x, t), dmi);
-                let j = det(&f);
-                s.energy += vol * mat.energy_density(&f);
-                s.min_j = s.min_j.min(j);
-                s.inverted += (j <= 0.0) as usize;
+            let (mut f, mut psi) = ([[[0.0; 3]; 3]; LANES], [0.0; LANES]);
+            for e0 in range.clone().step_by(LANES) {
+                // Full groups go through the material's batched call; the last, partial one per tet.
+                let n = LANES.min(range.end - e0);
+                for l in 0..n {
+                    f[l] = matmul(&edge_matrix(x, &tets[e0 + l]), &dm_inv[e0 + l]);
+                }
+                if n == LANES {
+                    mat.energy_density_lanes(&f, &mut psi);
+                } else {
+                    for l in 0..n {
+                        psi[l] = mat.energy_density(&f[l]);
+                    }
+                }
+                for l in 0..n {
+                    let j = det(&f[l]);
+                    s.energy += volume[e0 + l] * psi[l];
+                    s.min_j = s.min_j.min(j);
+                    s.inverted += (j <= 0.0) as usize;
+                }
             }
             s
         },
@@ -190,23 +200,34 @@ fn element_pass<M: Hyperelastic + Sync>(
 ) -> ElasticSummary {
     let (tets, dm_inv, volume) = (model.mesh.tets(), &model.rest.dm_inv, &model.rest.volume);
     chunked_pass(out, parts, |c, chunk| {
-        let range = c * TET_CHUNK..c * TET_CHUNK + chunk.len();
+        let base = c * TET_CHUNK;
         let mut s = ElasticSummary::zero();
-        for (((out, t), dmi), &vol) in chunk
-            .iter_mut()
-            .zip(&tets[range.clone()])
-            .zip(&dm_inv[range.clone()])
-            .zip(&volume[range])
-        {
-            let f = matmul(&edge_matrix(x, t), dmi);
-            let j = det(&f);
-            let (psi, p) = mat.energy_and_stress(&f);
-            s.energy += vol * psi;
-            s.min_j = s.min_j.min(j);
-            s.inverted += (j <= 0.0) as usize;
-            // H = V P D_m^-T; its columns are the gradients on vertices 1..3.
-            let h = matmul(&p, &transpose(dmi));
-            write_corners(&h, vol, out);
+        let (mut f, mut psi, mut p) =
+            ([[[0.0; 3]; 3]; LANES], [0.0; LANES], [[[0.0; 3]; 3]; LANES]);
+        for k0 in (0..chunk.len()).step_by(LANES) {
+            // Full groups go through the material's batched call; the last, partial one per tet.
+            let n = LANES.min(chunk.len() - k0);
+            for l in 0..n {
+                let e = base + k0 + l;
+                f[l] = matmul(&edge_matrix(x, &tets[e]), &dm_inv[e]);
+            }
+            if n == LANES {
+                mat.energy_and_stress_lanes(&f, &mut psi, &mut p);
+            } else {
+                for l in 0..n {
+                    (psi[l], p[l]) = mat.energy_and_stress(&f[l]);
+                }
+            }
+            for l in 0..n {
+                let e = base + k0 + l;
+                let (vol, j) = (volume[e], det(&f[l]));
+                s.energy += vol * psi[l];
+                s.min_j = s.min_j.min(j);
+                s.inverted += (j <= 0.0) as usize;
+                // H = V P D_m^-T; its columns are the gradients on vertices 1..3.
+                let h = matmul(&p[l], &transpose(&dm_inv[e]));
+                write_corners(&h, vol, &mut chunk[k0 + l]);
+            }
         }
         s
     })

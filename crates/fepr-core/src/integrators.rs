@@ -44,6 +44,12 @@ pub trait Integrator: Send + Sync {
     fn is_implicit(&self) -> bool {
         false
     }
+    /// Offer the elastic gradient `grad` (J/m, shape (m, 3)) at positions `x`, computed by the projection at
+    /// the end of a step, for the **next** call of [`Integrator::step`] on the same model only. An integrator
+    /// that starts its step with the gradient at the current positions may take the buffer (swap it) and skip
+    /// that evaluation when the positions it then sees are still bit-identical to `x` (so the result is the
+    /// same bits either way). Default: ignore the offer.
+    fn offer_elastic_gradient(&mut self, _x: &[Vec3], _grad: &mut Vec<Vec3>) {}
 }
 
 /// Symplectic (semi-implicit) Euler, the seed's integrator:
@@ -53,6 +59,11 @@ pub trait Integrator: Send + Sync {
 pub struct SymplecticEuler {
     grad: Vec<Vec3>,
     ws: ElasticWorkspace,
+    /// Positions of a gradient offered by the projection (see [`Integrator::offer_elastic_gradient`]);
+    /// empty when there is no offer. The gradient itself is then in `grad`.
+    offered_x: Vec<Vec3>,
+    /// Steps that reused an offered gradient instead of evaluating it (for tests and benchmarks).
+    pub reused_gradients: usize,
 }
 
 impl SymplecticEuler {
@@ -68,8 +79,17 @@ impl Integrator for SymplecticEuler {
 
     fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
         let m = model.num_vertices();
-        self.grad.resize(m, [0.0; 3]);
-        elastic_energy_gradient(model, &state.x, &mut self.ws, &mut self.grad);
+        // The projection's last evaluation is usually at exactly these positions (fepr-spec: symplectic Euler
+        // + FEPR would otherwise evaluate the gradient at x_{n+1} twice); reuse it only when every bit agrees.
+        let offered = std::mem::take(&mut self.offered_x);
+        if offered.len() == m && self.grad.len() == m && same_bits(&offered, &state.x) {
+            self.reused_gradients += 1;
+        } else {
+            self.grad.resize(m, [0.0; 3]);
+            elastic_energy_gradient(model, &state.x, &mut self.ws, &mut self.grad);
+        }
+        self.offered_x = offered;
+        self.offered_x.clear();
         let g = model.gravity;
         for i in 0..m {
             if model.pinned[i] {
@@ -115,6 +135,23 @@ impl Integrator for SymplecticEuler {
         state.time += h;
         report
     }
+
+    fn offer_elastic_gradient(&mut self, x: &[Vec3], grad: &mut Vec<Vec3>) {
+        if x.len() != grad.len() {
+            return;
+        }
+        std::mem::swap(&mut self.grad, grad);
+        self.offered_x.clear();
+        self.offered_x.extend_from_slice(x);
+    }
+}
+
+/// True when the two position arrays agree bit for bit (so a cached evaluation is exactly the fresh one).
+fn same_bits(a: &[Vec3], b: &[Vec3]) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .zip(b)
+            .all(|(p, q)| (0..3).all(|k| p[k].to_bits() == q[k].to_bits()))
 }
 
 /// End a step of a position-based integrator (backward Euler, Projective Dynamics): the new positions
@@ -150,5 +187,91 @@ pub fn integrator_by_name(name: &str) -> Option<Box<dyn Integrator>> {
         "projective_dynamics" => Some(Box::new(crate::pd::ProjectiveDynamics::default())),
         "xpbd" => Some(Box::new(crate::xpbd::Xpbd::default())),
         _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::material::{Material, NeoHookean};
+    use crate::mesh::{tests::cube, MassSpec, TetMesh};
+    use crate::model::ModelBuilder;
+
+    fn cube_model() -> Model {
+        let (v, t) = cube();
+        let (mesh, _) = TetMesh::new(v, &t).unwrap();
+        ModelBuilder::new(
+            mesh,
+            Material::NeoHookean(NeoHookean::new(1e5, 0.3).unwrap()),
+        )
+        .mass(MassSpec::Density(1000.0))
+        .build()
+        .unwrap()
+    }
+
+    fn stretched_state(model: &Model) -> State {
+        let mut s = State::at_rest(model);
+        for (i, p) in s.x.iter_mut().enumerate() {
+            *p = [1.07 * p[0], 0.96 * p[1] + 0.01 * (i % 3) as f64, p[2]];
+        }
+        s
+    }
+
+    fn same_state(a: &State, b: &State) -> bool {
+        same_bits(&a.x, &b.x) && same_bits(&a.v, &b.v)
+    }
+
+    #[test]
+    fn offered_gradient_is_reused_only_at_bit_identical_positions() {
+        let model = cube_model();
+        let h = 1e-4;
+        let start = stretched_state(&model);
+        let mut fresh = start.clone();
+        SymplecticEuler::new().step(&model, &mut fresh, h);
+
+        // The exact gradient at the start positions, offered: reused, and the step is the same bits.
+        let mut exact = vec![[0.0; 3]; model.num_vertices()];
+        elastic_energy_gradient(
+            &model,
+            &start.x,
+            &mut ElasticWorkspace::default(),
+            &mut exact,
+        );
+        let mut se = SymplecticEuler::new();
+        se.offer_elastic_gradient(&start.x, &mut exact);
+        let mut reused = start.clone();
+        se.step(&model, &mut reused, h);
+        assert_eq!(se.reused_gradients, 1);
+        assert!(same_state(&fresh, &reused));
+
+        // An offer for other positions (one coordinate one ulp away) is ignored: a garbage gradient there
+        // changes nothing.
+        let mut other = start.x.clone();
+        other[5][1] = f64::from_bits(other[5][1].to_bits() + 1);
+        let mut garbage = vec![[1e30; 3]; model.num_vertices()];
+        let mut se = SymplecticEuler::new();
+        se.offer_elastic_gradient(&other, &mut garbage);
+        let mut ignored = start.clone();
+        se.step(&model, &mut ignored, h);
+        assert_eq!(se.reused_gradients, 0);
+        assert!(same_state(&fresh, &ignored));
+
+        // An offer is good for one step only.
+        let mut twice = start.clone();
+        let mut se = SymplecticEuler::new();
+        let mut exact2 = vec![[0.0; 3]; model.num_vertices()];
+        elastic_energy_gradient(
+            &model,
+            &start.x,
+            &mut ElasticWorkspace::default(),
+            &mut exact2,
+        );
+        se.offer_elastic_gradient(&start.x, &mut exact2);
+        se.step(&model, &mut twice, h);
+        twice.x.clone_from(&start.x);
+        twice.v.clone_from(&start.v);
+        se.step(&model, &mut twice, h);
+        assert_eq!(se.reused_gradients, 1);
+        assert!(same_state(&fresh, &twice));
     }
 }

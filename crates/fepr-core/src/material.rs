@@ -33,7 +33,30 @@ pub trait Hyperelastic {
     fn stress_derivative_psd(&self, f: &Mat3) -> StressDerivative {
         crate::hessian::project_psd(&self.stress_derivative(f))
     }
+    /// [`Hyperelastic::energy_density`] of [`LANES`] deformation gradients at once, bit for bit the
+    /// per-matrix results. The default calls it per matrix; materials whose work vectorises across matrices
+    /// override it.
+    fn energy_density_lanes(&self, f: &[Mat3; LANES], psi: &mut [f64; LANES]) {
+        for (fl, pl) in f.iter().zip(psi.iter_mut()) {
+            *pl = self.energy_density(fl);
+        }
+    }
+    /// [`Hyperelastic::energy_and_stress`] of [`LANES`] deformation gradients at once, bit for bit the
+    /// per-matrix results (default: per matrix).
+    fn energy_and_stress_lanes(
+        &self,
+        f: &[Mat3; LANES],
+        psi: &mut [f64; LANES],
+        p: &mut [Mat3; LANES],
+    ) {
+        for ((fl, pl), sl) in f.iter().zip(p.iter_mut()).zip(psi.iter_mut()) {
+            (*sl, *pl) = self.energy_and_stress(fl);
+        }
+    }
 }
+
+/// Deformation gradients per call of the `_lanes` methods of [`Hyperelastic`].
+pub const LANES: usize = crate::batch_polar::LANES;
 
 /// Lame parameters `(mu, lambda)` from Young's modulus and Poisson ratio, validated
 /// (`E > 0` finite, `-1 < nu < 0.5`).
@@ -412,15 +435,10 @@ impl Arap {
         let (mu, _) = lame_parameters(youngs_modulus, poisson_ratio)?;
         Ok(Self { mu })
     }
-}
 
-impl Hyperelastic for Arap {
-    fn energy_density(&self, f: &Mat3) -> f64 {
-        self.energy_and_stress(f).0
-    }
-
-    fn energy_and_stress(&self, f: &Mat3) -> (f64, Mat3) {
-        let (r, _) = polar_rotation(f);
+    /// Energy density and stress given the rotation `r = R(F)`.
+    #[inline]
+    fn energy_and_stress_given(&self, f: &Mat3, r: &Mat3) -> (f64, Mat3) {
         let mut p = [[0.0; 3]; 3];
         let mut psi = 0.0;
         for i in 0..3 {
@@ -431,6 +449,38 @@ impl Hyperelastic for Arap {
             }
         }
         (self.mu * psi, p)
+    }
+}
+
+impl Hyperelastic for Arap {
+    fn energy_density(&self, f: &Mat3) -> f64 {
+        self.energy_and_stress(f).0
+    }
+
+    fn energy_and_stress(&self, f: &Mat3) -> (f64, Mat3) {
+        self.energy_and_stress_given(f, &polar_rotation(f).0)
+    }
+
+    /// The polar decompositions of all lanes in one batch (the PD and FEPR hot path).
+    fn energy_density_lanes(&self, f: &[Mat3; LANES], psi: &mut [f64; LANES]) {
+        let mut r = [[[0.0; 3]; 3]; LANES];
+        crate::batch_polar::polar_rotations(f, &mut r);
+        for l in 0..LANES {
+            psi[l] = self.energy_and_stress_given(&f[l], &r[l]).0;
+        }
+    }
+
+    fn energy_and_stress_lanes(
+        &self,
+        f: &[Mat3; LANES],
+        psi: &mut [f64; LANES],
+        p: &mut [Mat3; LANES],
+    ) {
+        let mut r = [[[0.0; 3]; 3]; LANES];
+        crate::batch_polar::polar_rotations(f, &mut r);
+        for l in 0..LANES {
+            (psi[l], p[l]) = self.energy_and_stress_given(&f[l], &r[l]);
+        }
     }
 
     fn stress_derivative(&self, f: &Mat3) -> StressDerivative {

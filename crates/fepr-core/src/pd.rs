@@ -12,14 +12,17 @@
 //! the model's material must be that energy so that H is the PD energy (fepr-spec section 5).
 
 use rayon::prelude::*;
+use std::time::Instant;
 
+use crate::batch_polar::{polar_rotations, LANES};
 use crate::elasticity::deformation_gradient;
 use crate::error::{invalid, FeprError, Result};
 use crate::hessian::shape_gradients;
 use crate::integrators::{finish_positional_step, Integrator, StepReport};
-use crate::linalg::{polar_rotation, scale, Vec3};
+use crate::linalg::{scale, Vec3};
 use crate::material::Material;
 use crate::model::{Model, State};
+use crate::parallel::TET_CHUNK;
 use crate::sparse::{LowerPattern, SparseCholesky};
 
 /// Projective Dynamics settings.
@@ -41,7 +44,6 @@ impl Default for PdSettings {
 }
 
 struct Prefactored {
-    free_index: Vec<usize>,
     free_vertices: Vec<usize>,
     chol: SparseCholesky,
     /// Coupling of free rows to pinned vertices: (free row, pinned vertex, coefficient).
@@ -52,15 +54,30 @@ struct Prefactored {
     grads: Vec<[Vec3; 4]>,
 }
 
+/// Wall-clock time of the phases of the last step, s (for benchmarks and profiling).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PdTiming {
+    /// Local steps (polar decompositions), summed over the iterations.
+    pub local: f64,
+    /// Right-hand side assembly.
+    pub rhs: f64,
+    /// Triangular solves with the prefactored matrix.
+    pub solve: f64,
+}
+
 /// Projective Dynamics integrator (prefactored global matrix, 3 right-hand sides per solve).
 #[derive(Default)]
 pub struct ProjectiveDynamics {
     pub settings: PdSettings,
+    /// Phase times of the last step.
+    pub timing: PdTiming,
     pre: Option<Prefactored>,
     /// Symbolic analyses and numeric factorisations performed (one each per run).
     pub factorizations: usize,
-    rotations: Vec<[[f64; 3]; 3]>,
-    rhs: Vec<f64>,
+    /// Per tet, the right-hand side terms `w_e R_e g_k` on its 4 corners (from the local step).
+    corner_terms: Vec<[Vec3; 4]>,
+    /// Global-step right-hand sides, then solutions: one row (x, y, z) per free vertex.
+    rhs: Vec<Vec3>,
 }
 
 impl std::fmt::Debug for ProjectiveDynamics {
@@ -156,7 +173,6 @@ impl ProjectiveDynamics {
         let mut chol = SparseCholesky::analyse(&pattern, 3)?;
         chol.factorize(&values)?;
         Ok(Prefactored {
-            free_index,
             free_vertices,
             chol,
             pinned_coupling,
@@ -164,6 +180,33 @@ impl ProjectiveDynamics {
             h,
             grads,
         })
+    }
+}
+
+/// Free vertices per parallel task of the right-hand side assembly.
+const RHS_CHUNK: usize = 256;
+
+/// The local step for tets `first..first + terms.len()`: the rotation `R_e` of the polar decomposition of
+/// `F_e` (in batches, bit for bit `linalg::polar_rotation`), turned at once into the tet's right-hand side
+/// terms on its corners, `w_e R_e g_k` (g_k: the shape-function gradients).
+fn local_step(pre: &Prefactored, model: &Model, x: &[Vec3], first: usize, terms: &mut [[Vec3; 4]]) {
+    let mut f = [[[0.0; 3]; 3]; LANES];
+    let mut r = [[[0.0; 3]; 3]; LANES];
+    for (k0, out) in terms.chunks_mut(LANES).enumerate() {
+        let e0 = first + k0 * LANES;
+        let n = out.len();
+        for (l, fl) in f.iter_mut().enumerate().take(n) {
+            *fl = deformation_gradient(model, x, e0 + l);
+        }
+        polar_rotations(&f[..n], &mut r[..n]);
+        for (l, corners) in out.iter_mut().enumerate() {
+            let (re, w, g) = (&r[l], pre.weights[e0 + l], &pre.grads[e0 + l]);
+            for (k, term) in corners.iter_mut().enumerate() {
+                // (row a of R) . g_k
+                *term = [0, 1, 2]
+                    .map(|a| w * (re[a][0] * g[k][0] + re[a][1] * g[k][1] + re[a][2] * g[k][2]));
+            }
+        }
     }
 }
 
@@ -234,48 +277,59 @@ impl Integrator for ProjectiveDynamics {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()
         };
-        self.rotations.resize(model.num_tets(), [[0.0; 3]; 3]);
+        self.corner_terms.resize(model.num_tets(), [[0.0; 3]; 4]);
+        let mut timing = PdTiming::default();
         for it in 0..self.settings.iterations {
+            let t0 = Instant::now();
             // Local step: closest rotations, in parallel.
-            self.rotations
-                .par_iter_mut()
+            {
+                let pre = &*pre;
+                self.corner_terms
+                    .par_chunks_mut(TET_CHUNK)
+                    .enumerate()
+                    .for_each(|(c, terms)| local_step(pre, model, &x, c * TET_CHUNK, terms));
+            }
+            let t1 = Instant::now();
+            // Global step right-hand side, row c for free vertex c: M (y / h^2 + g) + sum_e w_e R_e g_e,k over
+            // the tets at the vertex, gathered in parallel in ascending tet order (deterministic).
+            let terms = self.corner_terms.as_flattened();
+            let g = model.gravity;
+            self.rhs.resize(n, [0.0; 3]);
+            self.rhs
+                .par_chunks_mut(RHS_CHUNK)
                 .enumerate()
-                .for_each(|(e, r)| *r = polar_rotation(&deformation_gradient(model, &x, e)).0);
-            // Global step right-hand side (column-major n x 3), assembled in tet order (deterministic).
-            self.rhs.clear();
-            self.rhs.resize(3 * n, 0.0);
-            for (c, &v) in pre.free_vertices.iter().enumerate() {
-                for a in 0..3 {
-                    self.rhs[a * n + c] = model.masses[v] * (inv_h2 * y[v][a] + model.gravity[a]);
-                }
-            }
-            for (e, t) in model.mesh.tets().iter().enumerate() {
-                let g = &pre.grads[e];
-                let r = &self.rotations[e];
-                let w = pre.weights[e];
-                for k in 0..4 {
-                    let row = pre.free_index[t[k]];
-                    if row == usize::MAX {
-                        continue;
+                .for_each(|(ci, chunk)| {
+                    for (k, out) in chunk.iter_mut().enumerate() {
+                        let v = pre.free_vertices[ci * RHS_CHUNK + k];
+                        let mut acc =
+                            [0, 1, 2].map(|a| model.masses[v] * (inv_h2 * y[v][a] + g[a]));
+                        let slots = &model.incidence_slots
+                            [model.incidence_offsets[v]..model.incidence_offsets[v + 1]];
+                        for &slot in slots {
+                            let t = terms[slot as usize];
+                            for a in 0..3 {
+                                acc[a] += t[a];
+                            }
+                        }
+                        *out = acc;
                     }
-                    for a in 0..3 {
-                        // (row a of R) . g_k
-                        self.rhs[a * n + row] +=
-                            w * (r[a][0] * g[k][0] + r[a][1] * g[k][1] + r[a][2] * g[k][2]);
-                    }
-                }
-            }
+                });
             for &(row, p, coef) in &pre.pinned_coupling {
                 for a in 0..3 {
-                    self.rhs[a * n + row] -= coef * x[p][a];
+                    self.rhs[row][a] -= coef * x[p][a];
                 }
             }
-            pre.chol.solve_in_place(&mut self.rhs, 3);
+            let t2 = Instant::now();
+            pre.chol.solve3_in_place(&mut self.rhs);
+            let t3 = Instant::now();
+            timing.local += (t1 - t0).as_secs_f64();
+            timing.rhs += (t2 - t1).as_secs_f64();
+            timing.solve += (t3 - t2).as_secs_f64();
             let mut change: f64 = 0.0;
             let mut size: f64 = 0.0;
             for (c, &v) in pre.free_vertices.iter().enumerate() {
                 for a in 0..3 {
-                    let new = self.rhs[a * n + c];
+                    let new = self.rhs[c][a];
                     change = change.max((new - x[v][a]).abs());
                     size = size.max((new - x_n[v][a]).abs());
                     x[v][a] = new;
@@ -289,6 +343,7 @@ impl Integrator for ProjectiveDynamics {
                 }
             }
         }
+        self.timing = timing;
         finish_positional_step(model, state, &x, &x_n, h);
         report
     }

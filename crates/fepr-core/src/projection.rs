@@ -337,6 +337,8 @@ pub struct Projector {
     x_spare: Vec<Vec3>,
     v_spare: Vec<Vec3>,
     grad_spare: Vec<Vec3>,
+    /// `grad` holds the elastic gradient at the positions the last projection returned.
+    grad_is_final: bool,
 }
 
 struct Problem<'a> {
@@ -426,6 +428,7 @@ impl Projector {
         targets: &Targets,
     ) -> (ProjectionReport, Invariants) {
         let m = model.num_vertices();
+        self.grad_is_final = false;
         for buf in [
             &mut self.grad,
             &mut self.grad_trial,
@@ -638,6 +641,8 @@ impl Projector {
 
         // Choose the result: the converged iterate, else the best iterate if it improved on q~, else q~.
         let mut fin = cur;
+        // `grad` is at `x` (every evaluation into it is at the iterate it belongs to).
+        self.grad_is_final = report.converged;
         if report.converged {
             state.x.copy_from_slice(&self.x);
             state.v.copy_from_slice(&self.v);
@@ -662,6 +667,7 @@ impl Projector {
                 );
                 s = 0.0;
                 t = 0.0;
+                self.grad_is_final = true;
             }
         }
 
@@ -682,6 +688,7 @@ impl Projector {
                 t *= beta;
                 report.bound_hit = true;
                 report.correction = cap;
+                self.grad_is_final = true; // both branches below evaluate at the returned state
                 fin = evaluate(&pb, &state.x, &state.v, s, t, &mut self.ws, &mut self.grad);
                 if fin.el.inverted > base_inverted || !fin.c.iter().all(|c| c.is_finite()) {
                     // The scaled-back state inverts tets the base step did not: keep the base state.
@@ -722,6 +729,13 @@ impl Projector {
 }
 
 impl Projector {
+    /// The elastic gradient at the positions the last [`Projector::project`] returned (J/m, shape (m, 3)), if
+    /// it is at hand, as a buffer the caller may swap out (see `Integrator::offer_elastic_gradient`). A
+    /// second call returns `None` until the next projection.
+    pub fn take_final_gradient(&mut self) -> Option<&mut Vec<Vec3>> {
+        std::mem::take(&mut self.grad_is_final).then_some(&mut self.grad)
+    }
+
     /// Exchange the trial buffers with the spare ones (sized on first use).
     fn swap_trial_spare(&mut self) {
         let m = self.x_trial.len();
@@ -952,8 +966,8 @@ fn d_norm(pb: &Problem, x: &[Vec3], v: &[Vec3], s: f64, t: f64, xb: &[Vec3], vb:
     sum.sqrt()
 }
 
-/// Evaluate the constraints, the potential gradient (into `grad`, including gravity: `grad U = grad E_el - m g`)
-/// and the mass moments that `S` needs, in one pass over the vertices.
+/// Evaluate the constraints, the elastic gradient (into `grad`; the potential's is `grad E_el - m g`, formed
+/// where it is used) and the mass moments that `S` needs, in one pass over the vertices.
 fn evaluate(
     pb: &Problem,
     x: &[Vec3],
@@ -992,11 +1006,9 @@ fn evaluate(
     for i in 0..x.len() {
         let mi = model.masses[i];
         let (xi, vi) = (x[i], v[i]);
-        let gi = &mut grad[i];
-        for a in 0..3 {
-            gi[a] -= mi * g[a];
-        }
-        let gi = *gi;
+        // Gradient of the potential (elastic + gravity); `grad` keeps the elastic part alone, so that it can
+        // be handed to the next base step (Integrator::offer_elastic_gradient).
+        let gi = total_gradient(grad[i], mi, g);
         e.kinetic += 0.5 * mi * dot(vi, vi);
         e.gravitational -= mi * dot(g, xi);
         let r = sub(xi, ct);
@@ -1038,6 +1050,12 @@ fn evaluate(
         e.c[7 + a] = e.com[a] - tg.center_of_mass[a];
     }
     e
+}
+
+/// Gradient of the potential energy at one vertex: the elastic gradient minus the gravity force `m g`.
+#[inline(always)]
+fn total_gradient(elastic: Vec3, mass: f64, gravity: Vec3) -> Vec3 {
+    [0, 1, 2].map(|a| elastic[a] - mass * gravity[a])
 }
 
 /// The full 10x10 `S = G^T D^-1 G` from the moments (fepr-spec section 3; derivation in docs/fepr.md).
@@ -1133,8 +1151,9 @@ fn apply_step(
         let a_inv_m = ai / model.masses[i];
         let vxl = cross(v[i], ll);
         let lxr = cross(ll, sub(x[i], ct));
+        let gi = total_gradient(grad[i], model.masses[i], model.gravity);
         for a in 0..3 {
-            let dx = lh * grad[i][a] * a_inv_m + ai * (vxl[a] + lc[a] / mt);
+            let dx = lh * gi[a] * a_inv_m + ai * (vxl[a] + lc[a] / mt);
             let dv = (lh * v[i][a] + lp[a] + lxr[a]) / h2;
             x_out[i][a] = x[i][a] - alpha * dx;
             v_out[i][a] = v[i][a] - alpha * dv;

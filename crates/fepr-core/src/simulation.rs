@@ -489,6 +489,9 @@ impl Simulation {
             Some(p) => {
                 p.set_frozen_positions(&self.contact_vertices);
                 let (rep, inv) = p.project(&self.model, &mut self.state, self.dt, &targets);
+                if let Some(grad) = p.take_final_gradient() {
+                    self.integrator.offer_elastic_gradient(&self.state.x, grad);
+                }
                 (Some(rep), inv, rep.base_energy)
             }
             None => {

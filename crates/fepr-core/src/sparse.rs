@@ -12,7 +12,8 @@ use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::linalg::cholesky::llt::factor::LltRegularization;
 use faer::perm::PermRef;
 use faer::sparse::linalg::cholesky::{
-    factorize_symbolic_cholesky, LltRef, SymbolicCholesky, SymmetricOrdering,
+    factorize_symbolic_cholesky, supernodal::SymbolicSupernodalCholesky, LltRef, SymbolicCholesky,
+    SymbolicCholeskyRaw, SymmetricOrdering,
 };
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Conj, MatMut, Par, Side};
@@ -81,6 +82,8 @@ pub struct SparseCholesky {
     /// Numeric factorisations done with this symbolic analysis.
     pub numeric_count: usize,
     ordering: FillOrdering,
+    /// Permuted right-hand sides of [`SparseCholesky::solve3_in_place`] (padded rows).
+    work3: Vec<Row>,
 }
 
 /// Fill-reducing ordering of the symbolic analysis.
@@ -183,6 +186,7 @@ impl SparseCholesky {
             factorized: false,
             numeric_count: 0,
             ordering: used,
+            work3: Vec::new(),
         })
     }
 
@@ -193,6 +197,11 @@ impl SparseCholesky {
 
     pub fn dim(&self) -> usize {
         self.pattern.nrows()
+    }
+
+    /// True when faer chose a supernodal factor (large matrices), false for a simplicial one.
+    pub fn is_supernodal(&self) -> bool {
+        matches!(self.symbolic.raw(), SymbolicCholeskyRaw::Supernodal(_))
     }
 
     /// Non-zeros of the factor L.
@@ -240,6 +249,148 @@ impl SparseCholesky {
             Par::Seq,
             stack,
         );
+    }
+
+    /// Solve `A X = B` in place for 3 right-hand sides stored interleaved (`rhs[i]` = row i of B, shape
+    /// (n, 3)): the x, y and z coordinates of a vertex problem, as Projective Dynamics solves them.
+    ///
+    /// faer's supernodal solve runs a small dense matrix product per supernode, whose set-up dominates with 3
+    /// columns; this walks the same supernodal factor column by column with the 3 right-hand sides side by
+    /// side in registers (measured 2-3x faster on the bunny's vertex matrix). Sequential, so the result does not
+    /// depend on the thread count. Simplicial factors (small matrices) go through faer.
+    pub fn solve3_in_place(&mut self, rhs: &mut [[f64; 3]]) {
+        assert!(self.factorized, "solve before a successful factorisation");
+        let n = self.dim();
+        assert_eq!(rhs.len(), n);
+        let SymbolicCholeskyRaw::Supernodal(sym) = self.symbolic.raw() else {
+            let mut cols = vec![0.0; 3 * n];
+            for (i, r) in rhs.iter().enumerate() {
+                for a in 0..3 {
+                    cols[a * n + i] = r[a];
+                }
+            }
+            self.solve_in_place(&mut cols, 3);
+            for (i, r) in rhs.iter_mut().enumerate() {
+                *r = [cols[i], cols[n + i], cols[2 * n + i]];
+            }
+            return;
+        };
+        let y = &mut self.work3;
+        y.resize(n, [0.0; 4]);
+        // faer factors P A P^T = L L^T with (P b)[i] = b[fwd[i]].
+        let pad = |r: &[f64; 3]| [r[0], r[1], r[2], 0.0];
+        match self.symbolic.perm().map(|p| p.arrays().0) {
+            Some(fwd) => {
+                y.iter_mut()
+                    .zip(fwd)
+                    .for_each(|(yi, &f)| *yi = pad(&rhs[f]));
+                supernodal_solve3(sym, &self.l_values, y);
+                y.iter()
+                    .zip(fwd)
+                    .for_each(|(yi, &f)| rhs[f] = [yi[0], yi[1], yi[2]]);
+            }
+            None => {
+                y.iter_mut()
+                    .zip(rhs.iter())
+                    .for_each(|(yi, r)| *yi = pad(r));
+                supernodal_solve3(sym, &self.l_values, y);
+                y.iter()
+                    .zip(rhs.iter_mut())
+                    .for_each(|(yi, r)| *r = [yi[0], yi[1], yi[2]]);
+            }
+        }
+    }
+}
+
+/// Supernode `s` of the factor: its first column, its column count k, its values (column-major, k + r rows:
+/// the dense diagonal block, then the r rows of `pattern`) and the row indices below the diagonal block.
+#[inline]
+fn supernode<'a>(
+    sym: &'a SymbolicSupernodalCholesky<usize>,
+    l: &'a [f64],
+    s: usize,
+) -> (usize, usize, &'a [f64], &'a [usize]) {
+    let (b, e) = (sym.supernode_begin()[s], sym.supernode_end()[s]);
+    let k = e - b;
+    let vals = &l[sym.col_ptr_for_val()[s]..sym.col_ptr_for_val()[s + 1]];
+    let r = vals.len() / k - k;
+    let start = sym.col_ptr_for_row_idx()[s];
+    (b, k, vals, &sym.row_idx()[start..start + r])
+}
+
+/// A row of the right-hand sides, padded to 4 lanes so that each update is one 4-wide SIMD operation.
+type Row = [f64; 4];
+
+/// `L y = b` then `L^T x = y` in place, the 3 right-hand sides side by side (4th lane unused).
+fn supernodal_solve3(sym: &SymbolicSupernodalCholesky<usize>, l: &[f64], y: &mut [Row]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
+        unsafe { supernodal_solve3_avx2(sym, l, y) };
+        return;
+    }
+    supernodal_forward3(sym, l, y);
+    supernodal_backward3(sym, l, y);
+}
+
+/// [`supernodal_solve3`] compiled for AVX2 (no FMA: the same bits as the portable build).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn supernodal_solve3_avx2(
+    sym: &SymbolicSupernodalCholesky<usize>,
+    l: &[f64],
+    y: &mut [Row],
+) {
+    supernodal_forward3(sym, l, y);
+    supernodal_backward3(sym, l, y);
+}
+
+#[inline(always)]
+fn axpy_neg(y: &mut Row, c: f64, x: &Row) {
+    for a in 0..4 {
+        y[a] -= c * x[a];
+    }
+}
+
+/// `L y = b` in place.
+#[inline(always)]
+fn supernodal_forward3(sym: &SymbolicSupernodalCholesky<usize>, l: &[f64], y: &mut [Row]) {
+    for s in 0..sym.n_supernodes() {
+        let (b, k, vals, pattern) = supernode(sym, l, s);
+        let rows = vals.len() / k;
+        for j in 0..k {
+            let col = &vals[j * rows..(j + 1) * rows];
+            let d = col[j];
+            let yj = y[b + j].map(|v| v / d);
+            y[b + j] = yj;
+            for i in j + 1..k {
+                axpy_neg(&mut y[b + i], col[i], &yj);
+            }
+            for (&c, &r) in col[k..].iter().zip(pattern) {
+                axpy_neg(&mut y[r], c, &yj);
+            }
+        }
+    }
+}
+
+/// `L^T x = y` in place.
+#[inline(always)]
+fn supernodal_backward3(sym: &SymbolicSupernodalCholesky<usize>, l: &[f64], y: &mut [Row]) {
+    for s in (0..sym.n_supernodes()).rev() {
+        let (b, k, vals, pattern) = supernode(sym, l, s);
+        let rows = vals.len() / k;
+        for j in (0..k).rev() {
+            let col = &vals[j * rows..(j + 1) * rows];
+            let mut acc = y[b + j];
+            for (&c, &r) in col[k..].iter().zip(pattern) {
+                axpy_neg(&mut acc, c, &y[r]);
+            }
+            for i in j + 1..k {
+                axpy_neg(&mut acc, col[i], &y[b + i]);
+            }
+            let d = col[j];
+            y[b + j] = acc.map(|v| v / d);
+        }
     }
 }
 
@@ -323,6 +474,70 @@ mod tests {
                 .map(|(a, b)| (a - b).abs())
                 .fold(0.0, f64::max);
             assert!(diff < 1e-12, "{diff}");
+        }
+    }
+
+    #[test]
+    fn interleaved_three_column_solve_matches_faer_on_supernodal_and_simplicial_factors() {
+        // 14^3 nodes: supernodal with nested dissection (and with AMD); 3^3: simplicial.
+        for (nx, ordering) in [
+            (14, FillOrdering::NestedDissection),
+            (14, FillOrdering::Amd),
+            (3, FillOrdering::Auto),
+        ] {
+            let (pat, values) = grid3(nx, 1);
+            let mut chol = SparseCholesky::analyse_with(&pat, 3, ordering).unwrap();
+            assert_eq!(chol.is_supernodal(), nx > 3);
+            chol.factorize(&values).unwrap();
+            let n = pat.n;
+            let b: Vec<[f64; 3]> = (0..n)
+                .map(|i| {
+                    let t = i as f64;
+                    [(0.37 * t).sin(), (0.11 * t).cos(), 1.0 + 0.01 * t]
+                })
+                .collect();
+            let mut cols = vec![0.0; 3 * n];
+            for (i, r) in b.iter().enumerate() {
+                for a in 0..3 {
+                    cols[a * n + i] = r[a];
+                }
+            }
+            chol.solve_in_place(&mut cols, 3);
+            let mut x = b.clone();
+            chol.solve3_in_place(&mut x);
+            // Three solves with the same inputs give the same bits (the workspace carries nothing over).
+            let mut again = b.clone();
+            chol.solve3_in_place(&mut again);
+            assert!(x
+                .iter()
+                .flatten()
+                .zip(again.iter().flatten())
+                .all(|(p, q)| p.to_bits() == q.to_bits()));
+            let mut worst: f64 = 0.0;
+            for (i, r) in x.iter().enumerate() {
+                for a in 0..3 {
+                    worst = worst.max((r[a] - cols[a * n + i]).abs());
+                }
+            }
+            assert!(worst < 1e-12, "nx {nx}, {ordering:?}: {worst}");
+            // And it solves the system: A x = b (A from the lower triangle).
+            let mut ax = vec![[0.0; 3]; n];
+            for c in 0..n {
+                for k in pat.col_ptr[c]..pat.col_ptr[c + 1] {
+                    let r = pat.row_idx[k];
+                    for a in 0..3 {
+                        ax[r][a] += values[k] * x[c][a];
+                        if r != c {
+                            ax[c][a] += values[k] * x[r][a];
+                        }
+                    }
+                }
+            }
+            for (i, r) in ax.iter().enumerate() {
+                for a in 0..3 {
+                    assert!((r[a] - b[i][a]).abs() < 1e-10, "row {i}");
+                }
+            }
         }
     }
 
