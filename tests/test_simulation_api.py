@@ -568,19 +568,30 @@ def test_damping_budget():
 # determinism
 
 
-def test_thread_count_does_not_change_results():
+@pytest.mark.parametrize(
+    "integrator, resolution, dt, steps",
+    [
+        ("symplectic_euler", 6, 1e-2, 50),
+        # Over 2048 vertices and 1024 tets: several chunks in every parallel pass (tet kernels, vertex
+        # gathers, the projection's moments, the PD right-hand side).
+        ("symplectic_euler", 13, 2e-3, 20),
+        ("projective_dynamics", 13, 1 / 30, 10),
+    ],
+)
+def test_thread_count_does_not_change_results(integrator, resolution, dt, steps):
     out = []
     for threads in (1, 2):
         sim = fepr.Simulation(
-            fepr.meshes.box(resolution=6),
+            fepr.meshes.box(resolution=resolution),
             material=SOFT,
             node_mass=1.0,
-            dt=1e-2,
+            dt=dt,
             gravity=(0, 0, -9.81),
+            integrator=integrator,
             threads=threads,
         )
         sim.positions = 1.1 * sim.rest_positions
-        sim.step(50)
+        sim.step(steps)
         assert sim.last_projection is not None
         out.append((sim.positions, sim.velocities, sim.history["proj_iterations"]))
     assert np.sum(out[0][2]) > 0

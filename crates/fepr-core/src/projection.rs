@@ -24,6 +24,7 @@ use crate::error::{invalid, Result};
 use crate::invariants::Invariants;
 use crate::linalg::{cross, dot, solve_symmetric_psd, sub, Vec3};
 use crate::model::{Model, State};
+use crate::parallel::reduce_chunks;
 
 /// Which constraint rows the projection enforces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -308,6 +309,66 @@ struct Eval {
     tr_vv: f64,
     a_vv: [[f64; 3]; 3],
     rr: [[f64; 3]; 3],
+    /// `sum m_i x_i` (for the centre of mass).
+    mass_x: Vec3,
+}
+
+impl Default for Eval {
+    fn default() -> Self {
+        let z = [0.0; 3];
+        Self {
+            c: [0.0; ROWS],
+            el: ElasticSummary {
+                energy: 0.0,
+                min_j: f64::INFINITY,
+                inverted: 0,
+            },
+            kinetic: 0.0,
+            gravitational: 0.0,
+            momentum: z,
+            angular_momentum: z,
+            com: z,
+            grad_sq_over_w: 0.0,
+            a_grad_sum: z,
+            a_grad_cross_v: z,
+            free_mass: 0.0,
+            a_free_mass: 0.0,
+            free_p: z,
+            a_free_p: z,
+            free_l: z,
+            free_r: z,
+            tr_vv: 0.0,
+            a_vv: [z; 3],
+            rr: [z; 3],
+            mass_x: z,
+        }
+    }
+}
+
+impl Eval {
+    /// Add the vertex sums of `b` (a later chunk) to these.
+    fn add(&mut self, b: &Eval) {
+        let add3 = |a: &mut Vec3, b: &Vec3| (0..3).for_each(|k| a[k] += b[k]);
+        self.kinetic += b.kinetic;
+        self.gravitational += b.gravitational;
+        self.grad_sq_over_w += b.grad_sq_over_w;
+        self.free_mass += b.free_mass;
+        self.a_free_mass += b.a_free_mass;
+        self.tr_vv += b.tr_vv;
+        add3(&mut self.momentum, &b.momentum);
+        add3(&mut self.angular_momentum, &b.angular_momentum);
+        add3(&mut self.a_grad_sum, &b.a_grad_sum);
+        add3(&mut self.a_grad_cross_v, &b.a_grad_cross_v);
+        add3(&mut self.free_p, &b.free_p);
+        add3(&mut self.a_free_p, &b.a_free_p);
+        add3(&mut self.free_l, &b.free_l);
+        add3(&mut self.free_r, &b.free_r);
+        add3(&mut self.mass_x, &b.mass_x);
+        for a in 0..3 {
+            add3(&mut self.a_vv[a], &b.a_vv[a]);
+            add3(&mut self.rr[a], &b.rr[a]);
+        }
+    }
 }
 
 /// The projection with its scratch memory (reused across steps).
@@ -967,7 +1028,8 @@ fn d_norm(pb: &Problem, x: &[Vec3], v: &[Vec3], s: f64, t: f64, xb: &[Vec3], vb:
 }
 
 /// Evaluate the constraints, the elastic gradient (into `grad`; the potential's is `grad E_el - m g`, formed
-/// where it is used) and the mass moments that `S` needs, in one pass over the vertices.
+/// where it is used) and the mass moments that `S` needs, in one parallel pass over fixed chunks of vertices
+/// (combined in chunk order: the same bits for any thread count).
 fn evaluate(
     pb: &Problem,
     x: &[Vec3],
@@ -979,31 +1041,46 @@ fn evaluate(
 ) -> Eval {
     let model = pb.model;
     let el = elastic_energy_gradient(model, x, ws, grad);
+    let grad = &*grad;
+    let mut e = reduce_chunks(
+        x.len(),
+        VERTEX_MOMENT_CHUNK,
+        |range| vertex_moments(pb, x, v, grad, range),
+        |mut a, b| {
+            a.add(&b);
+            a
+        },
+    )
+    .unwrap_or_default();
+    e.el = el;
+    let mt = model.total_mass;
+    e.com = [e.mass_x[0] / mt, e.mass_x[1] / mt, e.mass_x[2] / mt];
+    let tg = pb.targets;
+    e.c[0] = e.kinetic + el.energy + e.gravitational - tg.energy;
+    for a in 0..3 {
+        e.c[1 + a] = e.momentum[a] - (tg.momentum[a] + s * pb.dp_star[a]);
+        e.c[4 + a] = e.angular_momentum[a] - (tg.angular_momentum[a] + t * pb.dl_star[a]);
+        e.c[7 + a] = e.com[a] - tg.center_of_mass[a];
+    }
+    e
+}
+
+/// Vertices per parallel task of the moment pass.
+const VERTEX_MOMENT_CHUNK: usize = 2048;
+
+/// The sums of [`Eval`] over the vertices in `range` (`c`, `el` and `com` are left at zero).
+fn vertex_moments(
+    pb: &Problem,
+    x: &[Vec3],
+    v: &[Vec3],
+    grad: &[Vec3],
+    range: std::ops::Range<usize>,
+) -> Eval {
+    let model = pb.model;
     let g = model.gravity;
     let ct = pb.targets.center_of_mass;
-    let mut e = Eval {
-        c: [0.0; ROWS],
-        el,
-        kinetic: 0.0,
-        gravitational: 0.0,
-        momentum: [0.0; 3],
-        angular_momentum: [0.0; 3],
-        com: [0.0; 3],
-        grad_sq_over_w: 0.0,
-        a_grad_sum: [0.0; 3],
-        a_grad_cross_v: [0.0; 3],
-        free_mass: 0.0,
-        a_free_mass: 0.0,
-        free_p: [0.0; 3],
-        a_free_p: [0.0; 3],
-        free_l: [0.0; 3],
-        free_r: [0.0; 3],
-        tr_vv: 0.0,
-        a_vv: [[0.0; 3]; 3],
-        rr: [[0.0; 3]; 3],
-    };
-    let mut mx = [0.0; 3];
-    for i in 0..x.len() {
+    let mut e = Eval::default();
+    for i in range {
         let mi = model.masses[i];
         let (xi, vi) = (x[i], v[i]);
         // Gradient of the potential (elastic + gravity); `grad` keeps the elastic part alone, so that it can
@@ -1016,7 +1093,7 @@ fn evaluate(
         for a in 0..3 {
             e.momentum[a] += mi * vi[a];
             e.angular_momentum[a] += mi * lv[a];
-            mx[a] += mi * xi[a];
+            e.mass_x[a] += mi * xi[a];
         }
         if model.pinned[i] {
             continue;
@@ -1039,15 +1116,6 @@ fn evaluate(
                 e.rr[a][b] += mi * r[a] * r[b];
             }
         }
-    }
-    let mt = model.total_mass;
-    e.com = [mx[0] / mt, mx[1] / mt, mx[2] / mt];
-    let tg = pb.targets;
-    e.c[0] = e.kinetic + el.energy + e.gravitational - tg.energy;
-    for a in 0..3 {
-        e.c[1 + a] = e.momentum[a] - (tg.momentum[a] + s * pb.dp_star[a]);
-        e.c[4 + a] = e.angular_momentum[a] - (tg.angular_momentum[a] + t * pb.dl_star[a]);
-        e.c[7 + a] = e.com[a] - tg.center_of_mass[a];
     }
     e
 }
