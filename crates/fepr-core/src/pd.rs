@@ -78,6 +78,9 @@ pub struct ProjectiveDynamics {
     corner_terms: Vec<[Vec3; 4]>,
     /// Global-step right-hand sides, then solutions: one row (x, y, z) per free vertex.
     rhs: Vec<Vec3>,
+    x_n: Vec<Vec3>,
+    x: Vec<Vec3>,
+    y: Vec<Vec3>,
 }
 
 impl std::fmt::Debug for ProjectiveDynamics {
@@ -253,26 +256,27 @@ impl Integrator for ProjectiveDynamics {
         let m = model.num_vertices();
         let n = pre.free_vertices.len();
         let inv_h2 = 1.0 / (h * h);
-        let x_n = state.x.clone();
-        // Inertial prediction with gravity as the initial guess.
-        let mut x: Vec<Vec3> = (0..m)
-            .map(|i| {
-                if model.pinned[i] {
-                    state.x[i]
-                } else {
-                    [0, 1, 2].map(|a| state.x[i][a] + h * state.v[i][a] + h * h * model.gravity[a])
-                }
-            })
-            .collect();
-        let y: Vec<Vec3> = (0..m)
-            .map(|i| {
-                if model.pinned[i] {
-                    state.x[i]
-                } else {
-                    [0, 1, 2].map(|a| state.x[i][a] + h * state.v[i][a])
-                }
-            })
-            .collect();
+        // Workspaces (no allocation in the step loop): the start positions, the iterate (from the inertial
+        // prediction with gravity) and the inertial target y = x_n + h v_n.
+        let (mut x_n, mut x, mut y) = (
+            std::mem::take(&mut self.x_n),
+            std::mem::take(&mut self.x),
+            std::mem::take(&mut self.y),
+        );
+        x_n.clone_from(&state.x);
+        y.clear();
+        x.clear();
+        for i in 0..m {
+            if model.pinned[i] {
+                y.push(state.x[i]);
+                x.push(state.x[i]);
+            } else {
+                y.push([0, 1, 2].map(|a| state.x[i][a] + h * state.v[i][a]));
+                x.push(
+                    [0, 1, 2].map(|a| state.x[i][a] + h * state.v[i][a] + h * h * model.gravity[a]),
+                );
+            }
+        }
         let mut report = StepReport {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()
@@ -345,6 +349,7 @@ impl Integrator for ProjectiveDynamics {
         }
         self.timing = timing;
         finish_positional_step(model, state, &x, &x_n, h);
+        (self.x_n, self.x, self.y) = (x_n, x, y);
         report
     }
 }
