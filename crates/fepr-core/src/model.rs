@@ -1,6 +1,7 @@
 //! `Model`: everything that does not change during a run (rest mesh, rest shape, masses, material, pins,
 //! gravity, damping). Integrators and the projection read it and mutate only a `State`.
 
+use crate::elasticity::TetBlocks;
 use crate::error::{invalid, Result};
 use crate::linalg::Vec3;
 use crate::material::Material;
@@ -27,6 +28,8 @@ pub struct Model {
     /// Vertex -> (tet * 4 + corner) incidence (CSR offsets and slots), for deterministic gathers.
     pub(crate) incidence_offsets: Vec<usize>,
     pub(crate) incidence_slots: Vec<u32>,
+    /// Rest data in SIMD-friendly blocks for the Neo-Hookean kernel (96 bytes per tet).
+    pub(crate) tet_blocks: TetBlocks,
 }
 
 impl Model {
@@ -128,6 +131,7 @@ impl ModelBuilder {
         let total_mass = masses.iter().sum();
         let length_scale = self.mesh.half_diagonal();
         let (incidence_offsets, incidence_slots) = self.mesh.vertex_incidence();
+        let tet_blocks = TetBlocks::new(self.mesh.tets(), &rest);
         Ok(Model {
             mesh: self.mesh,
             rest,
@@ -140,6 +144,7 @@ impl ModelBuilder {
             length_scale,
             incidence_offsets,
             incidence_slots,
+            tet_blocks,
         })
     }
 }
