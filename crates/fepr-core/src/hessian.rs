@@ -22,7 +22,7 @@ pub type ElementMatrix = [f64; 144];
 
 /// Shape-function gradients `g_0..g_3` of tet `e` in its rest configuration (`dF/dx_a = g_a`).
 pub fn shape_gradients(model: &Model, e: usize) -> [Vec3; 4] {
-    let d = &model.rest.dm_inv[e];
+    let d = &model.dm_inv(e);
     let g1 = d[0];
     let g2 = d[1];
     let g3 = d[2];
@@ -96,7 +96,7 @@ pub fn element_hessian(model: &Model, x: &[Vec3], e: usize, psd: bool) -> Elemen
         model.material.stress_derivative(&f)
     };
     let g = shape_gradients(model, e);
-    let vol = model.rest.volume[e];
+    let vol = model.rest_volume[e];
     // t[3i+j][3b+k] = sum_l D[3i+j][3k+l] g_b[l]
     let mut t = [[0.0; 12]; 9];
     for r in 0..9 {

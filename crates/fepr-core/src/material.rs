@@ -113,6 +113,58 @@ fn flatten(m: &Mat3) -> [f64; 9] {
     ]
 }
 
+/// Natural logarithm shared by the scalar Neo-Hookean and the batched kernel in `elasticity` (both must
+/// give the same bits). Positive normal finite inputs go through [`ln_core`] (fdlibm's `e_log.c`, error
+/// below 1 ulp); zero, negatives, subnormals, infinities and NaN fall back to `f64::ln`.
+#[inline]
+pub(crate) fn ln(x: f64) -> f64 {
+    if ln_core_applies(x) {
+        ln_core(x)
+    } else {
+        x.ln()
+    }
+}
+
+/// Whether [`ln_core`] is valid at `x` (positive, normal, finite).
+#[inline(always)]
+pub(crate) fn ln_core_applies(x: f64) -> bool {
+    (f64::MIN_POSITIVE..f64::INFINITY).contains(&x)
+}
+
+/// fdlibm's logarithm (`e_log.c`, as in musl before 2018) without branches, so that a loop over it turns
+/// into SIMD lanes: `x = 2^k (1 + f)` with `1 + f` in `[sqrt(2)/2, sqrt(2))`, `s = f / (2 + f)`, and
+/// `log(1 + f) = f - f^2/2 + s (f^2/2 + R(s^2))` with a degree-14 minimax `R`. Only for positive normal
+/// finite `x` (see [`ln_core_applies`]); plain multiplies and adds, no fused multiply-adds.
+#[inline(always)]
+pub(crate) fn ln_core(x: f64) -> f64 {
+    // fdlibm's constants (bits in the comments): ln 2 split so that k * LN2_HI is exact, and the minimax R.
+    const LN2_HI: f64 = 0.6931471803691238; // 0x3fe62e42fee00000
+    const LN2_LO: f64 = 1.9082149292705877e-10; // 0x3dea39ef35793c76
+    const LG1: f64 = 0.6666666666666735; // 0x3fe5555555555593
+    const LG2: f64 = 0.3999999999940942; // 0x3fd999999997fa04
+    const LG3: f64 = 0.2857142874366239; // 0x3fd2492494229359
+    const LG4: f64 = 0.22222198432149784; // 0x3fcc71c51d8e78af
+    const LG5: f64 = 0.1818357216161805; // 0x3fc7466496cb03de
+    const LG6: f64 = 0.15313837699209373; // 0x3fc39a09d078c69f
+    const LG7: f64 = 0.14798198605116586; // 0x3fc2f112df3e5244
+                                          // Shift the high word so that the exponent field counts from sqrt(2)/2 rather than 1.
+    let bits = x.to_bits();
+    let hx = (bits >> 32) + (0x3ff0_0000 - 0x3fe6_a09e);
+    let e = (hx >> 20) & 0x7ff;
+    let m = (((hx & 0x000f_ffff) + 0x3fe6_a09e) << 32) | (bits & 0xffff_ffff);
+    // e as f64 exactly, without an integer conversion (AVX2 has none for 64-bit lanes): 2^52 + e - 2^52.
+    let dk = f64::from_bits(0x4330_0000_0000_0000 | e) - (4503599627370496.0 + 1023.0);
+    let f = f64::from_bits(m) - 1.0;
+    let hfsq = 0.5 * f * f;
+    let s = f / (2.0 + f);
+    let z = s * s;
+    let w = z * z;
+    let t1 = w * (LG2 + w * (LG4 + w * LG6));
+    let t2 = z * (LG1 + w * (LG3 + w * (LG5 + w * LG7)));
+    let r = t2 + t1;
+    s * (hfsq + r) + dk * LN2_LO - hfsq + f + dk * LN2_HI
+}
+
 /// The seed's log Neo-Hookean, `Psi = mu/2 (tr F^T F - 3) - mu l(J) + lambda/2 l(J)^2`, where `l(J) = log J`
 /// for `J >= j0` and its C2 quadratic extension below `j0` (fepr-spec section 4):
 /// `l(J) = log j0 + (J - j0)/j0 - (J - j0)^2 / (2 j0^2)`. The extension keeps energy and forces finite and
@@ -149,12 +201,12 @@ impl NeoHookean {
     #[inline]
     fn extended_log(&self, j: f64) -> (f64, f64, f64) {
         if j >= self.j0 {
-            (j.ln(), 1.0 / j, -1.0 / (j * j))
+            (ln(j), 1.0 / j, -1.0 / (j * j))
         } else {
             let j0 = self.j0;
             let d = j - j0;
             (
-                j0.ln() + d / j0 - d * d / (2.0 * j0 * j0),
+                ln(j0) + d / j0 - d * d / (2.0 * j0 * j0),
                 1.0 / j0 - d / (j0 * j0),
                 -1.0 / (j0 * j0),
             )
@@ -734,6 +786,38 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The shared logarithm against libm: within 1 ulp over a log-uniform sweep of positive normals (and
+    /// exactly at 1, at powers of two and at the special values).
+    #[test]
+    fn shared_ln_is_within_one_ulp_of_libm() {
+        let ulp = |x: f64| f64::from_bits(x.abs().to_bits() + 1) - x.abs();
+        let mut worst = 0.0f64;
+        let mut s = 0x9e37_79b9_7f4a_7c15u64;
+        for i in 0..400_000 {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let u = (s >> 11) as f64 / (1u64 << 53) as f64;
+            // Dense near 1 (where the cancellation is) and log-uniform over the whole normal range.
+            let x = if i % 2 == 0 {
+                1.0 + (u - 0.5) * 0.6
+            } else {
+                (2.0f64).powf(-1021.0 + 2044.0 * u)
+            };
+            let (a, b) = (ln(x), x.ln());
+            worst = worst.max((a - b).abs() / ulp(b).max(f64::MIN_POSITIVE));
+        }
+        assert!(worst <= 1.0, "worst error {worst} ulp");
+        assert_eq!(ln(1.0).to_bits(), 0.0f64.to_bits());
+        for k in -1020..1020 {
+            let x = (2.0f64).powi(k);
+            assert!((ln(x) - x.ln()).abs() <= ulp(x.ln()), "2^{k}");
+        }
+        assert!(ln(0.0) == f64::NEG_INFINITY && ln(f64::INFINITY) == f64::INFINITY);
+        assert!(ln(-1.0).is_nan() && ln(f64::NAN).is_nan());
+        assert_eq!(ln(1e-310).to_bits(), 1e-310f64.ln().to_bits());
     }
 
     #[test]

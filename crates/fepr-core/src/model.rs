@@ -1,6 +1,7 @@
 //! `Model`: everything that does not change during a run (rest mesh, rest shape, masses, material, pins,
 //! gravity, damping). Integrators and the projection read it and mutate only a `State`.
 
+use crate::elasticity::TetBlocks;
 use crate::error::{invalid, Result};
 use crate::linalg::Vec3;
 use crate::material::Material;
@@ -10,7 +11,8 @@ use crate::mesh::{lumped_masses, MassSpec, RestShape, TetMesh};
 #[derive(Clone, Debug)]
 pub struct Model {
     pub mesh: TetMesh,
-    pub rest: RestShape,
+    /// Rest volume of every tet, m^3. (`D_m^-1` lives in the SIMD blocks only: [`Model::dm_inv`].)
+    pub rest_volume: Vec<f64>,
     pub material: Material,
     /// Lumped vertex masses, kg.
     pub masses: Vec<f64>,
@@ -27,9 +29,18 @@ pub struct Model {
     /// Vertex -> (tet * 4 + corner) incidence (CSR offsets and slots), for deterministic gathers.
     pub(crate) incidence_offsets: Vec<usize>,
     pub(crate) incidence_slots: Vec<u32>,
+    /// Rest data in SIMD-friendly blocks for the Neo-Hookean kernel (96 bytes per tet); the only copy of
+    /// `D_m^-1`.
+    pub(crate) tet_blocks: TetBlocks,
 }
 
 impl Model {
+    /// Inverse rest edge matrix `D_m^-1` of tet `e`, 1/m.
+    #[inline]
+    pub fn dm_inv(&self, e: usize) -> crate::linalg::Mat3 {
+        self.tet_blocks.dm_inv(e)
+    }
+
     pub fn num_vertices(&self) -> usize {
         self.mesh.num_vertices()
     }
@@ -128,9 +139,12 @@ impl ModelBuilder {
         let total_mass = masses.iter().sum();
         let length_scale = self.mesh.half_diagonal();
         let (incidence_offsets, incidence_slots) = self.mesh.vertex_incidence();
+        let tet_blocks = TetBlocks::new(self.mesh.tets(), &rest);
+        // D_m^-1 is kept in the blocks only (72 bytes per tet not held twice).
+        let RestShape { volume, .. } = rest;
         Ok(Model {
             mesh: self.mesh,
-            rest,
+            rest_volume: volume,
             material: self.material,
             masses,
             total_mass,
@@ -140,6 +154,7 @@ impl ModelBuilder {
             length_scale,
             incidence_offsets,
             incidence_slots,
+            tet_blocks,
         })
     }
 }

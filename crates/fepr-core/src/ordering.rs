@@ -55,7 +55,7 @@ fn block_size(n: usize, ptr: &[usize], adj: &[usize]) -> usize {
         v
     };
     for b in [3usize, 2] {
-        if n % b != 0 {
+        if !n.is_multiple_of(b) {
             continue;
         }
         let ok = (0..n / b).all(|blk| {

@@ -137,7 +137,7 @@ impl ProjectiveDynamics {
         let grads: Vec<[Vec3; 4]> = (0..model.num_tets())
             .map(|e| shape_gradients(model, e))
             .collect();
-        let weights: Vec<f64> = model.rest.volume.iter().map(|v| 2.0 * mu * v).collect();
+        let weights: Vec<f64> = model.rest_volume.iter().map(|v| 2.0 * mu * v).collect();
         let mut columns = vec![Vec::new(); n];
         for t in model.mesh.tets() {
             for &p in t {

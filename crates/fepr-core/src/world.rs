@@ -357,7 +357,7 @@ impl World {
         let mut e = 0.0;
         for &t in &self.pin_tets {
             let f = deformation_gradient(model, x, t);
-            e += model.rest.volume[t] * model.material.energy_density(&f);
+            e += model.rest_volume[t] * model.material.energy_density(&f);
         }
         for p in &self.pins {
             for &i in &p.vertices {

@@ -135,8 +135,7 @@ impl Xpbd {
             .map(|e| shape_gradients(model, e))
             .collect();
         let compliance = model
-            .rest
-            .volume
+            .rest_volume
             .iter()
             .map(|v| [1.0 / (mat.mu * v), 1.0 / (mat.lambda * v)])
             .collect();
