@@ -147,7 +147,14 @@ impl TetBlocks {
     #[inline]
     pub fn dm_inv(&self, e: usize) -> Mat3 {
         let (b, l) = (&self.blocks[e / BLOCK], e % BLOCK);
-        [0, 1, 2].map(|i| [0, 1, 2].map(|j| b.dm[i][j][l]))
+        // Plain loops: nested `array::map` closures were not inlined here (measured: 13% of a PD step).
+        let mut m = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                m[i][j] = b.dm[i][j][l];
+            }
+        }
+        m
     }
 }
 

@@ -205,9 +205,10 @@ fn local_step(pre: &Prefactored, model: &Model, x: &[Vec3], first: usize, terms:
         for (l, corners) in out.iter_mut().enumerate() {
             let (re, w, g) = (&r[l], pre.weights[e0 + l], &pre.grads[e0 + l]);
             for (k, term) in corners.iter_mut().enumerate() {
-                // (row a of R) . g_k
-                *term = [0, 1, 2]
-                    .map(|a| w * (re[a][0] * g[k][0] + re[a][1] * g[k][1] + re[a][2] * g[k][2]));
+                for a in 0..3 {
+                    // (row a of R) . g_k
+                    term[a] = w * (re[a][0] * g[k][0] + re[a][1] * g[k][1] + re[a][2] * g[k][2]);
+                }
             }
         }
     }
@@ -305,8 +306,10 @@ impl Integrator for ProjectiveDynamics {
                 .for_each(|(ci, chunk)| {
                     for (k, out) in chunk.iter_mut().enumerate() {
                         let v = pre.free_vertices[ci * RHS_CHUNK + k];
-                        let mut acc =
-                            [0, 1, 2].map(|a| model.masses[v] * (inv_h2 * y[v][a] + g[a]));
+                        let mut acc = [0.0; 3];
+                        for a in 0..3 {
+                            acc[a] = model.masses[v] * (inv_h2 * y[v][a] + g[a]);
+                        }
                         let slots = &model.incidence_slots
                             [model.incidence_offsets[v]..model.incidence_offsets[v + 1]];
                         for &slot in slots {

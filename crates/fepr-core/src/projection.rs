@@ -1123,7 +1123,12 @@ fn vertex_moments(
 /// Gradient of the potential energy at one vertex: the elastic gradient minus the gravity force `m g`.
 #[inline(always)]
 fn total_gradient(elastic: Vec3, mass: f64, gravity: Vec3) -> Vec3 {
-    [0, 1, 2].map(|a| elastic[a] - mass * gravity[a])
+    // Written out: `array::map` closures are not reliably inlined in hot loops.
+    [
+        elastic[0] - mass * gravity[0],
+        elastic[1] - mass * gravity[1],
+        elastic[2] - mass * gravity[2],
+    ]
 }
 
 /// The full 10x10 `S = G^T D^-1 G` from the moments (fepr-spec section 3; derivation in docs/fepr.md).
