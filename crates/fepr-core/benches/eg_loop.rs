@@ -161,30 +161,30 @@ impl fepr_core::integrators::Integrator for Verbose {
     }
 }
 
-fn newton_study(stem: &str, steps: usize, project: bool) {
-    use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
-    use fepr_core::model::State;
-    let model = ModelBuilder::new(
-        load_tetgen(stem),
-        Material::NeoHookean(NeoHookean::new(1e5, 0.3).unwrap()),
-    )
-    .mass(MassSpec::Density(1000.0))
-    .build()
-    .unwrap();
-    let mut state = State::at_rest(&model);
-    let mtot: f64 = model.masses.iter().sum();
-    let c = [0, 1, 2].map(|a| {
-        state
-            .x
-            .iter()
-            .zip(&model.masses)
-            .map(|(p, m)| m * p[a])
-            .sum::<f64>()
-            / mtot
-    });
+/// The mesh `STEM.node`/`STEM.ele` with `material`, 1000 kg/m^3, stretched 10% about its centre of mass (the
+/// integrators issue's bunny set-up).
+fn stretched_study_model(
+    stem: &str,
+    material: Material,
+) -> (fepr_core::model::Model, fepr_core::model::State) {
+    let model = ModelBuilder::new(load_tetgen(stem), material)
+        .mass(MassSpec::Density(1000.0))
+        .build()
+        .unwrap();
+    let mut state = fepr_core::model::State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
     for p in state.x.iter_mut() {
         *p = [0, 1, 2].map(|a| c[a] + 1.1 * (p[a] - c[a]));
     }
+    (model, state)
+}
+
+fn newton_study(stem: &str, steps: usize, project: bool) {
+    use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
+    let (model, state) = stretched_study_model(
+        stem,
+        Material::NeoHookean(NeoHookean::new(1e5, 0.3).unwrap()),
+    );
     let ie = Verbose(ImplicitEuler::new(NewtonSettings::default()).unwrap());
     let projector = project.then(|| {
         fepr_core::projection::Projector::new(Default::default()).expect("default projection")
@@ -277,19 +277,7 @@ fn solve_study(model: &fepr_core::model::Model) {
 
 fn pd_study(stem: &str, steps: usize, project: bool) {
     use fepr_core::material::Arap;
-    use fepr_core::model::State;
-    let model = ModelBuilder::new(
-        load_tetgen(stem),
-        Material::Arap(Arap::new(1e5, 0.3).unwrap()),
-    )
-    .mass(MassSpec::Density(1000.0))
-    .build()
-    .unwrap();
-    let mut state = State::at_rest(&model);
-    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
-    for p in state.x.iter_mut() {
-        *p = [0, 1, 2].map(|a| c[a] + 1.1 * (p[a] - c[a]));
-    }
+    let (model, state) = stretched_study_model(stem, Material::Arap(Arap::new(1e5, 0.3).unwrap()));
     solve_study(&model);
     let pd = TimedPd(fepr_core::pd::ProjectiveDynamics::default());
     let projector = project.then(|| {

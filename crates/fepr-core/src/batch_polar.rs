@@ -9,7 +9,7 @@
 //! rejects (inverted, nearly singular, no convergence) are handed to the scalar routine, which takes its SVD
 //! path for them. Used by the Projective Dynamics local step and the ARAP energy (fepr-spec section 5).
 
-use crate::linalg::{ddot, det, polar_rotation, Mat3};
+use crate::linalg::{ddot, det, polar_rotation, Mat3, COFACTOR_PAIRS};
 
 /// Matrices per batch (8 with AVX2 measured 2.8x faster than the scalar routine, against 2.2x for 4 and 2.5x
 /// for 16; AVX-512 lanes were slower on this machine).
@@ -104,14 +104,9 @@ fn newton_update(
     rejected: &mut [bool; LANES],
 ) {
     // cof(X), as linalg::cofactor.
-    const PAIRS: [[(usize, usize, usize, usize); 3]; 3] = [
-        [(1, 1, 2, 2), (1, 2, 2, 0), (1, 0, 2, 1)],
-        [(0, 2, 2, 1), (0, 0, 2, 2), (0, 1, 2, 0)],
-        [(0, 1, 1, 2), (0, 2, 1, 0), (0, 0, 1, 1)],
-    ];
     for i in 0..3 {
         for k in 0..3 {
-            let (a, b, cc, d) = PAIRS[i][k];
+            let (a, b, cc, d) = COFACTOR_PAIRS[i][k];
             for l in 0..LANES {
                 c[i][k][l] = x[a][b][l] * x[cc][d][l] - x[a][d][l] * x[cc][b][l];
             }

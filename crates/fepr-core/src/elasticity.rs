@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 use std::ops::Range;
 
-use crate::linalg::{det, matmul, transpose, Mat3, Vec3};
+use crate::linalg::{det, matmul, transpose, Mat3, Vec3, COFACTOR_PAIRS};
 use crate::material::{ln, ln_core, ln_core_applies, Hyperelastic, Material, NeoHookean, LANES};
 use crate::mesh::{edge_matrix, RestShape};
 use crate::model::Model;
@@ -581,14 +581,9 @@ fn neo_hookean_block<const GRAD: bool>(
     }
     // P = mu F + g'(J) cof(F), with cof[i][k] = f[a][b] f[c][d] - f[a][d] f[c][b] for the index pairs of
     // linalg::cofactor.
-    const PAIRS: [[(usize, usize, usize, usize); 3]; 3] = [
-        [(1, 1, 2, 2), (1, 2, 2, 0), (1, 0, 2, 1)],
-        [(0, 2, 2, 1), (0, 0, 2, 2), (0, 1, 2, 0)],
-        [(0, 1, 1, 2), (0, 2, 1, 0), (0, 0, 1, 1)],
-    ];
     for i in 0..3 {
         for k in 0..3 {
-            let (a, b, c, d) = PAIRS[i][k];
+            let (a, b, c, d) = COFACTOR_PAIRS[i][k];
             for l in 0..BLOCK {
                 let cof = f[a][b][l] * f[c][d][l] - f[a][d][l] * f[c][b][l];
                 p[i][k][l] = mu * f[i][k][l] + dg[l] * cof;

@@ -44,6 +44,15 @@ pub fn det(m: &Mat3) -> f64 {
         + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
 }
 
+/// The entries of [`cofactor`] as index quadruples: `cof[i][k] = m[a][b] m[c][d] - m[a][d] m[c][b]` for
+/// `(a, b, c, d) = COFACTOR_PAIRS[i][k]`, for kernels that compute it on many matrices in lanes (same
+/// operations, same bits).
+pub const COFACTOR_PAIRS: [[(usize, usize, usize, usize); 3]; 3] = [
+    [(1, 1, 2, 2), (1, 2, 2, 0), (1, 0, 2, 1)],
+    [(0, 2, 2, 1), (0, 0, 2, 2), (0, 1, 2, 0)],
+    [(0, 1, 1, 2), (0, 2, 1, 0), (0, 0, 1, 1)],
+];
+
 /// Cofactor matrix: `cof(F) = det(F) F^-T`, defined (and smooth) for every F, including singular ones.
 /// It is the derivative of `det` with respect to F.
 #[inline]
