@@ -121,6 +121,32 @@ def test_background_thread_runs_in_real_time_and_stops():
     assert 5 <= steps <= 25  # about 15 steps of 1/30 s in 0.5 s
 
 
+def test_viewer_colours_an_unprojected_run_that_blew_up():
+    """Regression: after FEPR is switched off, symplectic Euler at this dt runs away. Positions too large for
+    float32 made the viewer skip every update, so the body kept the projected run's colour (a flaky browser
+    test). The colour must follow the run even when the body cannot be drawn."""
+    pytest.importorskip("viser")
+    from fepr.report.style import rgb, run_color
+    from fepr.viewer.app import ViewerApp
+
+    s = ViewerSession(simulation_builder(seed_sim()), integrator="symplectic_euler", dt=1 / 30, running=False)
+    app = ViewerApp(s, port=0, log=lambda _msg: None)
+    try:
+        app.update(force=True)
+        assert tuple(app._solid.color) == rgb(run_color(True))
+        drawn = np.array(app._solid.vertices)
+        s.set_projection(False)
+        s.run_pending()
+        s._sim.positions = np.full_like(s._sim.positions, 1e300)  # what the runaway leaves: finite in float64
+        s.step_once()
+        s.run_pending()
+        app.update()
+        assert tuple(app._solid.color) == rgb(run_color(False))
+        np.testing.assert_array_equal(np.array(app._solid.vertices), drawn)  # not redrawn with inf
+    finally:
+        app.server.stop()
+
+
 def test_coloring_bins_cover_the_surface_once():
     sim = seed_sim()
     faces, owners = boundary_faces_with_tets(sim.tets)

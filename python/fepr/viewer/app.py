@@ -229,11 +229,15 @@ class ViewerApp:
             return
         self._last_version = snap.version
         x = np.asarray(snap.positions)
-        xf = x.astype(np.float32)
-        if not np.all(np.isfinite(xf)):
-            return
-        if self._mode == COLOR_MODES[0]:
-            self._solid.vertices = xf
+        with np.errstate(over="ignore"):
+            xf = x.astype(np.float32)
+        # A run that blows up (an unprojected explicit step at a large dt) can leave positions that float32 cannot
+        # hold: the body then stays where it was last drawn, but its colour and the status (FEPR off, the error)
+        # still follow the run.
+        drawable = bool(np.all(np.isfinite(xf)))
+        if self._mode == COLOR_MODES[0] or not drawable:
+            if drawable:
+                self._solid.vertices = xf
             self._solid.color = rgb(run_color(snap.projection))
             self._solid.visible = True
             for h in self._bins:
@@ -251,7 +255,7 @@ class ViewerApp:
                 else:
                     h.visible = False
             self._legend.content = legend
-        if snap.dragging is not None and self.session._drag is not None:
+        if snap.dragging is not None and self.session._drag is not None and drawable:
             anchor = np.asarray(self.session._drag[1], dtype=np.float32)
             self._spring.points = np.stack([xf[snap.dragging], anchor])[None]
             self._spring.visible = True
