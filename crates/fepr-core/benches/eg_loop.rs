@@ -11,6 +11,9 @@
 
 use std::time::Instant;
 
+mod common;
+use common::load_tetgen;
+
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
 use fepr_core::material::{Material, NeoHookean};
 use fepr_core::mesh::{MassSpec, TetMesh};
@@ -100,31 +103,6 @@ fn small_kernels() {
     );
 }
 
-/// TetGen `.node`/`.ele` reader (0- or 1-based).
-fn load_tetgen(stem: &str) -> TetMesh {
-    let numbers = |ext: &str| -> Vec<Vec<f64>> {
-        std::fs::read_to_string(format!("{stem}.{ext}"))
-            .expect("mesh file")
-            .lines()
-            .map(|l| l.split('#').next().unwrap_or(""))
-            .filter(|l| !l.trim().is_empty())
-            .map(|l| {
-                l.split_whitespace()
-                    .filter_map(|w| w.parse().ok())
-                    .collect()
-            })
-            .collect()
-    };
-    let (nodes, eles) = (numbers("node"), numbers("ele"));
-    let base = nodes[1][0] as i64;
-    let v: Vec<[f64; 3]> = nodes[1..].iter().map(|r| [r[1], r[2], r[3]]).collect();
-    let t: Vec<[i64; 4]> = eles[1..]
-        .iter()
-        .map(|r| [1, 2, 3, 4].map(|c| r[c] as i64 - base))
-        .collect();
-    TetMesh::new(v, &t).unwrap().0
-}
-
 /// Backward Euler that prints its Newton decrements after every step.
 struct Verbose(fepr_core::implicit::ImplicitEuler);
 
@@ -167,10 +145,13 @@ fn stretched_study_model(
     stem: &str,
     material: Material,
 ) -> (fepr_core::model::Model, fepr_core::model::State) {
-    let model = ModelBuilder::new(load_tetgen(stem), material)
-        .mass(MassSpec::Density(1000.0))
-        .build()
-        .unwrap();
+    let model = ModelBuilder::new(
+        load_tetgen(std::path::Path::new(stem)).expect("readable TetGen mesh STEM.node/STEM.ele"),
+        material,
+    )
+    .mass(MassSpec::Density(1000.0))
+    .build()
+    .unwrap();
     let mut state = fepr_core::model::State::at_rest(&model);
     let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
     for p in state.x.iter_mut() {
@@ -322,24 +303,27 @@ fn pd_study(stem: &str, steps: usize, project: bool) {
     );
 }
 
+/// A study on a TetGen mesh: `(stem, steps, with FEPR)`.
+type Study = fn(&str, usize, bool);
+
 fn main() {
     let raw: Vec<String> = std::env::args().skip(1).collect();
     if raw.first().map(String::as_str) == Some("small") {
         small_kernels();
         return;
     }
-    if raw.first().map(String::as_str) == Some("pd") {
-        let steps = raw.get(2).and_then(|s| s.parse().ok()).unwrap_or(10);
-        pd_study(
-            &raw[1],
-            steps,
-            raw.get(3).map(String::as_str) == Some("fepr"),
-        );
-        return;
-    }
-    if raw.first().map(String::as_str) == Some("newton") {
-        let steps = raw.get(2).and_then(|s| s.parse().ok()).unwrap_or(3);
-        newton_study(
+    // `pd STEM STEPS [fepr]` and `newton STEM STEPS [fepr]`: the studies on a TetGen mesh.
+    let study: Option<(Study, usize)> = match raw.first().map(String::as_str) {
+        Some("pd") => Some((pd_study, 10)),
+        Some("newton") => Some((newton_study, 3)),
+        _ => None,
+    };
+    if let Some((run, default_steps)) = study {
+        let steps = raw
+            .get(2)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(default_steps);
+        run(
             &raw[1],
             steps,
             raw.get(3).map(String::as_str) == Some("fepr"),

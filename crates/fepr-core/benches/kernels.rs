@@ -7,6 +7,9 @@
 use std::hint::black_box;
 use std::path::PathBuf;
 
+mod common;
+use common::load_tetgen;
+
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
 use fepr_core::integrators::{Integrator, SymplecticEuler};
@@ -55,31 +58,6 @@ fn box_mesh(n: usize) -> TetMesh {
         }
     }
     TetMesh::new(v, &t).unwrap().0
-}
-
-/// TetGen `.node`/`.ele` reader (enough for the seed meshes).
-fn load_tetgen(stem: &std::path::Path) -> Option<TetMesh> {
-    let read = |ext: &str| std::fs::read_to_string(format!("{}.{ext}", stem.display())).ok();
-    let numbers = |text: &str| -> Vec<Vec<f64>> {
-        text.lines()
-            .map(|l| l.split('#').next().unwrap_or(""))
-            .filter(|l| !l.trim().is_empty())
-            .map(|l| {
-                l.split_whitespace()
-                    .filter_map(|w| w.parse().ok())
-                    .collect()
-            })
-            .collect()
-    };
-    let nodes = numbers(&read("node")?);
-    let eles = numbers(&read("ele")?);
-    let base = nodes.get(1)?.first().copied()? as i64;
-    let v: Vec<Vec3> = nodes[1..].iter().map(|r| [r[1], r[2], r[3]]).collect();
-    let t: Vec<[i64; 4]> = eles[1..]
-        .iter()
-        .map(|r| [1, 2, 3, 4].map(|c| r[c] as i64 - base))
-        .collect();
-    TetMesh::new(v, &t).ok().map(|(m, _)| m)
 }
 
 fn bunny2() -> Option<TetMesh> {

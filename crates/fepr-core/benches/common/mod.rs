@@ -1,0 +1,29 @@
+//! Helpers shared by the benchmarks (each bench target includes this module).
+
+use fepr_core::mesh::TetMesh;
+
+/// TetGen `.node`/`.ele` reader for the benchmark meshes (0- or 1-based indices; `#` comments). `None` when a
+/// file is missing or the mesh does not validate.
+pub fn load_tetgen(stem: &std::path::Path) -> Option<TetMesh> {
+    let read = |ext: &str| std::fs::read_to_string(format!("{}.{ext}", stem.display())).ok();
+    let numbers = |text: &str| -> Vec<Vec<f64>> {
+        text.lines()
+            .map(|l| l.split('#').next().unwrap_or(""))
+            .filter(|l| !l.trim().is_empty())
+            .map(|l| {
+                l.split_whitespace()
+                    .filter_map(|w| w.parse().ok())
+                    .collect()
+            })
+            .collect()
+    };
+    let nodes = numbers(&read("node")?);
+    let eles = numbers(&read("ele")?);
+    let base = nodes.get(1)?.first().copied()? as i64;
+    let v: Vec<[f64; 3]> = nodes[1..].iter().map(|r| [r[1], r[2], r[3]]).collect();
+    let t: Vec<[i64; 4]> = eles[1..]
+        .iter()
+        .map(|r| [1, 2, 3, 4].map(|c| r[c] as i64 - base))
+        .collect();
+    TetMesh::new(v, &t).ok().map(|(m, _)| m)
+}
