@@ -84,6 +84,8 @@ pub struct SparseCholesky {
     ordering: FillOrdering,
     /// Permuted right-hand sides of [`SparseCholesky::solve3_in_place`] (padded rows).
     work3: Vec<Row>,
+    /// Column-major right-hand sides of [`SparseCholesky::solve3_in_place`] on a simplicial factor.
+    work_cols: Vec<f64>,
 }
 
 /// Fill-reducing ordering of the symbolic analysis.
@@ -187,6 +189,7 @@ impl SparseCholesky {
             numeric_count: 0,
             ordering: used,
             work3: Vec::new(),
+            work_cols: Vec::new(),
         })
     }
 
@@ -263,7 +266,9 @@ impl SparseCholesky {
         let n = self.dim();
         assert_eq!(rhs.len(), n);
         let SymbolicCholeskyRaw::Supernodal(sym) = self.symbolic.raw() else {
-            let mut cols = vec![0.0; 3 * n];
+            // Column-major copy in a kept buffer (no allocation per solve), solved by faer.
+            let mut cols = std::mem::take(&mut self.work_cols);
+            cols.resize(3 * n, 0.0);
             for (i, r) in rhs.iter().enumerate() {
                 for a in 0..3 {
                     cols[a * n + i] = r[a];
@@ -273,6 +278,7 @@ impl SparseCholesky {
             for (i, r) in rhs.iter_mut().enumerate() {
                 *r = [cols[i], cols[n + i], cols[2 * n + i]];
             }
+            self.work_cols = cols;
             return;
         };
         let y = &mut self.work3;
