@@ -54,3 +54,27 @@ def test_pd_with_fepr_holds_h_p_l_for_10_s():
     print(f"\nPD + FEPR 10 s: max |H/H0-1| {dh:.1e}, |dP|/P0 {dp:.1e}, |dL|/L0 {dl:.1e}")
     assert np.all(h["proj_converged"][1:] == 1)
     assert dh <= 1e-8 and dp <= 1e-10 and dl <= 1e-10
+
+
+def test_pd_projection_warm_starts_by_default_and_keeps_the_base_positions():
+    """After PD the default projection moves the velocities alone (rigid part onto the momentum targets, the
+    deformational rest scaled to the energy): it keeps PD's positions and leaves nothing to iterate."""
+    free = spinning_ell("projective_dynamics", False)
+    projected = spinning_ell("projective_dynamics", True)
+    free.step(1)
+    projected.step(1)
+    np.testing.assert_array_equal(projected.positions, free.positions)
+    assert not np.array_equal(projected.velocities, free.velocities)
+    projected.step(59)
+    h = projected.history
+    # Every step: PD loses 3-7% of H per step here (warm_start="auto" is 0 after PD, 0.05 after XPBD).
+    assert np.all(h["proj_warm_start"][1:] == 1)
+    assert np.all(h["proj_iterations"][1:] == 0)
+    assert np.all(h["proj_converged"][1:] == 1)
+    dh, dp, dl = max_drifts(h)
+    assert dh <= 1e-12 and dp <= 1e-12 and dl <= 1e-12
+    # warm_start=None: the iterated projection, which moves the positions too.
+    iterated = spinning_ell("projective_dynamics", fepr.Projection(warm_start=None))
+    iterated.step(1)
+    assert not np.array_equal(iterated.positions, free.positions)
+    assert iterated.history["proj_warm_start"][1] == 0 and iterated.history["proj_iterations"][1] >= 2

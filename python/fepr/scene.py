@@ -1138,7 +1138,7 @@ def _parse_projection(t: _Table) -> ProjectionSettings:
         max_halvings=t.integer("max_halvings", None, minimum=0),
         impact_bound=t.number("impact_bound", None, positive=True),
         slack=t.string("slack", None, choices=("auto", "on", "off")),
-        warm_start=t.number("warm_start", None, positive=True),
+        warm_start=t.number("warm_start", None, nonnegative=True),
         metric=t.string("metric", None, choices=("auto", "mass", "stiffness")),
     )
 

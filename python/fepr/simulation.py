@@ -53,12 +53,17 @@ class Projection:
         impulses are uncertain, such as contact), ``"on"`` or ``"off"``. With slack the projection may keep part
         of the base step's own momentum change instead of the target.
     warm_start : float, "auto" or None
-        Scaled energy error above which the projection first rescales the velocities relative to the
-        centre-of-mass velocity to meet the energy (the closest point with positions fixed), then iterates. It
-        helps when a dissipative step at a large dt removed a large share of H in one step; the result is then a
-        nearby point on the constraint manifold rather than the closest one. ``"auto"`` (default): 0.05 after
-        XPBD, whose steps lose a quarter of H at once on sliver-rich meshes (on the bunny every projection then
-        converges for 10 s; without it a few per 300 steps fail), off after the other integrators. ``None``: off.
+        Scaled energy error above which (and above ``tolerance``) the projection first moves the velocities
+        alone to the closest point with the positions held: the rigid part goes to the momentum targets (whole
+        body free, no slack) and the deformational rest is scaled to meet the energy. Then it iterates (usually
+        nothing is left to do). It suits dissipative steps; the result is then the closest point among the
+        states with the base step's positions rather than the closest state overall, and the base step's
+        positions are kept. ``"auto"`` (default): always after Projective Dynamics (0), above 0.05 after XPBD,
+        off after the other integrators. PD at dt = 1/30 loses 10-90% of H per step on the bunny; with the warm
+        start its projection costs one energy + gradient evaluation instead of 5.6 iterations and never has to
+        restart around tets it would have inverted (a third of the steps without it). XPBD loses a quarter of H
+        per step on sliver-rich meshes; with the warm start every projection of a 10 s bunny run converges.
+        ``None``: off.
     metric : str
         Position block W of the projection's metric ``D = diag(W, h^2 M, eps, eps)``: ``"mass"`` (W = M,
         fepr-spec section 3), ``"stiffness"`` (W = M + h^2 diag(K_0), K_0 the rest-state stiffness: stiff local
@@ -89,9 +94,9 @@ class Projection:
         if self.impact_bound is not None:
             real(self.impact_bound, "projection impact_bound", lo=0, lo_open=True)
         if isinstance(self.warm_start, str) and self.warm_start != "auto":
-            raise ConfigError(f"projection warm_start must be a number > 0, 'auto' or None, got {self.warm_start!r}")
+            raise ConfigError(f"projection warm_start must be a number >= 0, 'auto' or None, got {self.warm_start!r}")
         if not isinstance(self.warm_start, str) and self.warm_start is not None:
-            real(self.warm_start, "projection warm_start", lo=0, lo_open=True)
+            real(self.warm_start, "projection warm_start", lo=0)
         if self.metric not in METRICS:
             raise ConfigError(f"projection metric must be one of {', '.join(METRICS)}, got {self.metric!r}")
         if self.slack not in ("auto", "on", "off"):
@@ -278,14 +283,16 @@ class History:
         return f"History({len(self)} rows, columns={self.columns})"
 
 
-#: The projection's warm-start threshold after XPBD (``Projection(warm_start="auto")``).
+#: The projection's warm-start thresholds of ``Projection(warm_start="auto")``: after Projective Dynamics always
+#: (any energy error above the tolerance), after XPBD above 5% of the energy scale.
+PD_WARM_START = 0.0
 XPBD_WARM_START = 0.05
 
 
 def _warm_start_threshold(warm_start, integrator) -> float:
     """The core's warm-start threshold for a ``Projection.warm_start`` value (inf: off)."""
     if warm_start == "auto":
-        warm_start = XPBD_WARM_START if isinstance(integrator, Xpbd) else None
+        warm_start = {ProjectiveDynamics: PD_WARM_START, Xpbd: XPBD_WARM_START}.get(type(integrator))
     return float("inf") if warm_start is None else float(warm_start)
 
 

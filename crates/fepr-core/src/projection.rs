@@ -22,7 +22,7 @@ use crate::elasticity::{
 };
 use crate::error::{invalid, Result};
 use crate::invariants::Invariants;
-use crate::linalg::{cross, dot, solve_symmetric_psd, sub, Vec3};
+use crate::linalg::{cross, dot, solve_symmetric_psd, sub, Mat3, Vec3};
 use crate::model::{Model, State};
 use crate::parallel::reduce_chunks;
 
@@ -94,9 +94,10 @@ pub struct ProjectionSettings {
     pub impact_bound: Option<f64>,
     /// When the slack variables s and t may move (default `Auto`).
     pub slack: Slack,
-    /// Scaled energy error above which the iterations start from the velocity warm start (default: infinity,
-    /// i.e. off, so that the result is the closest point of fepr-spec section 3). An opt-in for dissipative
-    /// base steps at large dt that lose most of H in one step.
+    /// Scaled energy error above which (and above `tolerance`) the iterations start from the velocity warm
+    /// start (`>= 0`; default: infinity, i.e. off, so that the result is the closest point of fepr-spec
+    /// section 3). For dissipative base steps that lose much of H in one step: the Python layer's `"auto"`
+    /// uses 0 after Projective Dynamics and 0.05 after XPBD.
     pub warm_start_threshold: f64,
     /// The position block of the metric D (default `Auto`, see [`Metric`]).
     pub metric: Metric,
@@ -207,11 +208,11 @@ impl ProjectionSettings {
                 format!("must satisfy 0 <= delta < 1, got {}", self.regularization),
             ));
         }
-        if self.warm_start_threshold.is_nan() || self.warm_start_threshold <= 0.0 {
+        if self.warm_start_threshold.is_nan() || self.warm_start_threshold < 0.0 {
             return Err(invalid(
                 "warm_start_threshold",
                 format!(
-                    "must be positive and finite, got {}",
+                    "must be >= 0 (infinite: off), got {}",
                     self.warm_start_threshold
                 ),
             ));
@@ -584,10 +585,11 @@ impl Projector {
             // from the manifold.
             if base_finite
                 && pb.active[0]
-                && (cur.c[0] / pb.row_scale[0]).abs() > self.settings.warm_start_threshold
+                && (cur.c[0] / pb.row_scale[0]).abs() > self.settings.warm_start_threshold.max(tol)
                 && warm_start_velocities(&pb, &self.x, &mut self.v, cur.c[0])
             {
-                cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+                // Only the velocities changed: the elastic energy and gradient at x still hold.
+                cur = evaluate_with_elastic(&pb, &self.x, &self.v, s, t, cur.el, &self.grad);
                 cur_norm = norm_scaled(&pb, &cur.c);
                 report.warm_start = true;
                 if cur_norm < best_norm && cur.c.iter().all(|c| c.is_finite()) {
@@ -883,10 +885,34 @@ fn model_step_length(pb: &Problem, c0: &[f64; ROWS], c1: &[f64; ROWS]) -> f64 {
     }
 }
 
-/// Split the free vertices' velocities into a rigid part `V + omega x (x - c)` (carrying all of P and L, with
-/// `omega = I^-1 L` about the free centre of mass `c`) and a deformational rest `u` with zero momenta.
-/// Returns `(V, omega, c)`.
-fn rigid_velocity(pb: &Problem, x: &[Vec3], v: &[Vec3]) -> (Vec3, Vec3, Vec3) {
+/// The rigid part of the free vertices' velocities: `V + omega x (x - c)`, carrying all of their P and L, with
+/// `omega = I^-1 L` about their centre of mass `c`. The rest `u = v - rigid` has zero momenta.
+struct RigidPart {
+    /// `V`, m/s.
+    velocity: Vec3,
+    /// `omega`, rad/s.
+    omega: Vec3,
+    /// `c`, m.
+    center: Vec3,
+    /// The free mass, kg.
+    mass: f64,
+    /// `I^-1` about `c`, 1/(kg m^2) (`None` for a degenerate, e.g. collinear, body).
+    inertia_inv: Option<Mat3>,
+}
+
+impl RigidPart {
+    fn at(&self, x: Vec3) -> Vec3 {
+        let w = cross(self.omega, sub(x, self.center));
+        [
+            self.velocity[0] + w[0],
+            self.velocity[1] + w[1],
+            self.velocity[2] + w[2],
+        ]
+    }
+}
+
+/// The [`RigidPart`] of the free vertices' velocities `v` at positions `x`.
+fn rigid_velocity(pb: &Problem, x: &[Vec3], v: &[Vec3]) -> RigidPart {
     let (mut mf, mut mv, mut mx) = (0.0, [0.0; 3], [0.0; 3]);
     for i in 0..v.len() {
         if !pb.model.pinned[i] {
@@ -899,7 +925,13 @@ fn rigid_velocity(pb: &Problem, x: &[Vec3], v: &[Vec3]) -> (Vec3, Vec3, Vec3) {
         }
     }
     if mf <= 0.0 {
-        return ([0.0; 3], [0.0; 3], [0.0; 3]);
+        return RigidPart {
+            velocity: [0.0; 3],
+            omega: [0.0; 3],
+            center: [0.0; 3],
+            mass: 0.0,
+            inertia_inv: None,
+        };
     }
     let vc = [mv[0] / mf, mv[1] / mf, mv[2] / mf];
     let c = [mx[0] / mf, mx[1] / mf, mx[2] / mf];
@@ -921,38 +953,82 @@ fn rigid_velocity(pb: &Problem, x: &[Vec3], v: &[Vec3]) -> (Vec3, Vec3, Vec3) {
             }
         }
     }
-    let omega = crate::linalg::inverse(&inertia)
-        .map(|inv| [0, 1, 2].map(|a| inv[a][0] * l[0] + inv[a][1] * l[1] + inv[a][2] * l[2]))
-        .unwrap_or([0.0; 3]);
-    (vc, omega, c)
+    let inertia_inv = crate::linalg::inverse(&inertia);
+    let omega = inertia_inv.map_or([0.0; 3], |inv| mat_vec(&inv, l));
+    RigidPart {
+        velocity: vc,
+        omega,
+        center: c,
+        mass: mf,
+        inertia_inv,
+    }
 }
 
-/// Warm start: scale the deformational velocities `u` (see [`rigid_velocity`]) by the factor that changes the
-/// kinetic energy by `-c_h`, which meets the energy row and keeps P and L exactly (u carries no momentum and
-/// the kinetic energy splits into rigid + deformational parts). False if that energy cannot be reached.
+fn mat_vec(m: &Mat3, v: Vec3) -> Vec3 {
+    [
+        m[0][0] * v[0] + m[0][1] * v[1] + m[0][2] * v[2],
+        m[1][0] * v[0] + m[1][1] * v[1] + m[1][2] * v[2],
+        m[2][0] * v[0] + m[2][1] * v[1] + m[2][2] * v[2],
+    ]
+}
+
+/// The rigid part whose momenta are the targets: `P = P_target` and `L_Ct = L_target` (the slack-free targets
+/// of fepr-spec section 2), for the free centre of mass `c` of `now`: `V = P_target / m` and
+/// `omega = I^-1 (L_target - m (c - C_t) x V)` (u adds nothing to either: it has zero momenta about `c`).
+/// `None` where the momentum rows do not all hold the whole body (pins, rows off, slack free) or `I` is singular.
+fn rigid_part_on_target(pb: &Problem, now: &RigidPart) -> Option<RigidPart> {
+    let momenta_rows = pb.active[1..7].iter().all(|&a| a);
+    let slack_free = pb.dp_star != [0.0; 3] || pb.dl_star != [0.0; 3];
+    if pb.model.num_pinned() > 0 || !momenta_rows || slack_free || now.mass <= 0.0 {
+        return None;
+    }
+    let inv = now.inertia_inv?;
+    let tg = pb.targets;
+    let velocity = [0, 1, 2].map(|a| tg.momentum[a] / now.mass);
+    let offset = cross(sub(now.center, tg.center_of_mass), velocity);
+    let l_spin = [0, 1, 2].map(|a| tg.angular_momentum[a] - now.mass * offset[a]);
+    Some(RigidPart {
+        velocity,
+        omega: mat_vec(&inv, l_spin),
+        center: now.center,
+        mass: now.mass,
+        inertia_inv: now.inertia_inv,
+    })
+}
+
+/// Warm start (fepr-spec section 3, before the iteration): split the free velocities into a rigid part and a
+/// deformational rest `u` (see [`rigid_velocity`]); put the rigid part on the momentum targets where the
+/// momentum rows cover the whole body (see [`rigid_part_on_target`]), and scale `u` by the factor that then
+/// meets the energy row. The kinetic energy splits into rigid + deformational parts (u carries no momenta), so
+/// the result meets the energy row and, on the whole body, the momentum rows; otherwise P and L stay what they
+/// were. The iteration starts from there and only fixes what is left (the centre of mass, round-off): a
+/// dissipative base step that lost most of H is then 0-2 iterations from the manifold instead of a stiff
+/// position correction away. False if that energy cannot be reached.
 fn warm_start_velocities(pb: &Problem, x: &[Vec3], v: &mut [Vec3], c_h: f64) -> bool {
-    let (vc, omega, c) = rigid_velocity(pb, x, v);
-    let rigid = |i: usize| {
-        let w = cross(omega, sub(x[i], c));
-        [vc[0] + w[0], vc[1] + w[1], vc[2] + w[2]]
-    };
-    let mut k_u = 0.0;
+    let now = rigid_velocity(pb, x, v);
+    let target = rigid_part_on_target(pb, &now);
+    let next = target.as_ref().unwrap_or(&now);
+    let (mut k_u, mut k_now, mut k_next) = (0.0, 0.0, 0.0);
     for i in 0..v.len() {
         if !pb.model.pinned[i] {
-            let u = sub(v[i], rigid(i));
-            k_u += 0.5 * pb.model.masses[i] * dot(u, u);
+            let m = pb.model.masses[i];
+            let (r_now, r_next) = (now.at(x[i]), next.at(x[i]));
+            let u = sub(v[i], r_now);
+            k_u += 0.5 * m * dot(u, u);
+            k_now += 0.5 * m * dot(r_now, r_now);
+            k_next += 0.5 * m * dot(r_next, r_next);
         }
     }
-    let target = k_u - c_h;
+    let k_target = k_u - c_h - (k_next - k_now);
     // A (nearly) rigid motion has no deformational energy to scale: a huge factor would only amplify round-off.
-    if !(target > 0.0 && target.is_finite() && k_u > 1e-6 * target) {
+    if !(k_target > 0.0 && k_target.is_finite() && k_u > 1e-6 * k_target) {
         return false;
     }
-    let beta = (target / k_u).sqrt();
+    let beta = (k_target / k_u).sqrt();
     for i in 0..v.len() {
         if !pb.model.pinned[i] {
-            let r = rigid(i);
-            v[i] = [0, 1, 2].map(|a| r[a] + beta * (v[i][a] - r[a]));
+            let (r_now, r_next) = (now.at(x[i]), next.at(x[i]));
+            v[i] = [0, 1, 2].map(|a| r_next[a] + beta * (v[i][a] - r_now[a]));
         }
     }
     true
@@ -1039,9 +1115,22 @@ fn evaluate(
     ws: &mut ElasticWorkspace,
     grad: &mut [Vec3],
 ) -> Eval {
+    let el = elastic_energy_gradient(pb.model, x, ws, grad);
+    evaluate_with_elastic(pb, x, v, s, t, el, grad)
+}
+
+/// [`evaluate`] with the elastic energy summary `el` and gradient `grad` at `x` already at hand (after a change
+/// of the velocities alone): the same result, without the elastic pass.
+fn evaluate_with_elastic(
+    pb: &Problem,
+    x: &[Vec3],
+    v: &[Vec3],
+    s: f64,
+    t: f64,
+    el: ElasticSummary,
+    grad: &[Vec3],
+) -> Eval {
     let model = pb.model;
-    let el = elastic_energy_gradient(model, x, ws, grad);
-    let grad = &*grad;
     let mut e = reduce_chunks(
         x.len(),
         VERTEX_MOMENT_CHUNK,

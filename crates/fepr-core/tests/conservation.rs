@@ -290,3 +290,105 @@ fn warm_start_restores_a_large_energy_deficit_and_keeps_the_momenta() {
         );
     }
 }
+
+/// The deformational part `u = v - V - omega x (x - c)` of a velocity field (rigid part fitted by mass:
+/// `V = P / m`, `omega = I_c^-1 L_c`).
+fn deformational_part(masses: &[f64], x: &[[f64; 3]], v: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    use fepr_core::linalg::{cross, inverse, sub};
+    let m: f64 = masses.iter().sum();
+    let (mut p, mut mx) = ([0.0; 3], [0.0; 3]);
+    for ((mi, xi), vi) in masses.iter().zip(x).zip(v) {
+        for a in 0..3 {
+            p[a] += mi * vi[a];
+            mx[a] += mi * xi[a];
+        }
+    }
+    let vc = p.map(|pa| pa / m);
+    let c = mx.map(|ma| ma / m);
+    let (mut inertia, mut l) = ([[0.0; 3]; 3], [0.0; 3]);
+    for ((mi, xi), vi) in masses.iter().zip(x).zip(v) {
+        let r = sub(*xi, c);
+        let rr: f64 = r.iter().map(|q| q * q).sum();
+        for a in 0..3 {
+            for b in 0..3 {
+                inertia[a][b] += mi * (if a == b { rr } else { 0.0 } - r[a] * r[b]);
+            }
+        }
+        let lv = cross(r, *vi);
+        for a in 0..3 {
+            l[a] += mi * lv[a];
+        }
+    }
+    let inv = inverse(&inertia).unwrap();
+    let omega = [0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * l[b]).sum::<f64>());
+    x.iter()
+        .zip(v)
+        .map(|(xi, vi)| {
+            let w = cross(omega, sub(*xi, c));
+            [0, 1, 2].map(|a| vi[a] - vc[a] - w[a])
+        })
+        .collect()
+}
+
+#[test]
+fn warm_start_puts_the_momenta_on_their_targets_with_positions_held_and_leaves_no_iteration() {
+    use fepr_core::invariants::measure;
+    use fepr_core::projection::{ProjectionSettings, Projector, Targets};
+    let model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0; 3]);
+    let mut state = State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+    scaled(&mut state, 1.03, c);
+    for (x, v) in state.x.iter().zip(state.v.iter_mut()) {
+        *v = [0, 1, 2].map(|a| 0.2 * (x[a] - c[a]) + 0.05 * (3.0 * x[(a + 1) % 3]).sin());
+        v[0] += 0.3 - 0.5 * (x[1] - c[1]);
+        v[1] += 0.5 * (x[0] - c[0]);
+    }
+    let inv = measure(&model, &state);
+    // A dissipative base step: it lost half of H and some of P and L (targets: the start-of-step values).
+    let targets = Targets {
+        energy: 2.0 * inv.total,
+        momentum: [
+            inv.momentum[0] * 1.1,
+            inv.momentum[1] + 0.2,
+            inv.momentum[2],
+        ],
+        angular_momentum: inv.angular_momentum.map(|l| 1.2 * l + 0.1),
+        center_of_mass: inv.center_of_mass,
+        energy_scale: 2.0 * inv.total,
+        uncertain_impulses: false,
+    };
+    let base = state.clone();
+    let settings = ProjectionSettings {
+        warm_start_threshold: 0.05,
+        ..Default::default()
+    };
+    let mut proj = Projector::new(settings).unwrap();
+    let (report, out) = proj.project(&model, &mut state, 1.0 / 30.0, &targets);
+    assert!(report.warm_start && report.converged, "{report:?}");
+    assert_eq!(report.iterations, 0, "{report:?}");
+    assert_eq!(state.x, base.x, "the warm start holds the positions");
+    assert!(rel(out.total, targets.energy) <= 1e-12, "{out:?}");
+    for a in 0..3 {
+        assert!((out.momentum[a] - targets.momentum[a]).abs() <= 1e-12 * norm(targets.momentum));
+        assert!(
+            (out.angular_momentum[a] - targets.angular_momentum[a]).abs()
+                <= 1e-12 * norm(targets.angular_momentum)
+        );
+    }
+    // Closest point with the positions held (the KKT condition): the deformational part is only scaled.
+    let u0 = deformational_part(&model.masses, &base.x, &base.v);
+    let u1 = deformational_part(&model.masses, &state.x, &state.v);
+    let size = |u: &[[f64; 3]]| u.iter().flatten().map(|q| q * q).sum::<f64>().sqrt();
+    let beta = size(&u1) / size(&u0);
+    assert!(beta > 1.2, "the energy deficit went into u (beta {beta})");
+    let off: Vec<[f64; 3]> = u1
+        .iter()
+        .zip(&u0)
+        .map(|(a, b)| [0, 1, 2].map(|k| a[k] - beta * b[k]))
+        .collect();
+    assert!(
+        size(&off) <= 1e-12 * size(&u1),
+        "u not parallel: {}",
+        size(&off) / size(&u1)
+    );
+}
