@@ -261,9 +261,13 @@ fn pd_study(stem: &str, steps: usize, project: bool) {
     let (model, state) = stretched_study_model(stem, Material::Arap(Arap::new(1e5, 0.3).unwrap()));
     solve_study(&model);
     let pd = TimedPd(fepr_core::pd::ProjectiveDynamics::default());
-    let projector = project.then(|| {
-        fepr_core::projection::Projector::new(Default::default()).expect("default projection")
-    });
+    // The Python layer's default after PD: warm start always (`Projection(warm_start="auto")`).
+    let settings = fepr_core::projection::ProjectionSettings {
+        warm_start_threshold: 0.0,
+        ..Default::default()
+    };
+    let projector = project
+        .then(|| fepr_core::projection::Projector::new(settings).expect("default projection"));
     let mut sim =
         fepr_core::simulation::Simulation::new(model, state, Box::new(pd), 1.0 / 30.0, projector)
             .unwrap();
