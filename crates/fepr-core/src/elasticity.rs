@@ -27,14 +27,14 @@ pub struct ElasticSummary {
 }
 
 impl ElasticSummary {
-    fn zero() -> Self {
+    pub(crate) fn zero() -> Self {
         Self {
             energy: 0.0,
             min_j: f64::INFINITY,
             inverted: 0,
         }
     }
-    fn combine(a: Self, b: Self) -> Self {
+    pub(crate) fn combine(a: Self, b: Self) -> Self {
         Self {
             energy: a.energy + b.energy,
             min_j: a.min_j.min(b.min_j),
@@ -64,7 +64,7 @@ impl ElasticWorkspace {
 /// lanes of AVX-512) that divides [`TET_CHUNK`], so every chunk but the last is made of whole blocks.
 pub const BLOCK: usize = 16;
 const _: () = assert!(TET_CHUNK.is_multiple_of(BLOCK) && BLOCK.is_multiple_of(8));
-type Block = [f64; BLOCK];
+pub(crate) type Block = [f64; BLOCK];
 
 /// The corner gradients of [`BLOCK`] tets, by corner: `[c][3 l + i]` is component `i` of corner `c` of the
 /// block's tet `l`. Each corner gradient is 24 contiguous bytes (one cache line at most twice, for the
@@ -76,15 +76,35 @@ type Block = [f64; BLOCK];
 pub struct GradBlock([[f64; 3 * BLOCK]; 4]);
 
 impl GradBlock {
-    const ZERO: Self = Self([[0.0; 3 * BLOCK]; 4]);
+    pub(crate) const ZERO: Self = Self([[0.0; 3 * BLOCK]; 4]);
 
-    /// Corner `c` of tet `e` (a global tet index) from the block list.
-    #[inline(always)]
-    fn corner(blocks: &[Self], e: usize, c: usize) -> &[f64; 3] {
+    /// Corner `c` of tet `e` (a global tet index) from the block list (for tests; the gathers use
+    /// [`GradBlock::flat`]).
+    #[cfg(test)]
+    pub(crate) fn corner(blocks: &[Self], e: usize, c: usize) -> &[f64; 3] {
         let l = 3 * (e % BLOCK);
         blocks[e / BLOCK].0[c][l..l + 3]
             .try_into()
             .expect("three components")
+    }
+
+    /// The blocks as one flat array: corner `c` of the block's tet `l`, component `i`, at
+    /// `block * 12 BLOCK + c * 3 BLOCK + 3 l + i` (see [`GradBlock::flat_offset`]). The gathers read it with
+    /// one bounds check per corner.
+    #[inline(always)]
+    pub(crate) fn flat(blocks: &[Self]) -> &[f64] {
+        const VALUES: usize = 12 * BLOCK;
+        const _: () = assert!(std::mem::size_of::<GradBlock>() == VALUES * 8);
+        // SAFETY: GradBlock is repr(C) over [[f64; 3 BLOCK]; 4], 12 BLOCK f64 with no padding (size checked
+        // above), so `blocks` is `12 BLOCK * len` initialised, properly aligned f64 values.
+        unsafe { std::slice::from_raw_parts(blocks.as_ptr().cast::<f64>(), blocks.len() * VALUES) }
+    }
+
+    /// The offset in [`GradBlock::flat`] of corner `slot % 4` of tet `slot / 4` (an incidence slot).
+    #[inline(always)]
+    pub(crate) fn flat_offset(slot: u32) -> usize {
+        let (e, c) = (slot as usize / 4, slot as usize % 4);
+        (e / BLOCK) * 12 * BLOCK + c * 3 * BLOCK + 3 * (e % BLOCK)
     }
 }
 
@@ -95,17 +115,17 @@ impl GradBlock {
 #[repr(C, align(64))]
 pub struct TetBlock {
     /// Vertex indices by corner.
-    idx: [[u32; BLOCK]; 4],
+    pub(crate) idx: [[u32; BLOCK]; 4],
     /// `D_m^-1[i][j]` at `dm[i][j]`.
-    dm: [[Block; 3]; 3],
+    pub(crate) dm: [[Block; 3]; 3],
     /// Rest volumes, m^3.
-    vol: Block,
+    pub(crate) vol: Block,
 }
 
 /// [`TetBlock`]s of a whole mesh (96 bytes per tet), built once with the model.
 #[derive(Clone, Debug, Default)]
 pub struct TetBlocks {
-    blocks: Vec<TetBlock>,
+    pub(crate) blocks: Vec<TetBlock>,
 }
 
 impl TetBlocks {
@@ -183,6 +203,7 @@ macro_rules! with_material {
 pub fn elastic_energy(model: &Model, x: &[Vec3]) -> ElasticSummary {
     match &model.material {
         Material::NeoHookean(nh) => neo_hookean_energy(nh, model, x),
+        Material::Arap(arap) => crate::rotation_blocks::arap_energy(arap, model, x),
         _ => with_material!(model, mat => energy_impl(mat, model, x)),
     }
 }
@@ -257,6 +278,9 @@ pub fn elastic_energy_gradient(
     let (out, parts) = (&mut ws.element_gradients, &mut ws.partials);
     let summary = match &model.material {
         Material::NeoHookean(nh) => neo_hookean_pass(nh, model, x, out, parts),
+        Material::Arap(arap) => {
+            crate::rotation_blocks::arap_gradient_pass(arap, model, x, out, parts)
+        }
         _ => with_material!(model, mat => element_pass(mat, model, x, out, parts)),
     };
     gather(model, &ws.element_gradients, grad);
@@ -264,12 +288,12 @@ pub fn elastic_energy_gradient(
 }
 
 /// Blocks per chunk of [`TET_CHUNK`] tets.
-const CHUNK_BLOCKS: usize = TET_CHUNK / BLOCK;
+pub(crate) const CHUNK_BLOCKS: usize = TET_CHUNK / BLOCK;
 
 /// Partial summaries of fixed chunks of [`TET_CHUNK`] tets, written in place (no allocation once `parts`
 /// has grown), then combined in chunk order. `chunk_fn(c, blocks, len)` gets chunk `c`'s output blocks and
 /// its number of tets.
-fn chunked_pass<F>(
+pub(crate) fn chunked_pass<F>(
     num_tets: usize,
     out: &mut [GradBlock],
     parts: &mut Vec<ElasticSummary>,
@@ -514,28 +538,9 @@ fn neo_hookean_block<const GRAD: bool>(
         psi,
         dg,
     } = w;
-    let (dm, vol) = (&tb.dm, &tb.vol);
-    // Pass 1: D_s[i][c] = x_{c+1}[i] - x_0[i] (the only per-lane loads); F = D_s D_m^-1; J = det F.
-    // Bounds-checked loads on purpose: without the checks LLVM turns this loop into AVX-512 gathers, which
-    // are far slower here than scalar loads (microcode-mitigated gathers; measured 30% slower overall).
-    for l in 0..BLOCK {
-        let x0 = x[tb.idx[0][l] as usize];
-        for c in 0..3 {
-            let xc = x[tb.idx[c + 1][l] as usize];
-            for i in 0..3 {
-                ds[i][c][l] = xc[i] - x0[i];
-            }
-        }
-    }
-    for i in 0..3 {
-        for j in 0..3 {
-            for l in 0..BLOCK {
-                f[i][j][l] = ds[i][0][l] * dm[0][j][l]
-                    + ds[i][1][l] * dm[1][j][l]
-                    + ds[i][2][l] * dm[2][j][l];
-            }
-        }
-    }
+    let vol = &tb.vol;
+    // Pass 1: F = D_s D_m^-1; J = det F.
+    block_deformation_gradients(tb, x, ds, f);
     for l in 0..BLOCK {
         jd[l] = f[0][0][l] * (f[1][1][l] * f[2][2][l] - f[1][2][l] * f[2][1][l])
             - f[0][1][l] * (f[1][0][l] * f[2][2][l] - f[1][2][l] * f[2][0][l])
@@ -590,13 +595,60 @@ fn neo_hookean_block<const GRAD: bool>(
             }
         }
     }
+    block_corners(p, vol, &tb.dm, h, h0, out);
+}
+
+/// `F = D_s D_m^-1` of the tets of a block in lanes, with `D_s[i][c] = x_{c+1}[i] - x_0[i]` (as
+/// `linalg::matmul(mesh::edge_matrix, dm_inv)`: the same operations, the same bits).
+#[inline(always)]
+pub(crate) fn block_deformation_gradients(
+    tb: &TetBlock,
+    x: &[Vec3],
+    ds: &mut [[Block; 3]; 3],
+    f: &mut [[Block; 3]; 3],
+) {
+    let dm = &tb.dm;
+    // Bounds-checked loads on purpose: without the checks LLVM turns this loop into AVX-512 gathers, which
+    // are far slower here than scalar loads (microcode-mitigated gathers; measured 30% slower overall).
+    for l in 0..BLOCK {
+        let x0 = x[tb.idx[0][l] as usize];
+        for c in 0..3 {
+            let xc = x[tb.idx[c + 1][l] as usize];
+            for i in 0..3 {
+                ds[i][c][l] = xc[i] - x0[i];
+            }
+        }
+    }
+    for i in 0..3 {
+        for j in 0..3 {
+            for l in 0..BLOCK {
+                f[i][j][l] = ds[i][0][l] * dm[0][j][l]
+                    + ds[i][1][l] * dm[1][j][l]
+                    + ds[i][2][l] * dm[2][j][l];
+            }
+        }
+    }
+}
+
+/// The corner values of a block from a per-tet matrix `p` (a stress, or a PD rotation): corners 1..3 are
+/// the columns of `scale P D_m^-T` (corner `a + 1`, component `b` is `scale * sum_k p[b][k] dm_inv[a][k]`,
+/// as `write_corners(matmul(p, transpose(dm_inv)), scale)`), corner 0 minus their sum in that order.
+#[inline(always)]
+pub(crate) fn block_corners(
+    p: &[[Block; 3]; 3],
+    scale: &Block,
+    dm: &[[Block; 3]; 3],
+    h: &mut [[Block; 3]; 3],
+    h0: &mut [Block; 3],
+    out: &mut GradBlock,
+) {
     // H = V P D_m^-T; its columns are the gradients on corners 1..3: corner a + 1, component b is
     // sum_k p[b][k] dm_inv[a][k]. Corner 0 gets minus the sum of corners 1..3 (in that order, as the
     // scalar path).
     for a in 0..3 {
         for b in 0..3 {
             for l in 0..BLOCK {
-                h[a][b][l] = vol[l]
+                h[a][b][l] = scale[l]
                     * (p[b][0][l] * dm[a][0][l]
                         + p[b][1][l] * dm[a][1][l]
                         + p[b][2][l] * dm[a][2][l]);
@@ -664,6 +716,7 @@ const VERTEX_CHUNK: usize = 512;
 fn gather(model: &Model, element_values: &[GradBlock], out: &mut [Vec3]) {
     let offsets = &model.incidence_offsets;
     let slots = &model.incidence_slots;
+    let flat = GradBlock::flat(element_values);
     out.par_chunks_mut(VERTEX_CHUNK)
         .enumerate()
         .for_each(|(c, chunk)| {
@@ -672,8 +725,8 @@ fn gather(model: &Model, element_values: &[GradBlock], out: &mut [Vec3]) {
                 let v = first + i;
                 let mut acc = [0.0; 3];
                 for &slot in &slots[offsets[v]..offsets[v + 1]] {
-                    let val =
-                        GradBlock::corner(element_values, slot as usize / 4, slot as usize % 4);
+                    let o = GradBlock::flat_offset(slot);
+                    let val = &flat[o..o + 3];
                     acc[0] += val[0];
                     acc[1] += val[1];
                     acc[2] += val[2];
@@ -684,9 +737,9 @@ fn gather(model: &Model, element_values: &[GradBlock], out: &mut [Vec3]) {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
-    use crate::material::{Material, NeoHookean, StableNeoHookean};
+    use crate::material::{Arap, Material, NeoHookean, StableNeoHookean};
     use crate::mesh::{tests::cube, MassSpec, TetMesh};
     use crate::model::ModelBuilder;
 
@@ -730,7 +783,7 @@ mod tests {
             .unwrap()
     }
 
-    fn deformed(model: &Model, seed: u64) -> Vec<Vec3> {
+    pub(crate) fn deformed(model: &Model, seed: u64) -> Vec<Vec3> {
         let mut s = seed;
         let mut rnd = || {
             s = s
@@ -869,6 +922,46 @@ mod tests {
                 (eb.min_j.to_bits(), eb.inverted)
             );
             assert_eq!(ea.energy.to_bits(), sa.energy.to_bits());
+        }
+    }
+
+    #[test]
+    fn arap_block_pass_matches_the_material_interface_bit_for_bit() {
+        // As the Neo-Hookean test: flattened and inverted tets (the polar decomposition's SVD fallback),
+        // 162 tets (a partial last block).
+        let arap = Arap::new(1e4, 0.3).unwrap();
+        let model = grid_model(3, Material::Arap(arap));
+        for seed in [1, 5, 9] {
+            let mut x = deformed(&model, seed);
+            for (i, p) in x.iter_mut().enumerate() {
+                let w = (i as f64 * 1.7).sin();
+                p[2] *= 0.05 + 0.9 * w * w;
+            }
+            let k = model.num_tets();
+            let mut a = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];
+            let mut b = a.clone();
+            let sa = crate::rotation_blocks::arap_gradient_pass(
+                &arap,
+                &model,
+                &x,
+                &mut a,
+                &mut Vec::new(),
+            );
+            let sb = element_pass(&arap, &model, &x, &mut b, &mut Vec::new());
+            assert!(sa.inverted > 0, "{sa:?}");
+            assert_eq!(sa.energy.to_bits(), sb.energy.to_bits());
+            assert_eq!(
+                (sa.min_j.to_bits(), sa.inverted),
+                (sb.min_j.to_bits(), sb.inverted)
+            );
+            assert_eq!(corner_bits(&a, k), corner_bits(&b, k));
+            let ea = crate::rotation_blocks::arap_energy(&arap, &model, &x);
+            let eb = energy_impl(&arap, &model, &x);
+            assert_eq!(ea.energy.to_bits(), eb.energy.to_bits());
+            assert_eq!(
+                (ea.min_j.to_bits(), ea.inverted),
+                (eb.min_j.to_bits(), eb.inverted)
+            );
         }
     }
 

@@ -40,6 +40,7 @@ pub mod ordering;
 pub mod parallel;
 pub mod pd;
 pub mod projection;
+pub(crate) mod rotation_blocks;
 pub mod simulation;
 pub mod sparse;
 pub mod world;

@@ -14,15 +14,13 @@
 use rayon::prelude::*;
 use std::time::Instant;
 
-use crate::batch_polar::{polar_rotations, LANES};
-use crate::elasticity::deformation_gradient;
+use crate::elasticity::{GradBlock, BLOCK};
 use crate::error::{invalid, FeprError, Result};
 use crate::hessian::shape_gradients;
 use crate::integrators::{finish_positional_step, Integrator, StepReport};
 use crate::linalg::{scale, Vec3};
 use crate::material::Material;
 use crate::model::{Model, State};
-use crate::parallel::TET_CHUNK;
 use crate::sparse::{LowerPattern, SparseCholesky};
 
 /// Projective Dynamics settings.
@@ -48,10 +46,10 @@ struct Prefactored {
     chol: SparseCholesky,
     /// Coupling of free rows to pinned vertices: (free row, pinned vertex, coefficient).
     pinned_coupling: Vec<(usize, usize, f64)>,
-    weights: Vec<f64>,
+    /// Shear modulus of the ARAP energy, Pa (the weights are `w_e = 2 mu V_e`).
+    mu: f64,
     /// The step size the matrix `M / h^2 + L` was factorised for, s.
     h: f64,
-    grads: Vec<[Vec3; 4]>,
 }
 
 /// Wall-clock time of the phases of the last step, s (for benchmarks and profiling).
@@ -74,8 +72,9 @@ pub struct ProjectiveDynamics {
     pre: Option<Prefactored>,
     /// Symbolic analyses and numeric factorisations performed (one each per run).
     pub factorizations: usize,
-    /// Per tet, the right-hand side terms `w_e R_e g_k` on its 4 corners (from the local step).
-    corner_terms: Vec<[Vec3; 4]>,
+    /// Per tet, the right-hand side terms `w_e R_e g_k` on its 4 corners (from the local step), in
+    /// blocks of [`BLOCK`] tets.
+    corner_terms: Vec<GradBlock>,
     /// Global-step right-hand sides, then solutions: one row (x, y, z) per free vertex.
     rhs: Vec<Vec3>,
     x_n: Vec<Vec3>,
@@ -179,40 +178,14 @@ impl ProjectiveDynamics {
             free_vertices,
             chol,
             pinned_coupling,
-            weights,
+            mu,
             h,
-            grads,
         })
     }
 }
 
 /// Free vertices per parallel task of the right-hand side assembly.
 const RHS_CHUNK: usize = 256;
-
-/// The local step for tets `first..first + terms.len()`: the rotation `R_e` of the polar decomposition of
-/// `F_e` (in batches, bit for bit `linalg::polar_rotation`), turned at once into the tet's right-hand side
-/// terms on its corners, `w_e R_e g_k` (g_k: the shape-function gradients).
-fn local_step(pre: &Prefactored, model: &Model, x: &[Vec3], first: usize, terms: &mut [[Vec3; 4]]) {
-    let mut f = [[[0.0; 3]; 3]; LANES];
-    let mut r = [[[0.0; 3]; 3]; LANES];
-    for (k0, out) in terms.chunks_mut(LANES).enumerate() {
-        let e0 = first + k0 * LANES;
-        let n = out.len();
-        for (l, fl) in f.iter_mut().enumerate().take(n) {
-            *fl = deformation_gradient(model, x, e0 + l);
-        }
-        polar_rotations(&f[..n], &mut r[..n]);
-        for (l, corners) in out.iter_mut().enumerate() {
-            let (re, w, g) = (&r[l], pre.weights[e0 + l], &pre.grads[e0 + l]);
-            for (k, term) in corners.iter_mut().enumerate() {
-                for a in 0..3 {
-                    // (row a of R) . g_k
-                    term[a] = w * (re[a][0] * g[k][0] + re[a][1] * g[k][1] + re[a][2] * g[k][2]);
-                }
-            }
-        }
-    }
-}
 
 impl Integrator for ProjectiveDynamics {
     fn name(&self) -> &'static str {
@@ -282,22 +255,18 @@ impl Integrator for ProjectiveDynamics {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()
         };
-        self.corner_terms.resize(model.num_tets(), [[0.0; 3]; 4]);
+        self.corner_terms
+            .resize(model.num_tets().div_ceil(BLOCK), GradBlock::ZERO);
         let mut timing = PdTiming::default();
         for it in 0..self.settings.iterations {
             let t0 = Instant::now();
-            // Local step: closest rotations, in parallel.
-            {
-                let pre = &*pre;
-                self.corner_terms
-                    .par_chunks_mut(TET_CHUNK)
-                    .enumerate()
-                    .for_each(|(c, terms)| local_step(pre, model, &x, c * TET_CHUNK, terms));
-            }
+            // Local step: the closest rotation R_e to each F_e and its corner terms w_e R_e g_k, in parallel
+            // (rotation_blocks: bit for bit linalg::polar_rotation).
+            crate::rotation_blocks::pd_rotation_terms(pre.mu, model, &x, &mut self.corner_terms);
             let t1 = Instant::now();
             // Global step right-hand side, row c for free vertex c: M (y / h^2 + g) + sum_e w_e R_e g_e,k over
             // the tets at the vertex, gathered in parallel in ascending tet order (deterministic).
-            let terms = self.corner_terms.as_flattened();
+            let terms = GradBlock::flat(&self.corner_terms);
             let g = model.gravity;
             self.rhs.resize(n, [0.0; 3]);
             self.rhs
@@ -313,7 +282,8 @@ impl Integrator for ProjectiveDynamics {
                         let slots = &model.incidence_slots
                             [model.incidence_offsets[v]..model.incidence_offsets[v + 1]];
                         for &slot in slots {
-                            let t = terms[slot as usize];
+                            let o = GradBlock::flat_offset(slot);
+                            let t = &terms[o..o + 3];
                             for a in 0..3 {
                                 acc[a] += t[a];
                             }
