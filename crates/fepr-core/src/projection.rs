@@ -544,7 +544,16 @@ impl Projector {
             eps: self.settings.c_eps * mt * r * r,
         };
         let (mut s, mut t) = (0.0, 0.0);
-        let mut cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+        // With a warm start possible, the first evaluation skips the elastic gradient: the warm start changes
+        // the velocities alone and often leaves nothing to iterate (after PD, every step on the bunny), so the
+        // gradient is computed only when an iteration needs it (`grad_at_x`).
+        let lazy_gradient = self.settings.warm_start_threshold.is_finite();
+        let mut cur = if lazy_gradient {
+            evaluate_energy(&pb, &self.x, &self.v, s, t)
+        } else {
+            evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad)
+        };
+        let mut grad_at_x = !lazy_gradient;
         // Row scales (fepr-spec section 3), from the targets and the start-of-step state, not from the base
         // step's result: a wild base step must not loosen the energy tolerance.
         let h_scale = targets.energy.abs().max(targets.energy_scale).max(1e-300);
@@ -588,8 +597,9 @@ impl Projector {
                 && (cur.c[0] / pb.row_scale[0]).abs() > self.settings.warm_start_threshold.max(tol)
                 && warm_start_velocities(&pb, &self.x, &mut self.v, cur.c[0])
             {
-                // Only the velocities changed: the elastic energy and gradient at x still hold.
-                cur = evaluate_with_elastic(&pb, &self.x, &self.v, s, t, cur.el, &self.grad);
+                // Only the velocities changed: the elastic energy (and gradient, if computed) at x still hold.
+                let grad = grad_at_x.then_some(&self.grad[..]);
+                cur = evaluate_with_elastic(&pb, &self.x, &self.v, s, t, cur.el, grad);
                 cur_norm = norm_scaled(&pb, &cur.c);
                 report.warm_start = true;
                 if cur_norm < best_norm && cur.c.iter().all(|c| c.is_finite()) {
@@ -607,6 +617,12 @@ impl Projector {
                         // On the manifold; with new inversions, iterating further cannot help: restart.
                         report.converged = cur.el.inverted <= base_inverted;
                         break;
+                    }
+                    if !grad_at_x {
+                        // The same constraint values (the same bits for Neo-Hookean and ARAP, whose energy-only
+                        // and gradient passes are gated bit-identical), now with the gradient and S's moments.
+                        cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+                        grad_at_x = true;
                     }
                     let (lambda, used_lstsq) =
                         solve_multipliers(&pb, &cur, self.settings.regularization);
@@ -699,13 +715,14 @@ impl Projector {
             s = 0.0;
             t = 0.0;
             cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+            grad_at_x = true;
             cur_norm = norm_scaled(&pb, &cur.c);
         }
 
         // Choose the result: the converged iterate, else the best iterate if it improved on q~, else q~.
         let mut fin = cur;
         // `grad` is at `x` (every evaluation into it is at the iterate it belongs to).
-        self.grad_is_final = report.converged;
+        self.grad_is_final = report.converged && grad_at_x;
         if report.converged {
             state.x.copy_from_slice(&self.x);
             state.v.copy_from_slice(&self.v);
@@ -1116,11 +1133,19 @@ fn evaluate(
     grad: &mut [Vec3],
 ) -> Eval {
     let el = elastic_energy_gradient(pb.model, x, ws, grad);
-    evaluate_with_elastic(pb, x, v, s, t, el, grad)
+    evaluate_with_elastic(pb, x, v, s, t, el, Some(grad))
+}
+
+/// [`evaluate`] without the elastic gradient: the same constraint values, energies and momenta; the gradient
+/// moments of `S` are left at zero (not to be solved with).
+fn evaluate_energy(pb: &Problem, x: &[Vec3], v: &[Vec3], s: f64, t: f64) -> Eval {
+    let el = crate::elasticity::elastic_energy(pb.model, x);
+    evaluate_with_elastic(pb, x, v, s, t, el, None)
 }
 
 /// [`evaluate`] with the elastic energy summary `el` and gradient `grad` at `x` already at hand (after a change
-/// of the velocities alone): the same result, without the elastic pass.
+/// of the velocities alone): the same result, without the elastic pass. Without `grad`, the moments that
+/// need it are left at zero.
 fn evaluate_with_elastic(
     pb: &Problem,
     x: &[Vec3],
@@ -1128,7 +1153,7 @@ fn evaluate_with_elastic(
     s: f64,
     t: f64,
     el: ElasticSummary,
-    grad: &[Vec3],
+    grad: Option<&[Vec3]>,
 ) -> Eval {
     let model = pb.model;
     let mut e = reduce_chunks(
@@ -1162,7 +1187,7 @@ fn vertex_moments(
     pb: &Problem,
     x: &[Vec3],
     v: &[Vec3],
-    grad: &[Vec3],
+    grad: Option<&[Vec3]>,
     range: std::ops::Range<usize>,
 ) -> Eval {
     let model = pb.model;
@@ -1174,7 +1199,7 @@ fn vertex_moments(
         let (xi, vi) = (x[i], v[i]);
         // Gradient of the potential (elastic + gravity); `grad` keeps the elastic part alone, so that it can
         // be handed to the next base step (Integrator::offer_elastic_gradient).
-        let gi = total_gradient(grad[i], mi, g);
+        let gi = total_gradient(grad.map_or([0.0; 3], |grad| grad[i]), mi, g);
         e.kinetic += 0.5 * mi * dot(vi, vi);
         e.gravitational -= mi * dot(g, xi);
         let r = sub(xi, ct);

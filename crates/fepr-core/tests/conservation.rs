@@ -392,3 +392,57 @@ fn warm_start_puts_the_momenta_on_their_targets_with_positions_held_and_leaves_n
         size(&off) / size(&u1)
     );
 }
+
+#[test]
+fn warm_start_computes_the_elastic_gradient_only_when_an_iteration_needs_it() {
+    use fepr_core::invariants::measure;
+    use fepr_core::projection::{ProjectionSettings, Projector, Targets};
+    let model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0; 3]);
+    let mut base = State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &base.x);
+    scaled(&mut base, 1.03, c);
+    for (x, v) in base.x.iter().zip(base.v.iter_mut()) {
+        *v = [0, 1, 2].map(|a| 0.2 * (x[a] - c[a]));
+        v[0] += 0.3 - 0.5 * (x[1] - c[1]);
+    }
+    let inv = measure(&model, &base);
+    let settings = ProjectionSettings {
+        warm_start_threshold: 0.0,
+        ..Default::default()
+    };
+    for (shift, iterates) in [(0.0, false), (1e-4, true)] {
+        // A centre-of-mass target off by `shift` m: only the iteration can move the positions there.
+        let targets = Targets {
+            energy: 1.5 * inv.total,
+            momentum: inv.momentum,
+            angular_momentum: inv.angular_momentum,
+            center_of_mass: [
+                inv.center_of_mass[0] + shift,
+                inv.center_of_mass[1],
+                inv.center_of_mass[2],
+            ],
+            energy_scale: 1.5 * inv.total,
+            uncertain_impulses: false,
+        };
+        let mut state = base.clone();
+        let mut proj = Projector::new(settings).unwrap();
+        let (report, out) = proj.project(&model, &mut state, 1.0 / 30.0, &targets);
+        assert!(report.warm_start && report.converged, "{report:?}");
+        assert_eq!(report.iterations > 0, iterates, "{report:?}");
+        assert!(rel(out.total, targets.energy) <= 1e-10);
+        assert!((out.center_of_mass[0] - targets.center_of_mass[0]).abs() <= 1e-12);
+        // The gradient handed to the next step exists only if it was computed, and is the one at the result.
+        match proj.take_final_gradient() {
+            Some(g) => {
+                assert!(iterates);
+                let mut ws = fepr_core::elasticity::ElasticWorkspace::default();
+                let mut want = vec![[0.0; 3]; model.num_vertices()];
+                fepr_core::elasticity::elastic_energy_gradient(
+                    &model, &state.x, &mut ws, &mut want,
+                );
+                assert_eq!(*g, want);
+            }
+            None => assert!(!iterates, "a converged iteration leaves its gradient"),
+        }
+    }
+}
