@@ -446,6 +446,7 @@ impl RowIndex for u32 {
 #[inline(always)]
 fn forward_supernode<I: RowIndex>(vals: &[f64], k: usize, b: usize, pattern: &[I], y: &mut [Row]) {
     let rows = vals.len() / k;
+    // The diagonal block.
     for j in 0..k {
         let col = &vals[j * rows..(j + 1) * rows];
         let d = col[j];
@@ -454,8 +455,25 @@ fn forward_supernode<I: RowIndex>(vals: &[f64], k: usize, b: usize, pattern: &[I
         for i in j + 1..k {
             axpy_neg(&mut y[b + i], col[i], &yj);
         }
-        for (&c, &r) in col[k..].iter().zip(pattern) {
-            axpy_neg(&mut y[r.get()], c, &yj);
+    }
+    // The pattern rows, two columns at a time (each row's terms in column order).
+    let mut j = 0;
+    while j + 2 <= k {
+        let c0 = &vals[j * rows + k..(j + 1) * rows];
+        let c1 = &vals[(j + 1) * rows + k..(j + 2) * rows];
+        let (y0, y1) = (y[b + j], y[b + j + 1]);
+        for ((&u, &v), &r) in c0.iter().zip(c1).zip(pattern) {
+            let yr = &mut y[r.get()];
+            axpy_neg(yr, u, &y0);
+            axpy_neg(yr, v, &y1);
+        }
+        j += 2;
+    }
+    if j < k {
+        let c0 = &vals[j * rows + k..(j + 1) * rows];
+        let y0 = y[b + j];
+        for (&u, &r) in c0.iter().zip(pattern) {
+            axpy_neg(&mut y[r.get()], u, &y0);
         }
     }
 }
@@ -464,12 +482,33 @@ fn forward_supernode<I: RowIndex>(vals: &[f64], k: usize, b: usize, pattern: &[I
 #[inline(always)]
 fn backward_supernode<I: RowIndex>(vals: &[f64], k: usize, b: usize, pattern: &[I], y: &mut [Row]) {
     let rows = vals.len() / k;
+    // The pattern rows' terms of each column's sum, two columns at a time (independent chains).
+    let mut j = 0;
+    while j + 2 <= k {
+        let c0 = &vals[j * rows + k..(j + 1) * rows];
+        let c1 = &vals[(j + 1) * rows + k..(j + 2) * rows];
+        let (mut a0, mut a1) = (y[b + j], y[b + j + 1]);
+        for ((&u, &v), &r) in c0.iter().zip(c1).zip(pattern) {
+            let yr = &y[r.get()];
+            axpy_neg(&mut a0, u, yr);
+            axpy_neg(&mut a1, v, yr);
+        }
+        y[b + j] = a0;
+        y[b + j + 1] = a1;
+        j += 2;
+    }
+    if j < k {
+        let c0 = &vals[j * rows + k..(j + 1) * rows];
+        let mut a0 = y[b + j];
+        for (&u, &r) in c0.iter().zip(pattern) {
+            axpy_neg(&mut a0, u, &y[r.get()]);
+        }
+        y[b + j] = a0;
+    }
+    // Then the diagonal block's, columns in descending order.
     for j in (0..k).rev() {
         let col = &vals[j * rows..(j + 1) * rows];
         let mut acc = y[b + j];
-        for (&c, &r) in col[k..].iter().zip(pattern) {
-            axpy_neg(&mut acc, c, &y[r.get()]);
-        }
         for i in j + 1..k {
             axpy_neg(&mut acc, col[i], &y[b + i]);
         }
@@ -1065,6 +1104,67 @@ mod tests {
                 .zip(reference.unwrap().iter().flatten())
                 .fold(0.0f64, |m, (p, q)| m.max((p - q).abs()));
             assert!(worst <= 1e-12 * scale, "{worst}");
+        }
+    }
+
+    /// The plain column-by-column supernodal walk (`L y = b` then `L^T x = y`), without the paired columns.
+    fn plain_solve3(sym: &SymbolicSupernodalCholesky<usize>, l: &[f64], y: &mut [Row]) {
+        for s in 0..sym.n_supernodes() {
+            let (b, k, vals, pattern) = supernode(sym, l, s);
+            let rows = vals.len() / k;
+            for j in 0..k {
+                let col = &vals[j * rows..(j + 1) * rows];
+                let yj = y[b + j].map(|v| v / col[j]);
+                y[b + j] = yj;
+                for i in j + 1..k {
+                    axpy_neg(&mut y[b + i], col[i], &yj);
+                }
+                for (&c, &r) in col[k..].iter().zip(pattern) {
+                    axpy_neg(&mut y[r], c, &yj);
+                }
+            }
+        }
+        for s in (0..sym.n_supernodes()).rev() {
+            let (b, k, vals, pattern) = supernode(sym, l, s);
+            let rows = vals.len() / k;
+            for j in (0..k).rev() {
+                let col = &vals[j * rows..(j + 1) * rows];
+                let mut acc = y[b + j];
+                for (&c, &r) in col[k..].iter().zip(pattern) {
+                    axpy_neg(&mut acc, c, &y[r]);
+                }
+                for i in j + 1..k {
+                    axpy_neg(&mut acc, col[i], &y[b + i]);
+                }
+                y[b + j] = acc.map(|v| v / col[j]);
+            }
+        }
+    }
+
+    #[test]
+    fn paired_column_kernels_give_the_bits_of_the_plain_column_walk() {
+        // The paired-column kernels reorder loops, not any row's sum: the same bits as the plain walk.
+        let (pat, values) = grid3(12, 3);
+        let mut chol =
+            SparseCholesky::analyse_with(&pat, 3, FillOrdering::NestedDissection).unwrap();
+        chol.factorize(&values).unwrap();
+        let n = pat.n;
+        let rhs = rhs3(n);
+        let mut x = rhs.clone();
+        chol.solve3_in_place_sequential(&mut x);
+        let SymbolicCholeskyRaw::Supernodal(sym) = chol.symbolic.raw() else {
+            panic!("simplicial");
+        };
+        let fwd = chol.symbolic.perm().unwrap().arrays().0;
+        let mut y: Vec<Row> = fwd
+            .iter()
+            .map(|&f| [rhs[f][0], rhs[f][1], rhs[f][2], 0.0])
+            .collect();
+        plain_solve3(sym, &chol.l_values, &mut y);
+        for (yi, &f) in y.iter().zip(fwd) {
+            for a in 0..3 {
+                assert_eq!(yi[a].to_bits(), x[f][a].to_bits());
+            }
         }
     }
 
