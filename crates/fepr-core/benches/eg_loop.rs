@@ -8,7 +8,8 @@
 //! Newton decrements (for convergence studies).
 //! `cargo bench -p fepr-core --bench eg_loop -- pd STEM STEPS [fepr]`: the same set-up with the ARAP material
 //! and Projective Dynamics (10 iterations), ms per step and the local / right-hand side / solve times, after
-//! the vertex Cholesky study: its 3-column solve, sequential and parallel on 1 and 2 threads (`solve STEM
+//! the vertex Cholesky study: its 3-column solve, sequential, parallel inside pools of 1 and 2 threads, and
+//! parallel on the global pool (`RAYON_NUM_THREADS`) called from the main thread as PD calls it (`solve STEM
 //! [ROUNDS]`: that study alone).
 
 use std::time::Instant;
@@ -244,8 +245,8 @@ fn solve_study(model: &fepr_core::model::Model, rounds: usize) {
         chol.solve_in_place(&mut rhs, 3);
     }
     let faer_ms = t0.elapsed().as_secs_f64() * 1e3 / 50.0;
-    // The 3-column solve: the sequential walk, and the parallel one on 1 and 2 threads; rounds alternate
-    // (a noisy machine), best round of each.
+    // The 3-column solve: the sequential walk, the parallel one inside pools of 1 and 2 threads and from
+    // the main thread (outside the pools, as PD calls it); rounds alternate (a noisy machine), best of each.
     let mut rhs3 = vec![[1.0; 3]; n];
     let pools = [1, 2].map(|k| {
         rayon::ThreadPoolBuilder::new()
@@ -253,7 +254,7 @@ fn solve_study(model: &fepr_core::model::Model, rounds: usize) {
             .build()
             .unwrap()
     });
-    let mut best = [f64::INFINITY; 3];
+    let mut best = [f64::INFINITY; 4];
     for _ in 0..rounds {
         for (v, b) in best.iter_mut().enumerate() {
             let mut run = || {
@@ -269,7 +270,7 @@ fn solve_study(model: &fepr_core::model::Model, rounds: usize) {
                 t0.elapsed().as_secs_f64() * 1e3 / 20.0
             };
             let ms = match v {
-                0 => run(),
+                0 | 3 => run(),
                 _ => pools[v - 1].install(run),
             };
             *b = b.min(ms);
@@ -280,12 +281,15 @@ fn solve_study(model: &fepr_core::model::Model, rounds: usize) {
     let pct = |w: usize| format!("{:.1}", 100.0 * w as f64 / total as f64);
     println!(
         "vertex Cholesky: n {n}, nnz(A lower) {}, nnz(L) {}, solve with 3 rhs: faer {faer_ms:.3} ms, \
-         interleaved sequential {:.3} ms, parallel 1 thread {:.3} ms, 2 threads {:.3} ms",
+         interleaved sequential {:.3} ms, parallel 1 thread {:.3} ms, 2 threads {:.3} ms, \
+         {} threads from the main thread {:.3} ms",
         pattern.nnz(),
         chol.factor_nnz(),
         best[0],
         best[1],
         best[2],
+        rayon::current_num_threads(),
+        best[3],
     );
     println!(
         "  solve plan: {} tasks, work % of nnz(L): rest {}, tasks [{}]",

@@ -723,7 +723,7 @@ impl Solve3Plan {
         };
         let (tasks, ws) = (&self.tasks, &mut self.workspace);
         // Forward: the tasks, their boundary sums added to the rest rows in task order, the rest.
-        for_each_task(tasks, y, 0, ws, 0, &|t, y, w| forward_task(&ctx, t, y, w));
+        for_each_task(tasks, y, ws, &|t, y, w| forward_task(&ctx, t, y, w));
         forward_rest(sym, l, tasks, &self.boundary, ws, &self.rest_supernodes, y);
         // Backward: the rest, then the tasks with their boundary rows from the rest.
         backward_rest(sym, l, &self.rest_supernodes, y);
@@ -733,7 +733,7 @@ impl Solve3Plan {
                 *w = y[r];
             }
         }
-        for_each_task(tasks, y, 0, ws, 0, &|t, y, w| backward_task(&ctx, t, y, w));
+        for_each_task(tasks, y, ws, &|t, y, w| backward_task(&ctx, t, y, w));
     }
 }
 
@@ -744,10 +744,46 @@ struct TaskContext<'a> {
     local_rows: &'a [u32],
 }
 
-/// Runs `f(task, its columns of y, its workspace)` for each of `tasks` in parallel (a fixed binary split;
-/// the tasks touch disjoint data, so any scheduling gives the same bits). `y` holds the rows from `y0` on,
-/// `ws` the workspace rows from `w0` on.
-fn for_each_task<F>(tasks: &[Task], y: &mut [Row], y0: usize, ws: &mut [Row], w0: usize, f: &F)
+/// Runs `f(task, its columns of y, its workspace)` for each of `tasks`, `y` and `ws` the whole right-hand
+/// side and workspace. The tasks touch disjoint data, so the schedule does not change any bit:
+/// - on a pool of one thread, a loop on the calling thread;
+/// - in a rayon worker, a fixed binary split with `rayon::join` (no allocation);
+/// - outside the pool (Projective Dynamics steps from the caller's thread), the caller and jobs spawned on
+///   the pool (one per further thread, one small allocation each) take tasks from a shared queue: a `join`
+///   from outside would hand the whole phase to the pool and put the caller to sleep, which costs more than
+///   the phase gains on two threads.
+fn for_each_task<F>(tasks: &[Task], y: &mut [Row], ws: &mut [Row], f: &F)
+where
+    F: Fn(&Task, &mut [Row], &mut [Row]) + Sync,
+{
+    let threads = rayon::current_num_threads();
+    if threads < 2 {
+        let mut queue = TaskQueue::new(tasks, y, ws);
+        while let Some((t, y, w)) = queue.pop() {
+            f(t, y, w);
+        }
+    } else if rayon::current_thread_index().is_some() {
+        join_tasks(tasks, y, 0, ws, 0, f);
+    } else {
+        let queue = std::sync::Mutex::new(TaskQueue::new(tasks, y, ws));
+        let work = || loop {
+            let next = queue.lock().map(|mut q| q.pop());
+            match next {
+                Ok(Some((t, y, w))) => f(t, y, w),
+                _ => break,
+            }
+        };
+        rayon::in_place_scope(|scope| {
+            for _ in 1..threads.min(tasks.len()) {
+                scope.spawn(|_| work());
+            }
+            work();
+        });
+    }
+}
+
+/// [`for_each_task`] in a rayon worker: `y` holds the rows from `y0` on, `ws` the workspace rows from `w0` on.
+fn join_tasks<F>(tasks: &[Task], y: &mut [Row], y0: usize, ws: &mut [Row], w0: usize, f: &F)
 where
     F: Fn(&Task, &mut [Row], &mut [Row]) + Sync,
 {
@@ -764,10 +800,46 @@ where
             let (ya, yb) = y.split_at_mut(y1 - y0);
             let (wa, wb) = ws.split_at_mut(w1 - w0);
             rayon::join(
-                || for_each_task(a, ya, y0, wa, w0, f),
-                || for_each_task(b, yb, y1, wb, w1, f),
+                || join_tasks(a, ya, y0, wa, w0, f),
+                || join_tasks(b, yb, y1, wb, w1, f),
             );
         }
+    }
+}
+
+/// The tasks in order, each with its rows of the right-hand side and of the workspace (split off as it goes).
+struct TaskQueue<'a> {
+    tasks: &'a [Task],
+    /// The rows from `y0` on.
+    y: &'a mut [Row],
+    y0: usize,
+    /// The workspace rows from `w0` on.
+    ws: &'a mut [Row],
+    w0: usize,
+}
+
+impl<'a> TaskQueue<'a> {
+    fn new(tasks: &'a [Task], y: &'a mut [Row], ws: &'a mut [Row]) -> Self {
+        Self {
+            tasks,
+            y,
+            y0: 0,
+            ws,
+            w0: 0,
+        }
+    }
+
+    #[allow(clippy::type_complexity)]
+    fn pop(&mut self) -> Option<(&'a Task, &'a mut [Row], &'a mut [Row])> {
+        let (t, rest) = self.tasks.split_first()?;
+        self.tasks = rest;
+        let y = std::mem::take(&mut self.y);
+        let (yt, y) = y[t.columns.start - self.y0..].split_at_mut(t.columns.len());
+        (self.y, self.y0) = (y, t.columns.end);
+        let ws = std::mem::take(&mut self.ws);
+        let (wt, ws) = ws[t.workspace.start - self.w0..].split_at_mut(t.workspace.len());
+        (self.ws, self.w0) = (ws, t.workspace.end);
+        Some((t, yt, wt))
     }
 }
 
@@ -1064,16 +1136,18 @@ mod tests {
             chol.solve_in_place(&mut cols, 3);
             let scale = cols.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             let mut reference: Option<Vec<[f64; 3]>> = None;
-            for threads in [1, 2, 3, 1] {
-                let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(threads)
-                    .build()
-                    .unwrap();
-                let x = pool.install(|| {
-                    let mut x = rhs.clone();
-                    chol.solve3_in_place(&mut x);
-                    x
-                });
+            // Inside pools of 1, 2 and 3 threads, and from this thread (outside any pool: the global pool's
+            // threads pull tasks from a queue beside this one), with the same bits.
+            for threads in [1, 2, 3, 0, 1] {
+                let mut x = rhs.clone();
+                match threads {
+                    0 => chol.solve3_in_place(&mut x),
+                    _ => rayon::ThreadPoolBuilder::new()
+                        .num_threads(threads)
+                        .build()
+                        .unwrap()
+                        .install(|| chol.solve3_in_place(&mut x)),
+                }
                 let mut worst: f64 = 0.0;
                 for (i, r) in x.iter().enumerate() {
                     for a in 0..3 {
