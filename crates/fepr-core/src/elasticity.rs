@@ -630,9 +630,8 @@ pub(crate) fn block_deformation_gradients(
     }
 }
 
-/// The corner values of a block from a per-tet matrix `p` (a stress, or a PD rotation): corners 1..3 are
-/// the columns of `scale P D_m^-T` (corner `a + 1`, component `b` is `scale * sum_k p[b][k] dm_inv[a][k]`,
-/// as `write_corners(matmul(p, transpose(dm_inv)), scale)`), corner 0 minus their sum in that order.
+/// The corner values of a block from a per-tet matrix `p` (a stress, or a PD rotation), written to `out`
+/// (see [`block_corner_rows`]).
 #[inline(always)]
 pub(crate) fn block_corners(
     p: &[[Block; 3]; 3],
@@ -642,9 +641,25 @@ pub(crate) fn block_corners(
     h0: &mut [Block; 3],
     out: &mut GradBlock,
 ) {
-    // H = V P D_m^-T; its columns are the gradients on corners 1..3: corner a + 1, component b is
-    // sum_k p[b][k] dm_inv[a][k]. Corner 0 gets minus the sum of corners 1..3 (in that order, as the
-    // scalar path).
+    block_corner_rows(p, scale, dm, h, h0);
+    interleave(h0, &mut out.0[0]);
+    for a in 0..3 {
+        interleave(&h[a], &mut out.0[a + 1]);
+    }
+}
+
+/// The corner values of a block from a per-tet matrix `p`, by component: corner `a + 1`, component `b` of
+/// lane `l` at `h[a][b][l]` (the columns of `scale P D_m^-T`: `scale * sum_k p[b][k] dm_inv[a][k]`, as
+/// `write_corners(matmul(p, transpose(dm_inv)), scale)`), corner 0 at `h0[b][l]`, minus their sum in that
+/// order.
+#[inline(always)]
+pub(crate) fn block_corner_rows(
+    p: &[[Block; 3]; 3],
+    scale: &Block,
+    dm: &[[Block; 3]; 3],
+    h: &mut [[Block; 3]; 3],
+    h0: &mut [Block; 3],
+) {
     for a in 0..3 {
         for b in 0..3 {
             for l in 0..BLOCK {
@@ -659,10 +674,6 @@ pub(crate) fn block_corners(
         for l in 0..BLOCK {
             h0[b][l] = 0.0 - h[0][b][l] - h[1][b][l] - h[2][b][l];
         }
-    }
-    interleave(h0, &mut out.0[0]);
-    for a in 0..3 {
-        interleave(&h[a], &mut out.0[a + 1]);
     }
 }
 

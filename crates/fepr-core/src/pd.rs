@@ -14,7 +14,6 @@
 use rayon::prelude::*;
 use std::time::Instant;
 
-use crate::elasticity::{GradBlock, BLOCK};
 use crate::error::{invalid, FeprError, Result};
 use crate::hessian::shape_gradients;
 use crate::integrators::{finish_positional_step, Integrator, StepReport};
@@ -72,9 +71,8 @@ pub struct ProjectiveDynamics {
     pre: Option<Prefactored>,
     /// Symbolic analyses and numeric factorisations performed (one each per run).
     pub factorizations: usize,
-    /// Per tet, the right-hand side terms `w_e R_e g_k` on its 4 corners (from the local step), in
-    /// blocks of [`BLOCK`] tets.
-    corner_terms: Vec<GradBlock>,
+    /// Per tet, the right-hand side terms `w_e R_e g_k` on its 4 corners (from the local step).
+    corner_terms: Vec<[Vec3; 4]>,
     /// Global-step right-hand sides, then solutions: one row (x, y, z) per free vertex.
     rhs: Vec<Vec3>,
     x_n: Vec<Vec3>,
@@ -255,8 +253,7 @@ impl Integrator for ProjectiveDynamics {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()
         };
-        self.corner_terms
-            .resize(model.num_tets().div_ceil(BLOCK), GradBlock::ZERO);
+        self.corner_terms.resize(model.num_tets(), [[0.0; 3]; 4]);
         let mut timing = PdTiming::default();
         for it in 0..self.settings.iterations {
             let t0 = Instant::now();
@@ -266,7 +263,7 @@ impl Integrator for ProjectiveDynamics {
             let t1 = Instant::now();
             // Global step right-hand side, row c for free vertex c: M (y / h^2 + g) + sum_e w_e R_e g_e,k over
             // the tets at the vertex, gathered in parallel in ascending tet order (deterministic).
-            let terms = GradBlock::flat(&self.corner_terms);
+            let terms = self.corner_terms.as_flattened();
             let g = model.gravity;
             self.rhs.resize(n, [0.0; 3]);
             self.rhs
@@ -282,8 +279,7 @@ impl Integrator for ProjectiveDynamics {
                         let slots = &model.incidence_slots
                             [model.incidence_offsets[v]..model.incidence_offsets[v + 1]];
                         for &slot in slots {
-                            let o = GradBlock::flat_offset(slot);
-                            let t = &terms[o..o + 3];
+                            let t = terms[slot as usize];
                             for a in 0..3 {
                                 acc[a] += t[a];
                             }
