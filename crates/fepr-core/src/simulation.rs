@@ -316,9 +316,6 @@ impl Simulation {
         }
     }
 
-    /// Take one step: kinematic pins and external forces, the base integrator, damping and contact, then
-    /// the projection (if enabled). On a non-finite state the step is undone and an error names the step
-    /// (runaway of an unstable step size).
     /// Everything of a step before the projection, over `h` seconds from the current state: kinematic pins,
     /// the force kick, the base step, damping and contact. Appends the vertices to freeze to
     /// `contact_vertices`.

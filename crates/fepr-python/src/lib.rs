@@ -451,7 +451,7 @@ impl Simulation {
         Ok(Self { inner, pool })
     }
 
-    /// Take `n` steps with the GIL released. Raises RuntimeError("SimulationError: ...") on runaway to NaN.
+    /// Take `n` steps with the GIL released. Raises RuntimeError (naming the step) on a runaway to a non-finite state.
     /// Returns the number of steps taken.
     fn step(&mut self, py: Python<'_>, n: usize) -> PyResult<usize> {
         let Self { inner, pool } = self;
