@@ -260,6 +260,15 @@ def test_simulation_bad_parameter(kwargs, name):
     assert name in str(info.value)
 
 
+@pytest.mark.parametrize("integrator", ["implicit_euler", "projective_dynamics", "xpbd"])
+def test_step_damping_factor_is_refused_by_integrators_that_would_ignore_it(integrator):
+    # The seed's per-step factor is applied by symplectic Euler only; elsewhere it used to be ignored silently.
+    with pytest.raises(fepr.ConfigError, match=rf"damping.*{integrator}.*air_damping"):
+        make(damping=0.01, integrator=integrator)
+    make(damping=0.0, integrator=integrator)
+    make(damping=0.01, integrator="symplectic_euler")
+
+
 def test_simulation_bad_mesh_type():
     with pytest.raises(fepr.ConfigError, match="mesh"):
         fepr.Simulation((V, T), material=SOFT, node_mass=1.0, dt=0.01)

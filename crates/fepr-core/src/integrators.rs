@@ -39,6 +39,11 @@ pub trait Integrator: Send + Sync {
     fn check(&self, _model: &Model) -> crate::error::Result<()> {
         Ok(())
     }
+    /// True if the step applies the model's per-step damping factor `Model::damping` (the seed's); a
+    /// simulation refuses a nonzero factor with an integrator that would ignore it.
+    fn applies_step_damping(&self) -> bool {
+        false
+    }
     /// True for implicit (unconditionally stable, dissipative) integrators: the projection then uses the
     /// stiffness metric by default (see [`crate::projection::Metric`]).
     fn is_implicit(&self) -> bool {
@@ -75,6 +80,10 @@ impl SymplecticEuler {
 impl Integrator for SymplecticEuler {
     fn name(&self) -> &'static str {
         "symplectic_euler"
+    }
+
+    fn applies_step_damping(&self) -> bool {
+        true
     }
 
     fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {

@@ -167,6 +167,17 @@ impl Simulation {
             ));
         }
         integrator.check(&model)?;
+        if model.damping > 0.0 && !integrator.applies_step_damping() {
+            return Err(crate::error::invalid(
+                "damping",
+                format!(
+                    "the per-step damping factor ({}) is applied by symplectic_euler only; {} would ignore it: \
+                     use air_damping or rayleigh_damping (applied after any integrator)",
+                    model.damping,
+                    integrator.name()
+                ),
+            ));
+        }
         let mut projector = projector;
         if let Some(p) = projector.as_mut() {
             p.set_implicit_base(integrator.is_implicit());
