@@ -788,7 +788,16 @@ pub(crate) mod tests {
     use crate::model::ModelBuilder;
 
     pub(crate) fn grid_model(n: usize, material: Material) -> Model {
-        // An n x n x n grid of cubes, each cut into 6 tets around its main diagonal (conforming).
+        let (v, t) = grid_mesh(n);
+        let (mesh, _) = TetMesh::new(v, &t).unwrap();
+        ModelBuilder::new(mesh, material)
+            .mass(MassSpec::Density(1000.0))
+            .build()
+            .unwrap()
+    }
+
+    /// An n x n x n grid of cubes, each cut into 6 tets around its main diagonal (conforming).
+    fn grid_mesh(n: usize) -> (Vec<Vec3>, Vec<[i64; 4]>) {
         let idx = |i: usize, j: usize, k: usize| (i + (n + 1) * (j + (n + 1) * k)) as i64;
         let mut v = Vec::new();
         for k in 0..=n {
@@ -820,11 +829,7 @@ pub(crate) mod tests {
                 }
             }
         }
-        let (mesh, _) = TetMesh::new(v, &t).unwrap();
-        ModelBuilder::new(mesh, material)
-            .mass(MassSpec::Density(1000.0))
-            .build()
-            .unwrap()
+        (v, t)
     }
 
     pub(crate) fn deformed(model: &Model, seed: u64) -> Vec<Vec3> {
@@ -1066,6 +1071,93 @@ pub(crate) mod tests {
                         (sw.min_j.to_bits(), sw.inverted)
                     );
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn user_numbering_does_not_change_results_and_tet_ids_stay_the_users() {
+        // The same grid with its vertices and tets renumbered by pseudo-random permutations: the model's
+        // internal order must hide the numbering (energy and per-vertex gradient to round-off), and
+        // dm_inv / deformation_gradient must take user tet ids.
+        let n = 5;
+        let (v, t) = grid_mesh(n);
+        let mut s = 12345u64;
+        let mut shuffle = |len: usize| {
+            let mut p: Vec<usize> = (0..len).collect();
+            for i in (1..len).rev() {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                p.swap(i, (s >> 33) as usize % (i + 1));
+            }
+            p
+        };
+        // new vertex i is old vertex vp[i]; new tet e is old tet tp[e].
+        let (vp, tp) = (shuffle(v.len()), shuffle(t.len()));
+        let mut new_of_old = vec![0; v.len()];
+        for (i, &o) in vp.iter().enumerate() {
+            new_of_old[o] = i as i64;
+        }
+        let v2: Vec<Vec3> = vp.iter().map(|&o| v[o]).collect();
+        let t2: Vec<[i64; 4]> = tp
+            .iter()
+            .map(|&o| t[o].map(|c| new_of_old[c as usize]))
+            .collect();
+        let mut all = materials();
+        all.push(Material::Arap(Arap::new(1e4, 0.3).unwrap()));
+        for mat in all {
+            let build = |v: Vec<Vec3>, t: &[[i64; 4]]| {
+                let (mesh, _) = TetMesh::new(v, t).unwrap();
+                ModelBuilder::new(mesh, mat)
+                    .mass(MassSpec::Density(1000.0))
+                    .build()
+                    .unwrap()
+            };
+            let (a, b) = (build(v.clone(), &t), build(v2.clone(), &t2));
+            // The internal orders differ from the user's (else the test would not test them).
+            assert_ne!(b.kernel_vertices, (0..v.len() as u32).collect::<Vec<_>>());
+            assert_ne!(b.tet_at, (0..t.len() as u32).collect::<Vec<_>>());
+            let xa = deformed(&a, 5);
+            let xb: Vec<Vec3> = vp.iter().map(|&o| xa[o]).collect();
+            let (mut ga, mut gb) = (vec![[0.0; 3]; xa.len()], vec![[0.0; 3]; xb.len()]);
+            let mut ws = ElasticWorkspace::default();
+            let sa = elastic_energy_gradient(&a, &xa, &mut ws, &mut ga);
+            let sb = elastic_energy_gradient(&b, &xb, &mut ElasticWorkspace::default(), &mut gb);
+            let eb = elastic_energy(&b, &xb);
+            assert!(sa.energy > 0.0);
+            for e in [
+                sb.energy,
+                eb.energy,
+                elastic_energy_with(&b, &xb, &mut ws).energy,
+            ] {
+                assert!(
+                    (e - sa.energy).abs() <= 1e-12 * sa.energy,
+                    "{mat:?}: {e} vs {}",
+                    sa.energy
+                );
+            }
+            assert_eq!(sa.min_j, sb.min_j);
+            assert_eq!(sa.inverted, sb.inverted);
+            let gmax = ga.iter().flatten().fold(0.0f64, |m, g| m.max(g.abs()));
+            for (i, &o) in vp.iter().enumerate() {
+                for c in 0..3 {
+                    assert!(
+                        (gb[i][c] - ga[o][c]).abs() <= 1e-12 * gmax,
+                        "{mat:?}: vertex {i} (old {o}): {:?} vs {:?}",
+                        gb[i],
+                        ga[o]
+                    );
+                }
+            }
+            // User tet ids: D_m^-1 and F of tet e are those of the user's tet e, bit for bit.
+            let rest = b.mesh.rest_shape();
+            for (e, &o) in tp.iter().enumerate() {
+                assert_eq!(b.dm_inv(e), rest.dm_inv[e], "tet {e}");
+                assert_eq!(b.dm_inv(e), a.dm_inv(o), "tet {e}");
+                let f = matmul(&edge_matrix(&xb, &b.mesh.tets()[e]), &rest.dm_inv[e]);
+                assert_eq!(deformation_gradient(&b, &xb, e), f, "tet {e}");
+                assert_eq!(deformation_gradient(&a, &xa, o), f, "tet {e}");
             }
         }
     }
