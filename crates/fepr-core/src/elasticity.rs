@@ -53,6 +53,8 @@ pub struct ElasticWorkspace {
     partials: Vec<ElasticSummary>,
     /// `x` in the kernels' vertex order (`Model::kernel_positions`).
     x_kernel: Vec<Vec3>,
+    /// The gradient in the kernels' vertex order (the gather's output before it is put in user order).
+    grad_kernel: Vec<Vec3>,
 }
 
 impl ElasticWorkspace {
@@ -60,7 +62,7 @@ impl ElasticWorkspace {
     pub fn bytes(&self) -> usize {
         self.element_gradients.capacity() * std::mem::size_of::<GradBlock>()
             + self.partials.capacity() * std::mem::size_of::<ElasticSummary>()
-            + self.x_kernel.capacity() * std::mem::size_of::<Vec3>()
+            + (self.x_kernel.capacity() + self.grad_kernel.capacity()) * std::mem::size_of::<Vec3>()
     }
 }
 
@@ -313,7 +315,7 @@ pub fn elastic_energy_gradient(
         }
         _ => with_material!(model, mat => element_pass(mat, model, x, out, parts)),
     };
-    gather(model, &ws.element_gradients, grad);
+    gather(model, &ws.element_gradients, &mut ws.grad_kernel, grad);
     summary
 }
 
@@ -757,18 +759,21 @@ const VERTEX_CHUNK: usize = 512;
 
 /// Sum per-tet corner values (in block order) into user vertices, in the fixed incidence order (ascending
 /// block position).
-fn gather(model: &Model, element_values: &[GradBlock], out: &mut [Vec3]) {
+/// The vertices are summed in the kernels' vertex order (their incident tets are then close in the blocks)
+/// into `gk`, then copied to `out` in user order.
+fn gather(model: &Model, element_values: &[GradBlock], gk: &mut Vec<Vec3>, out: &mut [Vec3]) {
     let offsets = &model.incidence_offsets;
     let slots = &model.incidence_slots;
     let flat = GradBlock::flat(element_values);
-    out.par_chunks_mut(VERTEX_CHUNK)
+    gk.resize(out.len(), [0.0; 3]);
+    gk.par_chunks_mut(VERTEX_CHUNK)
         .enumerate()
         .for_each(|(c, chunk)| {
             let first = c * VERTEX_CHUNK;
             for (i, g) in chunk.iter_mut().enumerate() {
-                let v = first + i;
+                let r = first + i;
                 let mut acc = [0.0; 3];
-                for &slot in &slots[offsets[v]..offsets[v + 1]] {
+                for &slot in &slots[offsets[r]..offsets[r + 1]] {
                     let o = GradBlock::flat_offset(slot);
                     let val = &flat[o..o + 3];
                     acc[0] += val[0];
@@ -776,6 +781,14 @@ fn gather(model: &Model, element_values: &[GradBlock], out: &mut [Vec3]) {
                     acc[2] += val[2];
                 }
                 *g = acc;
+            }
+        });
+    let rank = &model.kernel_rank;
+    out.par_chunks_mut(VERTEX_CHUNK)
+        .zip(rank.par_chunks(VERTEX_CHUNK))
+        .for_each(|(o, rs)| {
+            for (g, &r) in o.iter_mut().zip(rs) {
+                *g = gk[r as usize];
             }
         });
 }

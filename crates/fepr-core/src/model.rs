@@ -26,15 +26,18 @@ pub struct Model {
     pub damping: f64,
     /// Half diagonal of the rest bounding box, metres (the length scale r of fepr-spec section 2).
     pub length_scale: f64,
-    /// User vertex -> (4 * block position + corner) incidence (CSR offsets and slots, ascending per vertex),
-    /// for deterministic gathers of the per-tet values, which live in block order (see `tet_at`). A slot's
-    /// user tet is `tet_at[slot / 4]`.
+    /// Vertex rank (`kernel_rank`) -> (4 * block position + corner) incidence (CSR offsets and slots,
+    /// ascending per vertex), for deterministic gathers of the per-tet values, which live in block order (see
+    /// `tet_at`). A slot's user tet is `tet_at[slot / 4]`; user vertex `v`'s slots start at
+    /// `incidence_offsets[kernel_rank[v]]`.
     pub(crate) incidence_offsets: Vec<usize>,
     pub(crate) incidence_slots: Vec<u32>,
     /// The kernels' internal vertex order (invisible to users): rank -> user vertex, the Morton (Z-curve)
     /// order of the rest positions (ties by index). The per-tet kernels read positions permuted into this
     /// order (`x_k[r] = x[kernel_vertices[r]]`), so that neighbouring tets load neighbouring memory.
     pub(crate) kernel_vertices: Vec<u32>,
+    /// User vertex -> rank (the inverse of `kernel_vertices`).
+    pub(crate) kernel_rank: Vec<u32>,
     /// The internal tet order of the blocks: position -> user tet (tets sorted stably by their smallest
     /// vertex rank).
     pub(crate) tet_at: Vec<u32>,
@@ -184,6 +187,7 @@ impl ModelBuilder {
             incidence_offsets,
             incidence_slots,
             kernel_vertices: order.vertices,
+            kernel_rank: order.rank,
             tet_at: order.tet_at,
             tet_position: order.tet_position,
             tet_blocks,
@@ -232,13 +236,13 @@ impl KernelOrder {
         }
     }
 
-    /// User vertex -> (4 * position + corner) slots, ascending per vertex.
+    /// Vertex rank -> (4 * position + corner) slots, ascending per vertex.
     fn incidence(&self, mesh: &TetMesh) -> (Vec<usize>, Vec<u32>) {
         let (m, tets) = (mesh.num_vertices(), mesh.tets());
         let mut offsets = vec![0usize; m + 1];
         for t in tets {
             for &v in t {
-                offsets[v + 1] += 1;
+                offsets[self.rank[v] as usize + 1] += 1;
             }
         }
         for i in 0..m {
@@ -248,8 +252,9 @@ impl KernelOrder {
         let mut slots = vec![0u32; 4 * tets.len()];
         for (p, &e) in self.tet_at.iter().enumerate() {
             for (c, &v) in tets[e as usize].iter().enumerate() {
-                slots[fill[v]] = (4 * p + c) as u32;
-                fill[v] += 1;
+                let r = self.rank[v] as usize;
+                slots[fill[r]] = (4 * p + c) as u32;
+                fill[r] += 1;
             }
         }
         (offsets, slots)

@@ -285,8 +285,9 @@ impl Integrator for ProjectiveDynamics {
                         for a in 0..3 {
                             acc[a] = model.masses[v] * (inv_h2 * y[v][a] + g[a]);
                         }
+                        let r = model.kernel_rank[v] as usize;
                         let slots = &model.incidence_slots
-                            [model.incidence_offsets[v]..model.incidence_offsets[v + 1]];
+                            [model.incidence_offsets[r]..model.incidence_offsets[r + 1]];
                         for &slot in slots {
                             let t = terms[slot as usize];
                             for a in 0..3 {

@@ -83,7 +83,8 @@ pub fn colour_tets(model: &Model) -> Vec<Vec<usize>> {
     let mut colours: Vec<Vec<usize>> = Vec::new();
     for (e, t) in tets.iter().enumerate() {
         for &v in t {
-            for &slot in &slots[offsets[v]..offsets[v + 1]] {
+            let r = model.kernel_rank[v] as usize;
+            for &slot in &slots[offsets[r]..offsets[r + 1]] {
                 // Slots are in block positions: the user tet at that position.
                 let f = tet_at[slot as usize / 4] as usize;
                 if colour[f] != usize::MAX {
