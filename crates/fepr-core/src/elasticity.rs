@@ -43,13 +43,18 @@ impl ElasticSummary {
     }
 }
 
-/// Scratch memory for gradient evaluations (reused across calls, no allocation in the step loop): the
-/// gradients on the 4 corners of every tet, in blocks of [`BLOCK`] tets (see [`GradBlock`]).
+/// Scratch memory for energy and gradient evaluations (reused across calls, no allocation in the step loop):
+/// the gradients on the 4 corners of every tet, in blocks of [`BLOCK`] tets in the model's internal tet
+/// order (see [`GradBlock`]), and the positions in the model's internal vertex order.
 #[derive(Clone, Debug, Default)]
 pub struct ElasticWorkspace {
     element_gradients: Vec<GradBlock>,
     /// Per-chunk partial summaries, combined in chunk order.
     partials: Vec<ElasticSummary>,
+    /// `x` in the kernels' vertex order (`Model::kernel_positions`).
+    x_kernel: Vec<Vec3>,
+    /// The gradient in the kernels' vertex order (the gather's output before it is put in user order).
+    grad_kernel: Vec<Vec3>,
 }
 
 impl ElasticWorkspace {
@@ -57,6 +62,7 @@ impl ElasticWorkspace {
     pub fn bytes(&self) -> usize {
         self.element_gradients.capacity() * std::mem::size_of::<GradBlock>()
             + self.partials.capacity() * std::mem::size_of::<ElasticSummary>()
+            + (self.x_kernel.capacity() + self.grad_kernel.capacity()) * std::mem::size_of::<Vec3>()
     }
 }
 
@@ -78,7 +84,7 @@ pub struct GradBlock([[f64; 3 * BLOCK]; 4]);
 impl GradBlock {
     pub(crate) const ZERO: Self = Self([[0.0; 3 * BLOCK]; 4]);
 
-    /// Corner `c` of tet `e` (a global tet index) from the block list (for tests; the gathers use
+    /// Corner `c` of the tet at block position `e` from the block list (for tests; the gathers use
     /// [`GradBlock::flat`]).
     #[cfg(test)]
     pub(crate) fn corner(blocks: &[Self], e: usize, c: usize) -> &[f64; 3] {
@@ -100,7 +106,8 @@ impl GradBlock {
         unsafe { std::slice::from_raw_parts(blocks.as_ptr().cast::<f64>(), blocks.len() * VALUES) }
     }
 
-    /// The offset in [`GradBlock::flat`] of corner `slot % 4` of tet `slot / 4` (an incidence slot).
+    /// The offset in [`GradBlock::flat`] of corner `slot % 4` of the tet at block position `slot / 4` (an
+    /// incidence slot).
     #[inline(always)]
     pub(crate) fn flat_offset(slot: u32) -> usize {
         let (e, c) = (slot as usize / 4, slot as usize % 4);
@@ -122,28 +129,30 @@ pub struct TetBlock {
     pub(crate) vol: Block,
 }
 
-/// [`TetBlock`]s of a whole mesh (96 bytes per tet), built once with the model.
+/// [`TetBlock`]s of a whole mesh (96 bytes per tet), built once with the model, in the model's internal tet
+/// order (`Model::tet_at`) with the internal vertex ranks as indices.
 #[derive(Clone, Debug, Default)]
 pub struct TetBlocks {
     pub(crate) blocks: Vec<TetBlock>,
 }
 
 impl TetBlocks {
-    /// Blocks of `tets` with their rest data. Vertex indices must fit in `u32` (as the incidence slots).
-    pub fn new(tets: &[[usize; 4]], rest: &RestShape) -> Self {
-        let blocks = tets
+    /// Blocks of `tets` with their rest data: position `p` holds tet `tet_at[p]`, with its vertices `v` as
+    /// `rank[v]`.
+    pub(crate) fn new(tets: &[[usize; 4]], rest: &RestShape, tet_at: &[u32], rank: &[u32]) -> Self {
+        assert_eq!(tet_at.len(), tets.len(), "one position per tet");
+        let blocks = tet_at
             .chunks(BLOCK)
-            .enumerate()
-            .map(|(b, ts)| {
+            .map(|ts| {
                 let mut tb = TetBlock {
                     idx: [[0; BLOCK]; 4],
                     dm: [[[0.0; BLOCK]; 3]; 3],
                     vol: [0.0; BLOCK],
                 };
-                for (l, t) in ts.iter().enumerate() {
-                    let e = b * BLOCK + l;
+                for (l, &e) in ts.iter().enumerate() {
+                    let (e, t) = (e as usize, &tets[e as usize]);
                     for c in 0..4 {
-                        tb.idx[c][l] = u32::try_from(t[c]).expect("vertex index fits in u32");
+                        tb.idx[c][l] = rank[t[c]];
                     }
                     for i in 0..3 {
                         for j in 0..3 {
@@ -163,10 +172,10 @@ impl TetBlocks {
         self.blocks.capacity() * std::mem::size_of::<TetBlock>()
     }
 
-    /// `D_m^-1` of tet `e`.
+    /// `D_m^-1` of the tet at block position `p` (of user tet `e`: `Model::dm_inv(e)`).
     #[inline]
-    pub fn dm_inv(&self, e: usize) -> Mat3 {
-        let (b, l) = (&self.blocks[e / BLOCK], e % BLOCK);
+    pub fn dm_inv_at(&self, p: usize) -> Mat3 {
+        let (b, l) = (&self.blocks[p / BLOCK], p % BLOCK);
         // Plain loops: nested `array::map` closures were not inlined here (measured: 13% of a PD step).
         let mut m = [[0.0; 3]; 3];
         for i in 0..3 {
@@ -178,7 +187,7 @@ impl TetBlocks {
     }
 }
 
-/// Deformation gradient of tet `e`.
+/// Deformation gradient of tet `e` (a user tet index).
 #[inline]
 pub fn deformation_gradient(model: &Model, x: &[Vec3], e: usize) -> Mat3 {
     let t = &model.mesh.tets()[e];
@@ -199,44 +208,59 @@ macro_rules! with_material {
     };
 }
 
-/// Elastic energy only (no gradient), J.
+/// Elastic energy only (no gradient), J. Allocates a copy of `x` in the kernels' vertex order for the
+/// Neo-Hookean and ARAP materials; [`elastic_energy_with`] reuses a workspace's.
 pub fn elastic_energy(model: &Model, x: &[Vec3]) -> ElasticSummary {
+    elastic_energy_with(model, x, &mut ElasticWorkspace::default())
+}
+
+/// [`elastic_energy`] with the scratch memory of `ws` (the same bits).
+pub fn elastic_energy_with(model: &Model, x: &[Vec3], ws: &mut ElasticWorkspace) -> ElasticSummary {
     match &model.material {
-        Material::NeoHookean(nh) => neo_hookean_energy(nh, model, x),
-        Material::Arap(arap) => crate::rotation_blocks::arap_energy(arap, model, x),
+        Material::NeoHookean(nh) => {
+            model.kernel_positions(x, &mut ws.x_kernel);
+            neo_hookean_energy(nh, model, &ws.x_kernel)
+        }
+        Material::Arap(arap) => {
+            model.kernel_positions(x, &mut ws.x_kernel);
+            crate::rotation_blocks::arap_energy(arap, model, &ws.x_kernel)
+        }
         _ => with_material!(model, mat => energy_impl(mat, model, x)),
     }
 }
 
-/// Energy only, with the batched Neo-Hookean kernel (bit-identical to [`energy_impl`]).
-fn neo_hookean_energy(nh: &NeoHookean, model: &Model, x: &[Vec3]) -> ElasticSummary {
+/// Energy only, with the batched Neo-Hookean kernel (bit-identical to [`energy_impl`]); `xk`: positions in
+/// the kernels' vertex order.
+fn neo_hookean_energy(nh: &NeoHookean, model: &Model, xk: &[Vec3]) -> ElasticSummary {
     let (blocks, lanes) = (&model.tet_blocks, Lanes::detect());
     reduce_chunks(
         model.num_tets(),
         TET_CHUNK,
         |range| {
             let b = range.start / BLOCK..range.end.div_ceil(BLOCK);
-            lanes.run::<false>(nh, blocks, b, x, &mut [], range.len())
+            lanes.run::<false>(nh, blocks, b, xk, &mut [], range.len())
         },
         ElasticSummary::combine,
     )
     .unwrap_or_else(ElasticSummary::zero)
 }
 
+/// Energy only, per tet through the material interface, summed in the blocks' tet order (as the kernels).
 fn energy_impl<M: Hyperelastic + Sync>(mat: &M, model: &Model, x: &[Vec3]) -> ElasticSummary {
     let k = model.num_tets();
-    let (tets, volume) = (model.mesh.tets(), &model.rest_volume);
+    let (tets, volume, tet_at) = (model.mesh.tets(), &model.rest_volume, &model.tet_at);
     reduce_chunks(
         k,
         TET_CHUNK,
         |range| {
             let mut s = ElasticSummary::zero();
             let (mut f, mut psi) = ([[[0.0; 3]; 3]; LANES], [0.0; LANES]);
-            for e0 in range.clone().step_by(LANES) {
+            for p0 in range.clone().step_by(LANES) {
                 // Full groups go through the material's batched call; the last, partial one per tet.
-                let n = LANES.min(range.end - e0);
+                let n = LANES.min(range.end - p0);
                 for l in 0..n {
-                    f[l] = matmul(&edge_matrix(x, &tets[e0 + l]), &model.dm_inv(e0 + l));
+                    let (p, e) = (p0 + l, tet_at[p0 + l] as usize);
+                    f[l] = matmul(&edge_matrix(x, &tets[e]), &model.tet_blocks.dm_inv_at(p));
                 }
                 if n == LANES {
                     mat.energy_density_lanes(&f, &mut psi);
@@ -247,7 +271,7 @@ fn energy_impl<M: Hyperelastic + Sync>(mat: &M, model: &Model, x: &[Vec3]) -> El
                 }
                 for l in 0..n {
                     let j = det(&f[l]);
-                    s.energy += volume[e0 + l] * psi[l];
+                    s.energy += volume[tet_at[p0 + l] as usize] * psi[l];
                     s.min_j = s.min_j.min(j);
                     s.inverted += (j <= 0.0) as usize;
                 }
@@ -261,9 +285,9 @@ fn energy_impl<M: Hyperelastic + Sync>(mat: &M, model: &Model, x: &[Vec3]) -> El
 
 /// Elastic energy and its gradient `dE_el/dx` (written to `grad`, shape (m, 3), J/m).
 ///
-/// Two passes: a per-tet pass over fixed chunks (energy density, stress, the corner gradients into the
-/// workspace) and a per-vertex gather in the fixed incidence order (ascending tet index). Both are
-/// parallel; neither depends on the thread count, so the result is bit-identical for any thread count.
+/// Two passes: a per-tet pass over fixed chunks of the blocks (energy density, stress, the corner gradients
+/// into the workspace) and a per-vertex gather in the fixed incidence order (ascending block position). Both
+/// are parallel; neither depends on the thread count, so the result is bit-identical for any thread count.
 pub fn elastic_energy_gradient(
     model: &Model,
     x: &[Vec3],
@@ -275,15 +299,23 @@ pub fn elastic_energy_gradient(
         ws.element_gradients
             .resize(k.div_ceil(BLOCK), GradBlock::ZERO);
     }
-    let (out, parts) = (&mut ws.element_gradients, &mut ws.partials);
+    let (out, parts, xk) = (
+        &mut ws.element_gradients,
+        &mut ws.partials,
+        &mut ws.x_kernel,
+    );
     let summary = match &model.material {
-        Material::NeoHookean(nh) => neo_hookean_pass(nh, model, x, out, parts),
+        Material::NeoHookean(nh) => {
+            model.kernel_positions(x, xk);
+            neo_hookean_pass(nh, model, xk, out, parts)
+        }
         Material::Arap(arap) => {
-            crate::rotation_blocks::arap_gradient_pass(arap, model, x, out, parts)
+            model.kernel_positions(x, xk);
+            crate::rotation_blocks::arap_gradient_pass(arap, model, xk, out, parts)
         }
         _ => with_material!(model, mat => element_pass(mat, model, x, out, parts)),
     };
-    gather(model, &ws.element_gradients, grad);
+    gather(model, &ws.element_gradients, &mut ws.grad_kernel, grad);
     summary
 }
 
@@ -323,7 +355,8 @@ fn element_pass<M: Hyperelastic + Sync>(
     out: &mut [GradBlock],
     parts: &mut Vec<ElasticSummary>,
 ) -> ElasticSummary {
-    let (tets, volume) = (model.mesh.tets(), &model.rest_volume);
+    // Tets in block order (position p holds tet tet_at[p]), so that the corners land where the gather reads.
+    let (tets, volume, tet_at) = (model.mesh.tets(), &model.rest_volume, &model.tet_at);
     chunked_pass(model.num_tets(), out, parts, |c, chunk, len| {
         let first = c * TET_CHUNK;
         let mut s = ElasticSummary::zero();
@@ -333,8 +366,8 @@ fn element_pass<M: Hyperelastic + Sync>(
             // Full groups go through the material's batched call; the last, partial one per tet.
             let n = LANES.min(len - k0);
             for l in 0..n {
-                let e = first + k0 + l;
-                f[l] = matmul(&edge_matrix(x, &tets[e]), &model.dm_inv(e));
+                let (pos, e) = (first + k0 + l, tet_at[first + k0 + l] as usize);
+                f[l] = matmul(&edge_matrix(x, &tets[e]), &model.tet_blocks.dm_inv_at(pos));
             }
             if n == LANES {
                 mat.energy_and_stress_lanes(&f, &mut psi, &mut p);
@@ -344,13 +377,13 @@ fn element_pass<M: Hyperelastic + Sync>(
                 }
             }
             for l in 0..n {
-                let (k, e) = (k0 + l, first + k0 + l);
-                let (vol, j) = (volume[e], det(&f[l]));
+                let (k, pos) = (k0 + l, first + k0 + l);
+                let (vol, j) = (volume[tet_at[pos] as usize], det(&f[l]));
                 s.energy += vol * psi[l];
                 s.min_j = s.min_j.min(j);
                 s.inverted += (j <= 0.0) as usize;
                 // H = V P D_m^-T; its columns are the gradients on vertices 1..3.
-                let h = matmul(&p[l], &transpose(&model.dm_inv(e)));
+                let h = matmul(&p[l], &transpose(&model.tet_blocks.dm_inv_at(pos)));
                 write_corners(&h, vol, &mut chunk[k / BLOCK], k % BLOCK);
             }
         }
@@ -360,18 +393,19 @@ fn element_pass<M: Hyperelastic + Sync>(
 
 /// The Neo-Hookean element pass over the model's [`TetBlocks`]. The arithmetic mirrors
 /// [`NeoHookean::energy_and_stress`] operation by operation (no fused multiply-adds), so every lane gives
-/// bit-for-bit the scalar result (gated by a test); only the scheduling differs.
+/// bit-for-bit the scalar result (gated by a test); only the scheduling differs. `xk`: positions in the
+/// kernels' vertex order (`Model::kernel_positions`).
 fn neo_hookean_pass(
     nh: &NeoHookean,
     model: &Model,
-    x: &[Vec3],
+    xk: &[Vec3],
     out: &mut [GradBlock],
     parts: &mut Vec<ElasticSummary>,
 ) -> ElasticSummary {
     let (blocks, lanes) = (&model.tet_blocks, Lanes::detect());
     chunked_pass(model.num_tets(), out, parts, |c, chunk, len| {
         let first = c * CHUNK_BLOCKS;
-        lanes.run::<true>(nh, blocks, first..first + chunk.len(), x, chunk, len)
+        lanes.run::<true>(nh, blocks, first..first + chunk.len(), xk, chunk, len)
     })
 }
 
@@ -723,19 +757,23 @@ fn write_corners(h: &Mat3, vol: f64, out: &mut GradBlock, l: usize) {
 /// Vertices per parallel task in the gather.
 const VERTEX_CHUNK: usize = 512;
 
-/// Sum per-tet corner values into vertices, in the fixed incidence order (ascending tet index).
-fn gather(model: &Model, element_values: &[GradBlock], out: &mut [Vec3]) {
+/// Sum per-tet corner values (in block order) into user vertices, in the fixed incidence order (ascending
+/// block position).
+/// The vertices are summed in the kernels' vertex order (their incident tets are then close in the blocks)
+/// into `gk`, then copied to `out` in user order.
+fn gather(model: &Model, element_values: &[GradBlock], gk: &mut Vec<Vec3>, out: &mut [Vec3]) {
     let offsets = &model.incidence_offsets;
     let slots = &model.incidence_slots;
     let flat = GradBlock::flat(element_values);
-    out.par_chunks_mut(VERTEX_CHUNK)
+    gk.resize(out.len(), [0.0; 3]);
+    gk.par_chunks_mut(VERTEX_CHUNK)
         .enumerate()
         .for_each(|(c, chunk)| {
             let first = c * VERTEX_CHUNK;
             for (i, g) in chunk.iter_mut().enumerate() {
-                let v = first + i;
+                let r = first + i;
                 let mut acc = [0.0; 3];
-                for &slot in &slots[offsets[v]..offsets[v + 1]] {
+                for &slot in &slots[offsets[r]..offsets[r + 1]] {
                     let o = GradBlock::flat_offset(slot);
                     let val = &flat[o..o + 3];
                     acc[0] += val[0];
@@ -743,6 +781,14 @@ fn gather(model: &Model, element_values: &[GradBlock], out: &mut [Vec3]) {
                     acc[2] += val[2];
                 }
                 *g = acc;
+            }
+        });
+    let rank = &model.kernel_rank;
+    out.par_chunks_mut(VERTEX_CHUNK)
+        .zip(rank.par_chunks(VERTEX_CHUNK))
+        .for_each(|(o, rs)| {
+            for (g, &r) in o.iter_mut().zip(rs) {
+                *g = gk[r as usize];
             }
         });
 }
@@ -755,7 +801,16 @@ pub(crate) mod tests {
     use crate::model::ModelBuilder;
 
     pub(crate) fn grid_model(n: usize, material: Material) -> Model {
-        // An n x n x n grid of cubes, each cut into 6 tets around its main diagonal (conforming).
+        let (v, t) = grid_mesh(n);
+        let (mesh, _) = TetMesh::new(v, &t).unwrap();
+        ModelBuilder::new(mesh, material)
+            .mass(MassSpec::Density(1000.0))
+            .build()
+            .unwrap()
+    }
+
+    /// An n x n x n grid of cubes, each cut into 6 tets around its main diagonal (conforming).
+    fn grid_mesh(n: usize) -> (Vec<Vec3>, Vec<[i64; 4]>) {
         let idx = |i: usize, j: usize, k: usize| (i + (n + 1) * (j + (n + 1) * k)) as i64;
         let mut v = Vec::new();
         for k in 0..=n {
@@ -787,11 +842,7 @@ pub(crate) mod tests {
                 }
             }
         }
-        let (mesh, _) = TetMesh::new(v, &t).unwrap();
-        ModelBuilder::new(mesh, material)
-            .mass(MassSpec::Density(1000.0))
-            .build()
-            .unwrap()
+        (v, t)
     }
 
     pub(crate) fn deformed(model: &Model, seed: u64) -> Vec<Vec3> {
@@ -916,16 +967,17 @@ pub(crate) mod tests {
                 p[2] *= 0.05 + 0.9 * w * w;
             }
             let k = model.num_tets();
+            let xk = kernel_x(&model, &x);
             let mut a = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];
             let mut b = a.clone();
-            let sa = neo_hookean_pass(&mat, &model, &x, &mut a, &mut Vec::new());
+            let sa = neo_hookean_pass(&mat, &model, &xk, &mut a, &mut Vec::new());
             let sb = element_pass(&mat, &model, &x, &mut b, &mut Vec::new());
             assert!(sa.inverted > 0 && sa.min_j < mat.j0, "{sa:?}");
             assert_eq!(sa.energy.to_bits(), sb.energy.to_bits());
             assert_eq!(sa.min_j.to_bits(), sb.min_j.to_bits());
             assert_eq!(sa.inverted, sb.inverted);
             assert_eq!(corner_bits(&a, k), corner_bits(&b, k));
-            let ea = neo_hookean_energy(&mat, &model, &x);
+            let ea = neo_hookean_energy(&mat, &model, &xk);
             let eb = energy_impl(&mat, &model, &x);
             assert_eq!(ea.energy.to_bits(), eb.energy.to_bits());
             assert_eq!(
@@ -949,12 +1001,13 @@ pub(crate) mod tests {
                 p[2] *= 0.05 + 0.9 * w * w;
             }
             let k = model.num_tets();
+            let xk = kernel_x(&model, &x);
             let mut a = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];
             let mut b = a.clone();
             let sa = crate::rotation_blocks::arap_gradient_pass(
                 &arap,
                 &model,
-                &x,
+                &xk,
                 &mut a,
                 &mut Vec::new(),
             );
@@ -966,7 +1019,7 @@ pub(crate) mod tests {
                 (sb.min_j.to_bits(), sb.inverted)
             );
             assert_eq!(corner_bits(&a, k), corner_bits(&b, k));
-            let ea = crate::rotation_blocks::arap_energy(&arap, &model, &x);
+            let ea = crate::rotation_blocks::arap_energy(&arap, &model, &xk);
             let eb = energy_impl(&arap, &model, &x);
             assert_eq!(ea.energy.to_bits(), eb.energy.to_bits());
             assert_eq!(
@@ -974,6 +1027,13 @@ pub(crate) mod tests {
                 (eb.min_j.to_bits(), eb.inverted)
             );
         }
+    }
+
+    /// `x` in the kernels' vertex order.
+    fn kernel_x(model: &Model, x: &[Vec3]) -> Vec<Vec3> {
+        let mut xk = Vec::new();
+        model.kernel_positions(x, &mut xk);
+        xk
     }
 
     /// The corner gradients of the first `k` tets (the padding lanes of the last block are not results).
@@ -996,6 +1056,7 @@ pub(crate) mod tests {
                 p[2] *= (i as f64 * 0.9).cos();
             }
             let k = model.num_tets();
+            let x = kernel_x(&model, &x);
             let (blocks, all) = (&model.tet_blocks, 0..k.div_ceil(BLOCK));
             let reference = Lanes::Plain;
             let mut want = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];
@@ -1023,6 +1084,93 @@ pub(crate) mod tests {
                         (sw.min_j.to_bits(), sw.inverted)
                     );
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn user_numbering_does_not_change_results_and_tet_ids_stay_the_users() {
+        // The same grid with its vertices and tets renumbered by pseudo-random permutations: the model's
+        // internal order must hide the numbering (energy and per-vertex gradient to round-off), and
+        // dm_inv / deformation_gradient must take user tet ids.
+        let n = 5;
+        let (v, t) = grid_mesh(n);
+        let mut s = 12345u64;
+        let mut shuffle = |len: usize| {
+            let mut p: Vec<usize> = (0..len).collect();
+            for i in (1..len).rev() {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                p.swap(i, (s >> 33) as usize % (i + 1));
+            }
+            p
+        };
+        // new vertex i is old vertex vp[i]; new tet e is old tet tp[e].
+        let (vp, tp) = (shuffle(v.len()), shuffle(t.len()));
+        let mut new_of_old = vec![0; v.len()];
+        for (i, &o) in vp.iter().enumerate() {
+            new_of_old[o] = i as i64;
+        }
+        let v2: Vec<Vec3> = vp.iter().map(|&o| v[o]).collect();
+        let t2: Vec<[i64; 4]> = tp
+            .iter()
+            .map(|&o| t[o].map(|c| new_of_old[c as usize]))
+            .collect();
+        let mut all = materials();
+        all.push(Material::Arap(Arap::new(1e4, 0.3).unwrap()));
+        for mat in all {
+            let build = |v: Vec<Vec3>, t: &[[i64; 4]]| {
+                let (mesh, _) = TetMesh::new(v, t).unwrap();
+                ModelBuilder::new(mesh, mat)
+                    .mass(MassSpec::Density(1000.0))
+                    .build()
+                    .unwrap()
+            };
+            let (a, b) = (build(v.clone(), &t), build(v2.clone(), &t2));
+            // The internal orders differ from the user's (else the test would not test them).
+            assert_ne!(b.kernel_vertices, (0..v.len() as u32).collect::<Vec<_>>());
+            assert_ne!(b.tet_at, (0..t.len() as u32).collect::<Vec<_>>());
+            let xa = deformed(&a, 5);
+            let xb: Vec<Vec3> = vp.iter().map(|&o| xa[o]).collect();
+            let (mut ga, mut gb) = (vec![[0.0; 3]; xa.len()], vec![[0.0; 3]; xb.len()]);
+            let mut ws = ElasticWorkspace::default();
+            let sa = elastic_energy_gradient(&a, &xa, &mut ws, &mut ga);
+            let sb = elastic_energy_gradient(&b, &xb, &mut ElasticWorkspace::default(), &mut gb);
+            let eb = elastic_energy(&b, &xb);
+            assert!(sa.energy > 0.0);
+            for e in [
+                sb.energy,
+                eb.energy,
+                elastic_energy_with(&b, &xb, &mut ws).energy,
+            ] {
+                assert!(
+                    (e - sa.energy).abs() <= 1e-12 * sa.energy,
+                    "{mat:?}: {e} vs {}",
+                    sa.energy
+                );
+            }
+            assert_eq!(sa.min_j, sb.min_j);
+            assert_eq!(sa.inverted, sb.inverted);
+            let gmax = ga.iter().flatten().fold(0.0f64, |m, g| m.max(g.abs()));
+            for (i, &o) in vp.iter().enumerate() {
+                for c in 0..3 {
+                    assert!(
+                        (gb[i][c] - ga[o][c]).abs() <= 1e-12 * gmax,
+                        "{mat:?}: vertex {i} (old {o}): {:?} vs {:?}",
+                        gb[i],
+                        ga[o]
+                    );
+                }
+            }
+            // User tet ids: D_m^-1 and F of tet e are those of the user's tet e, bit for bit.
+            let rest = b.mesh.rest_shape();
+            for (e, &o) in tp.iter().enumerate() {
+                assert_eq!(b.dm_inv(e), rest.dm_inv[e], "tet {e}");
+                assert_eq!(b.dm_inv(e), a.dm_inv(o), "tet {e}");
+                let f = matmul(&edge_matrix(&xb, &b.mesh.tets()[e]), &rest.dm_inv[e]);
+                assert_eq!(deformation_gradient(&b, &xb, e), f, "tet {e}");
+                assert_eq!(deformation_gradient(&a, &xa, o), f, "tet {e}");
             }
         }
     }

@@ -26,11 +26,25 @@ pub struct Model {
     pub damping: f64,
     /// Half diagonal of the rest bounding box, metres (the length scale r of fepr-spec section 2).
     pub length_scale: f64,
-    /// Vertex -> (tet * 4 + corner) incidence (CSR offsets and slots), for deterministic gathers.
+    /// Vertex rank (`kernel_rank`) -> (4 * block position + corner) incidence (CSR offsets and slots,
+    /// ascending per vertex), for deterministic gathers of the per-tet values, which live in block order (see
+    /// `tet_at`). A slot's user tet is `tet_at[slot / 4]`; user vertex `v`'s slots start at
+    /// `incidence_offsets[kernel_rank[v]]`.
     pub(crate) incidence_offsets: Vec<usize>,
     pub(crate) incidence_slots: Vec<u32>,
-    /// Rest data in SIMD-friendly blocks for the Neo-Hookean kernel (96 bytes per tet); the only copy of
-    /// `D_m^-1`.
+    /// The kernels' internal vertex order (invisible to users): rank -> user vertex, the Morton (Z-curve)
+    /// order of the rest positions (ties by index). The per-tet kernels read positions permuted into this
+    /// order (`x_k[r] = x[kernel_vertices[r]]`), so that neighbouring tets load neighbouring memory.
+    pub(crate) kernel_vertices: Vec<u32>,
+    /// User vertex -> rank (the inverse of `kernel_vertices`).
+    pub(crate) kernel_rank: Vec<u32>,
+    /// The internal tet order of the blocks: position -> user tet (tets sorted stably by their smallest
+    /// vertex rank).
+    pub(crate) tet_at: Vec<u32>,
+    /// User tet -> position in the blocks (the inverse of `tet_at`).
+    pub(crate) tet_position: Vec<u32>,
+    /// Rest data in SIMD-friendly blocks for the Neo-Hookean kernel (96 bytes per tet), in the internal tet
+    /// order with vertex ranks as indices; the only copy of `D_m^-1`.
     pub(crate) tet_blocks: TetBlocks,
 }
 
@@ -38,7 +52,24 @@ impl Model {
     /// Inverse rest edge matrix `D_m^-1` of tet `e`, 1/m.
     #[inline]
     pub fn dm_inv(&self, e: usize) -> crate::linalg::Mat3 {
-        self.tet_blocks.dm_inv(e)
+        self.tet_blocks.dm_inv_at(self.tet_position[e] as usize)
+    }
+
+    /// Positions in the kernels' internal vertex order: `out[r] = x[kernel_vertices[r]]` (a copy, O(vertices),
+    /// parallel over fixed chunks).
+    pub(crate) fn kernel_positions(&self, x: &[Vec3], out: &mut Vec<Vec3>) {
+        use rayon::prelude::*;
+        const CHUNK: usize = 8192;
+        let order = &self.kernel_vertices;
+        assert_eq!(x.len(), order.len(), "one position per vertex");
+        out.resize(order.len(), [0.0; 3]);
+        out.par_chunks_mut(CHUNK)
+            .zip(order.par_chunks(CHUNK))
+            .for_each(|(o, vs)| {
+                for (p, &v) in o.iter_mut().zip(vs) {
+                    *p = x[v as usize];
+                }
+            });
     }
 
     pub fn num_vertices(&self) -> usize {
@@ -138,8 +169,9 @@ impl ModelBuilder {
         }
         let total_mass = masses.iter().sum();
         let length_scale = self.mesh.half_diagonal();
-        let (incidence_offsets, incidence_slots) = self.mesh.vertex_incidence();
-        let tet_blocks = TetBlocks::new(self.mesh.tets(), &rest);
+        let order = KernelOrder::new(&self.mesh);
+        let (incidence_offsets, incidence_slots) = order.incidence(&self.mesh);
+        let tet_blocks = TetBlocks::new(self.mesh.tets(), &rest, &order.tet_at, &order.rank);
         // D_m^-1 is kept in the blocks only (72 bytes per tet not held twice).
         let RestShape { volume, .. } = rest;
         Ok(Model {
@@ -154,9 +186,120 @@ impl ModelBuilder {
             length_scale,
             incidence_offsets,
             incidence_slots,
+            kernel_vertices: order.vertices,
+            kernel_rank: order.rank,
+            tet_at: order.tet_at,
+            tet_position: order.tet_position,
             tet_blocks,
         })
     }
+}
+
+/// The internal orders of a mesh's vertices and tets (see [`Model::kernel_vertices`]).
+struct KernelOrder {
+    /// Rank -> user vertex.
+    vertices: Vec<u32>,
+    /// User vertex -> rank.
+    rank: Vec<u32>,
+    /// Position -> user tet.
+    tet_at: Vec<u32>,
+    /// User tet -> position.
+    tet_position: Vec<u32>,
+}
+
+impl KernelOrder {
+    fn new(mesh: &TetMesh) -> Self {
+        let verts = mesh.vertices();
+        let tets = mesh.tets();
+        let m = verts.len();
+        u32::try_from(m).expect("vertex indices fit in u32");
+        u32::try_from(4 * tets.len()).expect("incidence slots fit in u32");
+        let code = morton_codes(verts);
+        let mut vertices: Vec<u32> = (0..m as u32).collect();
+        // Stable: ties keep index order.
+        vertices.sort_by_key(|&v| code[v as usize]);
+        let mut rank = vec![0u32; m];
+        for (r, &v) in vertices.iter().enumerate() {
+            rank[v as usize] = r as u32;
+        }
+        let mut tet_at: Vec<u32> = (0..tets.len() as u32).collect();
+        tet_at.sort_by_key(|&e| tets[e as usize].iter().map(|&v| rank[v]).min().unwrap_or(0));
+        let mut tet_position = vec![0u32; tets.len()];
+        for (p, &e) in tet_at.iter().enumerate() {
+            tet_position[e as usize] = p as u32;
+        }
+        Self {
+            vertices,
+            rank,
+            tet_at,
+            tet_position,
+        }
+    }
+
+    /// Vertex rank -> (4 * position + corner) slots, ascending per vertex.
+    fn incidence(&self, mesh: &TetMesh) -> (Vec<usize>, Vec<u32>) {
+        let (m, tets) = (mesh.num_vertices(), mesh.tets());
+        let mut offsets = vec![0usize; m + 1];
+        for t in tets {
+            for &v in t {
+                offsets[self.rank[v] as usize + 1] += 1;
+            }
+        }
+        for i in 0..m {
+            offsets[i + 1] += offsets[i];
+        }
+        let mut fill = offsets.clone();
+        let mut slots = vec![0u32; 4 * tets.len()];
+        for (p, &e) in self.tet_at.iter().enumerate() {
+            for (c, &v) in tets[e as usize].iter().enumerate() {
+                let r = self.rank[v] as usize;
+                slots[fill[r]] = (4 * p + c) as u32;
+                fill[r] += 1;
+            }
+        }
+        (offsets, slots)
+    }
+}
+
+/// Morton (Z-curve) codes of points: 21 bits per axis over the bounding box (the same scale on every axis).
+fn morton_codes(points: &[Vec3]) -> Vec<u64> {
+    const BITS: u32 = 21;
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in points {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0f64, f64::max);
+    let top = ((1u64 << BITS) - 1) as f64;
+    let s = if extent > 0.0 && extent.is_finite() {
+        top / extent
+    } else {
+        0.0
+    };
+    // Spread the low 21 bits of `v` to every third bit.
+    let spread = |v: u64| {
+        let mut v = v & 0x1f_ffff;
+        v = (v | (v << 32)) & 0x001f_0000_0000_ffff;
+        v = (v | (v << 16)) & 0x001f_0000_ff00_00ff;
+        v = (v | (v << 8)) & 0x100f_00f0_0f00_f00f;
+        v = (v | (v << 4)) & 0x10c3_0c30_c30c_30c3;
+        v = (v | (v << 2)) & 0x1249_2492_4924_9249;
+        v
+    };
+    points
+        .iter()
+        .map(|p| {
+            let mut code = 0u64;
+            for a in 0..3 {
+                let q = ((p[a] - lo[a]) * s).clamp(0.0, top) as u64;
+                code |= spread(q) << a;
+            }
+            code
+        })
+        .collect()
 }
 
 /// What changes during a run: positions (m), velocities (m/s) and time (s).

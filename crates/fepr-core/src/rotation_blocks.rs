@@ -29,18 +29,19 @@ enum Sink<'a> {
     /// The ARAP energy summary and the corner gradients `V 2 mu (F - R) D_m^-T`, one [`GradBlock`] per
     /// block (the layout of the elastic gradient's gather).
     Gradient(&'a mut [GradBlock]),
-    /// The PD corner terms `2 mu V R D_m^-T`, per tet (no summary). Per tet and not per block: the PD
+    /// The PD corner terms `2 mu V R D_m^-T`, per tet in block order (no summary). Per tet and not per block: the PD
     /// right-hand side gathers them 10 times per step, and a vertex's incident tets, close in index, then
     /// share cache lines whichever corner the vertex is (measured 1.9x faster than from blocks).
     PdTerms(&'a mut [[Vec3; 4]]),
 }
 
 /// ARAP energy and corner gradients of every tet (`out`: one [`GradBlock`] per block), summed per chunk of
-/// [`TET_CHUNK`] tets in chunk order; as `elasticity`'s per-tet pass for any material, bit for bit.
+/// [`TET_CHUNK`] tets in chunk order; as `elasticity`'s per-tet pass for any material, bit for bit. `xk`:
+/// positions in the kernels' vertex order (`Model::kernel_positions`), as for every pass here.
 pub(crate) fn arap_gradient_pass(
     arap: &Arap,
     model: &Model,
-    x: &[Vec3],
+    xk: &[Vec3],
     out: &mut [GradBlock],
     parts: &mut Vec<ElasticSummary>,
 ) -> ElasticSummary {
@@ -48,19 +49,19 @@ pub(crate) fn arap_gradient_pass(
     chunked_pass(model.num_tets(), out, parts, |c, chunk, len| {
         let first = c * CHUNK_BLOCKS;
         let range = first..first + chunk.len();
-        run(arap.mu, blocks, range, x, Sink::Gradient(chunk), len)
+        run(arap.mu, blocks, range, xk, Sink::Gradient(chunk), len)
     })
 }
 
 /// The ARAP energy summary alone.
-pub(crate) fn arap_energy(arap: &Arap, model: &Model, x: &[Vec3]) -> ElasticSummary {
+pub(crate) fn arap_energy(arap: &Arap, model: &Model, xk: &[Vec3]) -> ElasticSummary {
     let blocks = &model.tet_blocks;
     reduce_chunks(
         model.num_tets(),
         TET_CHUNK,
         |range| {
             let b = range.start / BLOCK..range.end.div_ceil(BLOCK);
-            run(arap.mu, blocks, b, x, Sink::Energy, range.len())
+            run(arap.mu, blocks, b, xk, Sink::Energy, range.len())
         },
         ElasticSummary::combine,
     )
@@ -69,9 +70,10 @@ pub(crate) fn arap_energy(arap: &Arap, model: &Model, x: &[Vec3]) -> ElasticSumm
 
 /// The Projective Dynamics local step for shear modulus `mu`: every tet's closest rotation `R` to `F` and
 /// its corner terms `w R g_k` with `w = 2 mu V` and `g_k` the shape-function gradients (corners 1..3: the
-/// columns of `w R D_m^-T`; corner 0 minus their sum), into `out[e]` (shape (num_tets, 4, 3)). Parallel over
-/// fixed chunks; each tet's terms depend on that tet alone.
-pub(crate) fn pd_rotation_terms(mu: f64, model: &Model, x: &[Vec3], out: &mut [[Vec3; 4]]) {
+/// columns of `w R D_m^-T`; corner 0 minus their sum), into `out[p]` for the tet at block position `p`
+/// (`Model::tet_at`; shape (num_tets, 4, 3)). Parallel over fixed chunks; each tet's terms depend on that
+/// tet alone. `xk`: positions in the kernels' vertex order.
+pub(crate) fn pd_rotation_terms(mu: f64, model: &Model, xk: &[Vec3], out: &mut [[Vec3; 4]]) {
     let (blocks, k) = (&model.tet_blocks, model.num_tets());
     assert_eq!(out.len(), k, "one entry per tet");
     out.par_chunks_mut(TET_CHUNK)
@@ -80,7 +82,7 @@ pub(crate) fn pd_rotation_terms(mu: f64, model: &Model, x: &[Vec3], out: &mut [[
             let first = c * CHUNK_BLOCKS;
             let range = first..first + chunk.len().div_ceil(BLOCK);
             let len = chunk.len();
-            run(mu, blocks, range, x, Sink::PdTerms(chunk), len);
+            run(mu, blocks, range, xk, Sink::PdTerms(chunk), len);
         });
 }
 
@@ -245,14 +247,17 @@ mod tests {
         let x = deformed(&model, 3);
         let mu = 123.0;
         let mut out = vec![[[0.0; 3]; 4]; model.num_tets()];
-        pd_rotation_terms(mu, &model, &x, &mut out);
+        let mut xk = Vec::new();
+        model.kernel_positions(&x, &mut xk);
+        pd_rotation_terms(mu, &model, &xk, &mut out);
         for e in 0..model.num_tets() {
+            let pos = model.tet_position[e] as usize;
             let f = crate::elasticity::deformation_gradient(&model, &x, e);
             let r = crate::linalg::polar_rotation(&f).0;
             let g = crate::hessian::shape_gradients(&model, e);
             let w = 2.0 * mu * model.rest_volume[e];
             for (k, gk) in g.iter().enumerate() {
-                let got = out[e][k];
+                let got = out[pos][k];
                 for a in 0..3 {
                     let want = w * (r[a][0] * gk[0] + r[a][1] * gk[1] + r[a][2] * gk[2]);
                     // The PD local step's rotations are accurate to about 1e-10 (batch_polar::PD_LOCAL).

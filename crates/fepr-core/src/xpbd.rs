@@ -79,12 +79,14 @@ pub fn colour_tets(model: &Model) -> Vec<Vec<usize>> {
     // forbidden[c] == e + 1: colour c is used by a neighbour of tet e.
     let mut forbidden: Vec<usize> = Vec::new();
     let offsets = &model.incidence_offsets;
-    let slots = &model.incidence_slots;
+    let (slots, tet_at) = (&model.incidence_slots, &model.tet_at);
     let mut colours: Vec<Vec<usize>> = Vec::new();
     for (e, t) in tets.iter().enumerate() {
         for &v in t {
-            for &slot in &slots[offsets[v]..offsets[v + 1]] {
-                let f = slot as usize / 4;
+            let r = model.kernel_rank[v] as usize;
+            for &slot in &slots[offsets[r]..offsets[r + 1]] {
+                // Slots are in block positions: the user tet at that position.
+                let f = tet_at[slot as usize / 4] as usize;
                 if colour[f] != usize::MAX {
                     forbidden[colour[f]] = e + 1;
                 }
