@@ -220,19 +220,9 @@ impl fepr_core::integrators::Integrator for TimedPd {
 /// The vertex-graph Cholesky of `model` (a Laplacian-like SPD matrix): size, fill, solve time with 3
 /// right-hand sides.
 fn solve_study(model: &fepr_core::model::Model, rounds: usize) {
-    use fepr_core::sparse::{LowerPattern, SparseCholesky};
+    use fepr_core::sparse::SparseCholesky;
     let n = model.num_vertices();
-    let mut columns = vec![Vec::new(); n];
-    for t in model.mesh.tets() {
-        for &p in t {
-            for &q in t {
-                if p > q {
-                    columns[q].push(p);
-                }
-            }
-        }
-    }
-    let pattern = LowerPattern::from_columns(n, columns);
+    let pattern = common::vertex_pattern(model);
     let mut values = vec![-1e-3; pattern.nnz()];
     for c in 0..n {
         values[pattern.position(c, c).unwrap()] = 100.0;

@@ -8,7 +8,7 @@ use std::hint::black_box;
 use std::path::PathBuf;
 
 mod common;
-use common::load_tetgen;
+use common::{load_tetgen, vertex_pattern};
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
@@ -156,22 +156,6 @@ fn steps(c: &mut Criterion) {
         });
     }
     g.finish();
-}
-
-/// The vertex adjacency of a mesh as a lower pattern (the Projective Dynamics m x m matrix).
-fn vertex_pattern(model: &Model) -> LowerPattern {
-    let m = model.num_vertices();
-    let mut cols = vec![Vec::new(); m];
-    for t in model.mesh.tets() {
-        for &a in t {
-            for &b in t {
-                if a > b {
-                    cols[b].push(a);
-                }
-            }
-        }
-    }
-    LowerPattern::from_columns(m, cols)
 }
 
 /// A graph Laplacian plus a mass-like diagonal on the pattern: SPD.

@@ -954,6 +954,16 @@ pub(crate) mod tests {
         assert_eq!(one, run(4));
     }
 
+    /// [`deformed`] with vertices squashed along z by varying factors: flattened and inverted tets.
+    fn squashed(model: &Model, seed: u64) -> Vec<Vec3> {
+        let mut x = deformed(model, seed);
+        for (i, p) in x.iter_mut().enumerate() {
+            let w = (i as f64 * 1.7).sin();
+            p[2] *= 0.05 + 0.9 * w * w;
+        }
+        x
+    }
+
     #[test]
     fn batched_neo_hookean_matches_the_material_interface_bit_for_bit() {
         // Large random perturbations: many tets below j0 = 0.1 and some inverted, so both branches of the
@@ -961,11 +971,7 @@ pub(crate) mod tests {
         let mat = NeoHookean::new(1e4, 0.3).unwrap();
         let model = grid_model(3, Material::NeoHookean(mat));
         for seed in [1, 5, 9] {
-            let mut x = deformed(&model, seed);
-            for (i, p) in x.iter_mut().enumerate() {
-                let w = (i as f64 * 1.7).sin();
-                p[2] *= 0.05 + 0.9 * w * w;
-            }
+            let x = squashed(&model, seed);
             let k = model.num_tets();
             let xk = kernel_x(&model, &x);
             let mut a = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];
@@ -995,11 +1001,7 @@ pub(crate) mod tests {
         let arap = Arap::new(1e4, 0.3).unwrap();
         let model = grid_model(3, Material::Arap(arap));
         for seed in [1, 5, 9] {
-            let mut x = deformed(&model, seed);
-            for (i, p) in x.iter_mut().enumerate() {
-                let w = (i as f64 * 1.7).sin();
-                p[2] *= 0.05 + 0.9 * w * w;
-            }
+            let x = squashed(&model, seed);
             let k = model.num_tets();
             let xk = kernel_x(&model, &x);
             let mut a = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];

@@ -27,3 +27,20 @@ pub fn load_tetgen(stem: &std::path::Path) -> Option<TetMesh> {
         .collect();
     TetMesh::new(v, &t).ok().map(|(m, _)| m)
 }
+
+/// The vertex adjacency of a mesh as a lower pattern (the Projective Dynamics m x m matrix).
+#[allow(dead_code)] // not every bench target that includes this module uses it
+pub fn vertex_pattern(model: &fepr_core::model::Model) -> fepr_core::sparse::LowerPattern {
+    let m = model.num_vertices();
+    let mut cols = vec![Vec::new(); m];
+    for t in model.mesh.tets() {
+        for &a in t {
+            for &b in t {
+                if a > b {
+                    cols[b].push(a);
+                }
+            }
+        }
+    }
+    fepr_core::sparse::LowerPattern::from_columns(m, cols)
+}
