@@ -1,5 +1,7 @@
 //! A plain timing loop over the elastic energy + gradient (for `perf stat` / `perf record`):
 //! `cargo bench -p fepr-core --bench eg_loop -- CELLS THREADS REPEATS` (a CELLS^3 box, 6 tets per cell).
+//! `cargo bench -p fepr-core --bench eg_loop -- eg STEM THREADS REPEATS`: the same on a TetGen mesh
+//! `STEM.node`/`STEM.ele`.
 //! `cargo bench -p fepr-core --bench eg_loop -- small` times the small dense kernels instead (polar
 //! decomposition, 3x3 and 9x9 symmetric eigen-decompositions, PSD projection), one thread, ns per call.
 //! `cargo bench -p fepr-core --bench eg_loop -- newton STEM STEPS` runs backward Euler (no projection) on a
@@ -375,6 +377,20 @@ fn main() {
         );
         return;
     }
+    if raw.first().map(String::as_str) == Some("eg") {
+        let num =
+            |i: usize, default: usize| raw.get(i).and_then(|s| s.parse().ok()).unwrap_or(default);
+        let mesh = load_tetgen(std::path::Path::new(&raw[1])).expect("a TetGen mesh");
+        let model = ModelBuilder::new(
+            mesh,
+            Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
+        )
+        .mass(MassSpec::NodeMass(0.05))
+        .build()
+        .unwrap();
+        time_energy_gradient(&model, num(2, 1), num(3, 200));
+        return;
+    }
     let args: Vec<usize> = std::env::args()
         .skip(1)
         .filter_map(|a| a.parse().ok())
@@ -424,6 +440,11 @@ fn main() {
     .mass(MassSpec::NodeMass(0.05))
     .build()
     .unwrap();
+    time_energy_gradient(&model, threads, repeats);
+}
+
+/// Times the energy + gradient of `model` at a 5% stretch, inside a pool of `threads` threads (ns per tet).
+fn time_energy_gradient(model: &fepr_core::model::Model, threads: usize, repeats: usize) {
     let x: Vec<_> = model
         .mesh
         .vertices()
@@ -437,10 +458,10 @@ fn main() {
         .build()
         .unwrap();
     pool.install(|| {
-        elastic_energy_gradient(&model, &x, &mut ws, &mut grad);
+        elastic_energy_gradient(model, &x, &mut ws, &mut grad);
         let t0 = Instant::now();
         for _ in 0..repeats {
-            elastic_energy_gradient(&model, &x, &mut ws, &mut grad);
+            elastic_energy_gradient(model, &x, &mut ws, &mut grad);
         }
         let dt = t0.elapsed().as_secs_f64() / repeats as f64;
         println!(
