@@ -1,12 +1,11 @@
 //! Mesh-level elastic energy `E_el(x) = sum_e V_e Psi(F_e)` and its gradient, parallel over tets and
-//! deterministic: per-tet results go to a per-tet buffer, then each vertex gathers its slots in a fixed
-//! order (no floating-point atomics), and energies are summed over fixed chunks in chunk order. The
-//! result is bit-identical for any number of threads.
+//! deterministic: each fixed chunk of tets adds its corner gradients into its vertices in a fixed order
+//! (`corner_sums`: no per-tet buffer, no floating-point atomics), and energies are summed over the chunks
+//! in chunk order. The result is bit-identical for any number of threads.
 //!
 //! Per tet: `D_s = [x1-x0, x2-x0, x3-x0]`, `F = D_s D_m^-1`, gradient on vertices 1..3 = the columns of
 //! `V P(F) D_m^-T`, vertex 0 gets minus their sum (fepr-spec section 4).
 
-use rayon::prelude::*;
 use std::ops::Range;
 
 use crate::linalg::{det, matmul, transpose, Mat3, Vec3, COFACTOR_PAIRS};
@@ -44,25 +43,23 @@ impl ElasticSummary {
 }
 
 /// Scratch memory for energy and gradient evaluations (reused across calls, no allocation in the step loop):
-/// the gradients on the 4 corners of every tet, in blocks of [`BLOCK`] tets in the model's internal tet
-/// order (see [`GradBlock`]), and the positions in the model's internal vertex order.
+/// the chunks' gradient accumulators (`corner_sums`), and the positions in the model's internal vertex
+/// order.
 #[derive(Clone, Debug, Default)]
 pub struct ElasticWorkspace {
-    element_gradients: Vec<GradBlock>,
+    /// Per-chunk vertex sums of the corner gradients (`CornerSums::run`).
+    corner_acc: Vec<Vec3>,
     /// Per-chunk partial summaries, combined in chunk order.
     partials: Vec<ElasticSummary>,
     /// `x` in the kernels' vertex order (`Model::kernel_positions`).
     x_kernel: Vec<Vec3>,
-    /// The gradient in the kernels' vertex order (the gather's output before it is put in user order).
-    grad_kernel: Vec<Vec3>,
 }
 
 impl ElasticWorkspace {
     /// Bytes held by the workspace.
     pub fn bytes(&self) -> usize {
-        self.element_gradients.capacity() * std::mem::size_of::<GradBlock>()
-            + self.partials.capacity() * std::mem::size_of::<ElasticSummary>()
-            + (self.x_kernel.capacity() + self.grad_kernel.capacity()) * std::mem::size_of::<Vec3>()
+        self.partials.capacity() * std::mem::size_of::<ElasticSummary>()
+            + (self.corner_acc.capacity() + self.x_kernel.capacity()) * std::mem::size_of::<Vec3>()
     }
 }
 
@@ -71,49 +68,6 @@ impl ElasticWorkspace {
 pub const BLOCK: usize = 16;
 const _: () = assert!(TET_CHUNK.is_multiple_of(BLOCK) && BLOCK.is_multiple_of(8));
 pub(crate) type Block = [f64; BLOCK];
-
-/// The corner gradients of [`BLOCK`] tets, by corner: `[c][3 l + i]` is component `i` of corner `c` of the
-/// block's tet `l`. Each corner gradient is 24 contiguous bytes (one cache line at most twice, for the
-/// gather), and the kernel writes a corner as a 3-way interleave of its SIMD rows (vector permutes, not
-/// scalar stores).
-/// Cache-line aligned, so that the kernel's SIMD stores never straddle two lines.
-#[derive(Clone, Debug)]
-#[repr(C, align(64))]
-pub struct GradBlock([[f64; 3 * BLOCK]; 4]);
-
-impl GradBlock {
-    pub(crate) const ZERO: Self = Self([[0.0; 3 * BLOCK]; 4]);
-
-    /// Corner `c` of the tet at block position `e` from the block list (for tests; the gathers use
-    /// [`GradBlock::flat`]).
-    #[cfg(test)]
-    pub(crate) fn corner(blocks: &[Self], e: usize, c: usize) -> &[f64; 3] {
-        let l = 3 * (e % BLOCK);
-        blocks[e / BLOCK].0[c][l..l + 3]
-            .try_into()
-            .expect("three components")
-    }
-
-    /// The blocks as one flat array: corner `c` of the block's tet `l`, component `i`, at
-    /// `block * 12 BLOCK + c * 3 BLOCK + 3 l + i` (see [`GradBlock::flat_offset`]). The gathers read it with
-    /// one bounds check per corner.
-    #[inline(always)]
-    pub(crate) fn flat(blocks: &[Self]) -> &[f64] {
-        const VALUES: usize = 12 * BLOCK;
-        const _: () = assert!(std::mem::size_of::<GradBlock>() == VALUES * 8);
-        // SAFETY: GradBlock is repr(C) over [[f64; 3 BLOCK]; 4], 12 BLOCK f64 with no padding (size checked
-        // above), so `blocks` is `12 BLOCK * len` initialised, properly aligned f64 values.
-        unsafe { std::slice::from_raw_parts(blocks.as_ptr().cast::<f64>(), blocks.len() * VALUES) }
-    }
-
-    /// The offset in [`GradBlock::flat`] of corner `slot % 4` of the tet at block position `slot / 4` (an
-    /// incidence slot).
-    #[inline(always)]
-    pub(crate) fn flat_offset(slot: u32) -> usize {
-        let (e, c) = (slot as usize / 4, slot as usize % 4);
-        (e / BLOCK) * 12 * BLOCK + c * 3 * BLOCK + 3 * (e % BLOCK)
-    }
-}
 
 /// The rest data of [`BLOCK`] consecutive tets in structure-of-arrays form: the Neo-Hookean kernel reads
 /// it with SIMD loads instead of transposing `Model::rest` for every evaluation. Lanes past the last tet
@@ -127,9 +81,11 @@ pub struct TetBlock {
     pub(crate) dm: [[Block; 3]; 3],
     /// Rest volumes, m^3.
     pub(crate) vol: Block,
+    /// Local vertex index of every corner in its chunk's accumulator (`corner_sums`), by corner.
+    pub(crate) loc: [[u16; BLOCK]; 4],
 }
 
-/// [`TetBlock`]s of a whole mesh (96 bytes per tet), built once with the model, in the model's internal tet
+/// [`TetBlock`]s of a whole mesh (104 bytes per tet), built once with the model, in the model's internal tet
 /// order (`Model::tet_at`) with the internal vertex ranks as indices.
 #[derive(Clone, Debug, Default)]
 pub struct TetBlocks {
@@ -138,21 +94,31 @@ pub struct TetBlocks {
 
 impl TetBlocks {
     /// Blocks of `tets` with their rest data: position `p` holds tet `tet_at[p]`, with its vertices `v` as
-    /// `rank[v]`.
-    pub(crate) fn new(tets: &[[usize; 4]], rest: &RestShape, tet_at: &[u32], rank: &[u32]) -> Self {
+    /// `rank[v]` and its corners' local indices `local[p]`.
+    pub(crate) fn new(
+        tets: &[[usize; 4]],
+        rest: &RestShape,
+        tet_at: &[u32],
+        rank: &[u32],
+        local: &[[u16; 4]],
+    ) -> Self {
         assert_eq!(tet_at.len(), tets.len(), "one position per tet");
+        assert_eq!(local.len(), tets.len(), "local indices per position");
         let blocks = tet_at
             .chunks(BLOCK)
-            .map(|ts| {
+            .zip(local.chunks(BLOCK))
+            .map(|(ts, locs)| {
                 let mut tb = TetBlock {
                     idx: [[0; BLOCK]; 4],
                     dm: [[[0.0; BLOCK]; 3]; 3],
                     vol: [0.0; BLOCK],
+                    loc: [[0; BLOCK]; 4],
                 };
-                for (l, &e) in ts.iter().enumerate() {
+                for (l, (&e, lc)) in ts.iter().zip(locs).enumerate() {
                     let (e, t) = (e as usize, &tets[e as usize]);
                     for c in 0..4 {
                         tb.idx[c][l] = rank[t[c]];
+                        tb.loc[c][l] = lc[c];
                     }
                     for i in 0..3 {
                         for j in 0..3 {
@@ -285,64 +251,61 @@ fn energy_impl<M: Hyperelastic + Sync>(mat: &M, model: &Model, x: &[Vec3]) -> El
 
 /// Elastic energy and its gradient `dE_el/dx` (written to `grad`, shape (m, 3), J/m).
 ///
-/// Two passes: a per-tet pass over fixed chunks of the blocks (energy density, stress, the corner gradients
-/// into the workspace) and a per-vertex gather in the fixed incidence order (ascending block position). Both
-/// are parallel; neither depends on the thread count, so the result is bit-identical for any thread count.
+/// One parallel pass over fixed chunks of the blocks (energy density, stress, corner gradients added into
+/// the chunk's vertices in ascending block position), then the vertices on the chunks' borders are summed
+/// in chunk order (`corner_sums`). Neither order depends on the thread count, so the result is
+/// bit-identical for any thread count.
 pub fn elastic_energy_gradient(
     model: &Model,
     x: &[Vec3],
     ws: &mut ElasticWorkspace,
     grad: &mut [Vec3],
 ) -> ElasticSummary {
-    let k = model.num_tets();
-    if ws.element_gradients.len() != k.div_ceil(BLOCK) {
-        ws.element_gradients
-            .resize(k.div_ceil(BLOCK), GradBlock::ZERO);
-    }
-    let (out, parts, xk) = (
-        &mut ws.element_gradients,
-        &mut ws.partials,
-        &mut ws.x_kernel,
-    );
-    let summary = match &model.material {
+    let sink = GradientSink {
+        acc: &mut ws.corner_acc,
+        parts: &mut ws.partials,
+        grad,
+    };
+    let xk = &mut ws.x_kernel;
+    match &model.material {
         Material::NeoHookean(nh) => {
             model.kernel_positions(x, xk);
-            neo_hookean_pass(nh, model, xk, out, parts)
+            neo_hookean_pass(Lanes::detect(), nh, model, xk, sink)
         }
         Material::Arap(arap) => {
             model.kernel_positions(x, xk);
-            crate::rotation_blocks::arap_gradient_pass(arap, model, xk, out, parts)
+            crate::rotation_blocks::arap_gradient_pass(arap, model, xk, sink)
         }
-        _ => with_material!(model, mat => element_pass(mat, model, x, out, parts)),
-    };
-    gather(model, &ws.element_gradients, &mut ws.grad_kernel, grad);
-    summary
+        _ => with_material!(model, mat => element_pass(mat, model, x, sink)),
+    }
+}
+
+/// Where a gradient pass puts its results: the chunks' accumulators and summaries (scratch) and the
+/// gradient (user order, shape (m, 3)).
+pub(crate) struct GradientSink<'a> {
+    pub(crate) acc: &'a mut Vec<Vec3>,
+    pub(crate) parts: &'a mut Vec<ElasticSummary>,
+    pub(crate) grad: &'a mut [Vec3],
 }
 
 /// Blocks per chunk of [`TET_CHUNK`] tets.
 pub(crate) const CHUNK_BLOCKS: usize = TET_CHUNK / BLOCK;
 
-/// Partial summaries of fixed chunks of [`TET_CHUNK`] tets, written in place (no allocation once `parts`
-/// has grown), then combined in chunk order. `chunk_fn(c, blocks, len)` gets chunk `c`'s output blocks and
-/// its number of tets.
-pub(crate) fn chunked_pass<F>(
-    num_tets: usize,
-    out: &mut [GradBlock],
-    parts: &mut Vec<ElasticSummary>,
-    chunk_fn: F,
-) -> ElasticSummary
+/// A gradient pass over fixed chunks of [`TET_CHUNK`] tets: `chunk_fn(c, acc, len)` adds chunk `c`'s
+/// corner gradients into its accumulator `acc` (local vertex indices: [`TetBlock::loc`]) and returns its
+/// summary; the gradient goes to `sink.grad` (`CornerSums::run`), and the summaries, written in place (no
+/// allocation once `parts` has grown), are combined in chunk order.
+pub(crate) fn chunked_pass<F>(model: &Model, sink: GradientSink, chunk_fn: F) -> ElasticSummary
 where
-    F: Fn(usize, &mut [GradBlock], usize) -> ElasticSummary + Sync,
+    F: Fn(usize, &mut [Vec3], usize) -> ElasticSummary + Sync,
 {
+    let num_tets = model.num_tets();
+    let parts = sink.parts;
     parts.clear();
     parts.resize(num_tets.div_ceil(TET_CHUNK), ElasticSummary::zero());
-    out.par_chunks_mut(CHUNK_BLOCKS)
-        .zip(parts.par_iter_mut())
-        .enumerate()
-        .for_each(|(c, (chunk, part))| {
-            let len = (num_tets - c * TET_CHUNK).min(TET_CHUNK);
-            *part = chunk_fn(c, chunk, len)
-        });
+    model.corner_sums.run(sink.acc, parts, sink.grad, |c, acc| {
+        chunk_fn(c, acc, (num_tets - c * TET_CHUNK).min(TET_CHUNK))
+    });
     parts.iter().fold(ElasticSummary::zero(), |a, b| {
         ElasticSummary::combine(a, *b)
     })
@@ -352,12 +315,11 @@ fn element_pass<M: Hyperelastic + Sync>(
     mat: &M,
     model: &Model,
     x: &[Vec3],
-    out: &mut [GradBlock],
-    parts: &mut Vec<ElasticSummary>,
+    sink: GradientSink,
 ) -> ElasticSummary {
-    // Tets in block order (position p holds tet tet_at[p]), so that the corners land where the gather reads.
+    // Tets in block order (position p holds tet tet_at[p]): the chunks and local indices of `corner_sums`.
     let (tets, volume, tet_at) = (model.mesh.tets(), &model.rest_volume, &model.tet_at);
-    chunked_pass(model.num_tets(), out, parts, |c, chunk, len| {
+    chunked_pass(model, sink, |c, acc, len| {
         let first = c * TET_CHUNK;
         let mut s = ElasticSummary::zero();
         let (mut f, mut psi, mut p) =
@@ -377,14 +339,15 @@ fn element_pass<M: Hyperelastic + Sync>(
                 }
             }
             for l in 0..n {
-                let (k, pos) = (k0 + l, first + k0 + l);
+                let pos = first + k0 + l;
                 let (vol, j) = (volume[tet_at[pos] as usize], det(&f[l]));
                 s.energy += vol * psi[l];
                 s.min_j = s.min_j.min(j);
                 s.inverted += (j <= 0.0) as usize;
                 // H = V P D_m^-T; its columns are the gradients on vertices 1..3.
                 let h = matmul(&p[l], &transpose(&model.tet_blocks.dm_inv_at(pos)));
-                write_corners(&h, vol, &mut chunk[k / BLOCK], k % BLOCK);
+                let loc = &model.tet_blocks.blocks[pos / BLOCK].loc;
+                add_corners(&h, vol, [0, 1, 2, 3].map(|c| loc[c][pos % BLOCK]), acc);
             }
         }
         s
@@ -396,16 +359,16 @@ fn element_pass<M: Hyperelastic + Sync>(
 /// bit-for-bit the scalar result (gated by a test); only the scheduling differs. `xk`: positions in the
 /// kernels' vertex order (`Model::kernel_positions`).
 fn neo_hookean_pass(
+    lanes: Lanes,
     nh: &NeoHookean,
     model: &Model,
     xk: &[Vec3],
-    out: &mut [GradBlock],
-    parts: &mut Vec<ElasticSummary>,
+    sink: GradientSink,
 ) -> ElasticSummary {
-    let (blocks, lanes) = (&model.tet_blocks, Lanes::detect());
-    chunked_pass(model.num_tets(), out, parts, |c, chunk, len| {
+    let blocks = &model.tet_blocks;
+    chunked_pass(model, sink, |c, acc, len| {
         let first = c * CHUNK_BLOCKS;
-        lanes.run::<true>(nh, blocks, first..first + chunk.len(), xk, chunk, len)
+        lanes.run::<true>(nh, blocks, first..first + len.div_ceil(BLOCK), xk, acc, len)
     })
 }
 
@@ -439,19 +402,19 @@ impl Lanes {
         blocks: &TetBlocks,
         range: Range<usize>,
         x: &[Vec3],
-        out: &mut [GradBlock],
+        acc: &mut [Vec3],
         len: usize,
     ) -> ElasticSummary {
         #[cfg(target_arch = "x86_64")]
         match self {
             // SAFETY: detect() found the feature; the functions are otherwise safe.
             Lanes::Avx512 => {
-                return unsafe { blocks_avx512::<GRAD>(nh, blocks, range, x, out, len) }
+                return unsafe { blocks_avx512::<GRAD>(nh, blocks, range, x, acc, len) }
             }
-            Lanes::Avx2 => return unsafe { blocks_avx2::<GRAD>(nh, blocks, range, x, out, len) },
+            Lanes::Avx2 => return unsafe { blocks_avx2::<GRAD>(nh, blocks, range, x, acc, len) },
             Lanes::Plain => {}
         }
-        neo_hookean_blocks::<GRAD>(nh, blocks, range, x, out, len)
+        neo_hookean_blocks::<GRAD>(nh, blocks, range, x, acc, len)
     }
 }
 
@@ -463,10 +426,10 @@ unsafe fn blocks_avx512<const GRAD: bool>(
     blocks: &TetBlocks,
     range: Range<usize>,
     x: &[Vec3],
-    out: &mut [GradBlock],
+    acc: &mut [Vec3],
     len: usize,
 ) -> ElasticSummary {
-    neo_hookean_blocks::<GRAD>(nh, blocks, range, x, out, len)
+    neo_hookean_blocks::<GRAD>(nh, blocks, range, x, acc, len)
 }
 
 /// [`neo_hookean_blocks`] compiled for AVX2 (4 f64 lanes; no FMA, so the results are the same bits).
@@ -477,31 +440,29 @@ unsafe fn blocks_avx2<const GRAD: bool>(
     blocks: &TetBlocks,
     range: Range<usize>,
     x: &[Vec3],
-    out: &mut [GradBlock],
+    acc: &mut [Vec3],
     len: usize,
 ) -> ElasticSummary {
-    neo_hookean_blocks::<GRAD>(nh, blocks, range, x, out, len)
+    neo_hookean_blocks::<GRAD>(nh, blocks, range, x, acc, len)
 }
 
 /// Consecutive blocks holding `len` tets (the last block may be partial). With `GRAD` the corner gradients
-/// go to `out` (one [`GradBlock`] per block); without, only the summary is computed.
+/// are added into `acc` (their chunk's accumulator); without, only the summary is computed.
 #[inline(always)]
 fn neo_hookean_blocks<const GRAD: bool>(
     nh: &NeoHookean,
     blocks: &TetBlocks,
     range: Range<usize>,
     x: &[Vec3],
-    out: &mut [GradBlock],
+    acc: &mut [Vec3],
     len: usize,
 ) -> ElasticSummary {
     let ln_j0 = ln(nh.j0);
     let mut s = ElasticSummary::zero();
-    let mut scratch = GradBlock::ZERO;
     let mut w = BlockScratch::new();
     for (b, tb) in blocks.blocks[range].iter().enumerate() {
-        let o = if GRAD { &mut out[b] } else { &mut scratch };
         let valid = (len - b * BLOCK).min(BLOCK);
-        neo_hookean_block::<GRAD>(nh, ln_j0, tb, x, o, valid, &mut s, &mut w);
+        neo_hookean_block::<GRAD>(nh, ln_j0, tb, x, acc, valid, &mut s, &mut w);
     }
     s
 }
@@ -554,7 +515,7 @@ fn neo_hookean_block<const GRAD: bool>(
     ln_j0: f64,
     tb: &TetBlock,
     x: &[Vec3],
-    out: &mut GradBlock,
+    acc: &mut [Vec3],
     valid: usize,
     s: &mut ElasticSummary,
     w: &mut BlockScratch,
@@ -629,7 +590,8 @@ fn neo_hookean_block<const GRAD: bool>(
             }
         }
     }
-    block_corners(p, vol, &tb.dm, h, h0, out);
+    block_corner_rows(p, vol, &tb.dm, h, h0);
+    add_corner_rows(h, h0, &tb.loc, valid, acc);
 }
 
 /// `F = D_s D_m^-1` of the tets of a block in lanes, with `D_s[i][c] = x_{c+1}[i] - x_0[i]` (as
@@ -664,24 +626,6 @@ pub(crate) fn block_deformation_gradients(
     }
 }
 
-/// The corner values of a block from a per-tet matrix `p` (a stress, or a PD rotation), written to `out`
-/// (see [`block_corner_rows`]).
-#[inline(always)]
-pub(crate) fn block_corners(
-    p: &[[Block; 3]; 3],
-    scale: &Block,
-    dm: &[[Block; 3]; 3],
-    h: &mut [[Block; 3]; 3],
-    h0: &mut [Block; 3],
-    out: &mut GradBlock,
-) {
-    block_corner_rows(p, scale, dm, h, h0);
-    interleave(h0, &mut out.0[0]);
-    for a in 0..3 {
-        interleave(&h[a], &mut out.0[a + 1]);
-    }
-}
-
 /// The corner values of a block from a per-tet matrix `p`, by component: corner `a + 1`, component `b` of
 /// lane `l` at `h[a][b][l]` (the columns of `scale P D_m^-T`: `scale * sum_k p[b][k] dm_inv[a][k]`, as
 /// `write_corners(matmul(p, transpose(dm_inv)), scale)`), corner 0 at `h0[b][l]`, minus their sum in that
@@ -711,12 +655,26 @@ pub(crate) fn block_corner_rows(
     }
 }
 
-/// `out[3 l + i] = rows[i][l]`: one corner of a block from its three component rows.
+/// Adds the corner values of a block's first `valid` tets (`h`, `h0` as from [`block_corner_rows`]) into
+/// their chunk's accumulator at the corners' local indices `loc`, tet after tet (ascending block position).
 #[inline(always)]
-fn interleave(rows: &[Block; 3], out: &mut [f64; 3 * BLOCK]) {
-    for l in 0..BLOCK {
+pub(crate) fn add_corner_rows(
+    h: &[[Block; 3]; 3],
+    h0: &[Block; 3],
+    loc: &[[u16; BLOCK]; 4],
+    valid: usize,
+    acc: &mut [Vec3],
+) {
+    for l in 0..valid {
+        let a = &mut acc[loc[0][l] as usize];
         for i in 0..3 {
-            out[3 * l + i] = rows[i][l];
+            a[i] += h0[i][l];
+        }
+        for c in 0..3 {
+            let a = &mut acc[loc[c + 1][l] as usize];
+            for i in 0..3 {
+                a[i] += h[c][i][l];
+            }
         }
     }
 }
@@ -740,57 +698,26 @@ fn extended_log_fixup(j0: f64, ln_j0: f64, jd: &Block, lg: &mut Block, dl: &mut 
     }
 }
 
-/// Corner gradients from `H = P D_m^-T` into lane `l` of a block: corners 1..3 are the columns of `V H`,
-/// corner 0 minus their sum.
+/// Corner gradients from `H = P D_m^-T` of one tet added into its chunk's accumulator at the corners'
+/// local indices `loc`: corners 1..3 are the columns of `V H`, corner 0 minus their sum (the values of
+/// [`block_corner_rows`], bit for bit).
 #[inline(always)]
-fn write_corners(h: &Mat3, vol: f64, out: &mut GradBlock, l: usize) {
+fn add_corners(h: &Mat3, vol: f64, loc: [u16; 4], acc: &mut [Vec3]) {
+    let mut corners = [[0.0; 3]; 4];
     for a in 0..3 {
         for b in 0..3 {
-            out.0[a + 1][3 * l + b] = vol * h[b][a];
+            corners[a + 1][b] = vol * h[b][a];
         }
     }
     for b in 0..3 {
-        out.0[0][3 * l + b] = 0.0 - out.0[1][3 * l + b] - out.0[2][3 * l + b] - out.0[3][3 * l + b];
+        corners[0][b] = 0.0 - corners[1][b] - corners[2][b] - corners[3][b];
     }
-}
-
-/// Vertices per parallel task in the gather.
-const VERTEX_CHUNK: usize = 512;
-
-/// Sum per-tet corner values (in block order) into user vertices, in the fixed incidence order (ascending
-/// block position).
-/// The vertices are summed in the kernels' vertex order (their incident tets are then close in the blocks)
-/// into `gk`, then copied to `out` in user order.
-fn gather(model: &Model, element_values: &[GradBlock], gk: &mut Vec<Vec3>, out: &mut [Vec3]) {
-    let offsets = &model.incidence_offsets;
-    let slots = &model.incidence_slots;
-    let flat = GradBlock::flat(element_values);
-    gk.resize(out.len(), [0.0; 3]);
-    gk.par_chunks_mut(VERTEX_CHUNK)
-        .enumerate()
-        .for_each(|(c, chunk)| {
-            let first = c * VERTEX_CHUNK;
-            for (i, g) in chunk.iter_mut().enumerate() {
-                let r = first + i;
-                let mut acc = [0.0; 3];
-                for &slot in &slots[offsets[r]..offsets[r + 1]] {
-                    let o = GradBlock::flat_offset(slot);
-                    let val = &flat[o..o + 3];
-                    acc[0] += val[0];
-                    acc[1] += val[1];
-                    acc[2] += val[2];
-                }
-                *g = acc;
-            }
-        });
-    let rank = &model.kernel_rank;
-    out.par_chunks_mut(VERTEX_CHUNK)
-        .zip(rank.par_chunks(VERTEX_CHUNK))
-        .for_each(|(o, rs)| {
-            for (g, &r) in o.iter_mut().zip(rs) {
-                *g = gk[r as usize];
-            }
-        });
+    for (c, value) in corners.iter().enumerate() {
+        let a = &mut acc[loc[c] as usize];
+        for i in 0..3 {
+            a[i] += value[i];
+        }
+    }
 }
 
 #[cfg(test)]
@@ -974,15 +901,18 @@ pub(crate) mod tests {
             let x = squashed(&model, seed);
             let k = model.num_tets();
             let xk = kernel_x(&model, &x);
-            let mut a = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];
-            let mut b = a.clone();
-            let sa = neo_hookean_pass(&mat, &model, &xk, &mut a, &mut Vec::new());
-            let sb = element_pass(&mat, &model, &x, &mut b, &mut Vec::new());
-            assert!(sa.inverted > 0 && sa.min_j < mat.j0, "{sa:?}");
+            let (sa, a) = gradient_bits(&model, |sink| {
+                neo_hookean_pass(Lanes::detect(), &mat, &model, &xk, sink)
+            });
+            let (sb, b) = gradient_bits(&model, |sink| element_pass(&mat, &model, &x, sink));
+            assert!(
+                !k.is_multiple_of(BLOCK) && sa.inverted > 0 && sa.min_j < mat.j0,
+                "{sa:?}"
+            );
             assert_eq!(sa.energy.to_bits(), sb.energy.to_bits());
             assert_eq!(sa.min_j.to_bits(), sb.min_j.to_bits());
             assert_eq!(sa.inverted, sb.inverted);
-            assert_eq!(corner_bits(&a, k), corner_bits(&b, k));
+            assert_eq!(a, b);
             let ea = neo_hookean_energy(&mat, &model, &xk);
             let eb = energy_impl(&mat, &model, &x);
             assert_eq!(ea.energy.to_bits(), eb.energy.to_bits());
@@ -1002,25 +932,18 @@ pub(crate) mod tests {
         let model = grid_model(3, Material::Arap(arap));
         for seed in [1, 5, 9] {
             let x = squashed(&model, seed);
-            let k = model.num_tets();
             let xk = kernel_x(&model, &x);
-            let mut a = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];
-            let mut b = a.clone();
-            let sa = crate::rotation_blocks::arap_gradient_pass(
-                &arap,
-                &model,
-                &xk,
-                &mut a,
-                &mut Vec::new(),
-            );
-            let sb = element_pass(&arap, &model, &x, &mut b, &mut Vec::new());
+            let (sa, a) = gradient_bits(&model, |sink| {
+                crate::rotation_blocks::arap_gradient_pass(&arap, &model, &xk, sink)
+            });
+            let (sb, b) = gradient_bits(&model, |sink| element_pass(&arap, &model, &x, sink));
             assert!(sa.inverted > 0, "{sa:?}");
             assert_eq!(sa.energy.to_bits(), sb.energy.to_bits());
             assert_eq!(
                 (sa.min_j.to_bits(), sa.inverted),
                 (sb.min_j.to_bits(), sb.inverted)
             );
-            assert_eq!(corner_bits(&a, k), corner_bits(&b, k));
+            assert_eq!(a, b);
             let ea = crate::rotation_blocks::arap_energy(&arap, &model, &xk);
             let eb = energy_impl(&arap, &model, &x);
             assert_eq!(ea.energy.to_bits(), eb.energy.to_bits());
@@ -1038,12 +961,19 @@ pub(crate) mod tests {
         xk
     }
 
-    /// The corner gradients of the first `k` tets (the padding lanes of the last block are not results).
-    fn corner_bits(out: &[GradBlock], k: usize) -> Vec<u64> {
-        (0..k)
-            .flat_map(|e| (0..4).flat_map(move |c| (0..3).map(move |i| (e, c, i))))
-            .map(|(e, c, i)| GradBlock::corner(out, e, c)[i].to_bits())
-            .collect()
+    /// The summary and the gradient's bits from a gradient pass.
+    fn gradient_bits(
+        model: &Model,
+        pass: impl FnOnce(GradientSink) -> ElasticSummary,
+    ) -> (ElasticSummary, Vec<u64>) {
+        let mut grad = vec![[f64::NAN; 3]; model.num_vertices()];
+        let (mut acc, mut parts) = (Vec::new(), Vec::new());
+        let s = pass(GradientSink {
+            acc: &mut acc,
+            parts: &mut parts,
+            grad: &mut grad,
+        });
+        (s, grad.iter().flatten().map(|g| g.to_bits()).collect())
     }
 
     #[test]
@@ -1060,9 +990,12 @@ pub(crate) mod tests {
             let k = model.num_tets();
             let x = kernel_x(&model, &x);
             let (blocks, all) = (&model.tet_blocks, 0..k.div_ceil(BLOCK));
-            let reference = Lanes::Plain;
-            let mut want = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];
-            let sw = reference.run::<true>(&mat, blocks, all.clone(), &x, &mut want, k);
+            let pass = |lanes| {
+                gradient_bits(&model, |sink| {
+                    neo_hookean_pass(lanes, &mat, &model, &x, sink)
+                })
+            };
+            let (sw, want) = pass(Lanes::Plain);
             assert!(sw.inverted > 0);
             let mut widths = vec![Lanes::Plain];
             #[cfg(target_arch = "x86_64")]
@@ -1075,10 +1008,9 @@ pub(crate) mod tests {
                 }
             }
             for lanes in widths {
-                let mut got = vec![GradBlock::ZERO; k.div_ceil(BLOCK)];
-                let sg = lanes.run::<true>(&mat, blocks, all.clone(), &x, &mut got, k);
+                let (sg, got) = pass(lanes);
                 let se = lanes.run::<false>(&mat, blocks, all.clone(), &x, &mut [], k);
-                assert_eq!(corner_bits(&got, k), corner_bits(&want, k), "{lanes:?}");
+                assert_eq!(got, want, "{lanes:?}");
                 for t in [sg, se] {
                     assert_eq!(t.energy.to_bits(), sw.energy.to_bits(), "{lanes:?}");
                     assert_eq!(

@@ -25,6 +25,7 @@
 #![allow(clippy::needless_range_loop)]
 
 pub mod batch_polar;
+pub(crate) mod corner_sums;
 pub mod elasticity;
 pub mod error;
 pub mod hessian;

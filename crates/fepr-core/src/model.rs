@@ -1,6 +1,7 @@
 //! `Model`: everything that does not change during a run (rest mesh, rest shape, masses, material, pins,
 //! gravity, damping). Integrators and the projection read it and mutate only a `State`.
 
+use crate::corner_sums::CornerSums;
 use crate::elasticity::TetBlocks;
 use crate::error::{invalid, Result};
 use crate::linalg::Vec3;
@@ -43,9 +44,11 @@ pub struct Model {
     pub(crate) tet_at: Vec<u32>,
     /// User tet -> position in the blocks (the inverse of `tet_at`).
     pub(crate) tet_position: Vec<u32>,
-    /// Rest data in SIMD-friendly blocks for the Neo-Hookean kernel (96 bytes per tet), in the internal tet
+    /// Rest data in SIMD-friendly blocks for the per-tet kernels (104 bytes per tet), in the internal tet
     /// order with vertex ranks as indices; the only copy of `D_m^-1`.
     pub(crate) tet_blocks: TetBlocks,
+    /// How the gradient passes' chunks sum their corners into vertices (the blocks hold the local indices).
+    pub(crate) corner_sums: CornerSums,
 }
 
 impl Model {
@@ -171,7 +174,9 @@ impl ModelBuilder {
         let length_scale = self.mesh.half_diagonal();
         let order = KernelOrder::new(&self.mesh);
         let (incidence_offsets, incidence_slots) = order.incidence(&self.mesh);
-        let tet_blocks = TetBlocks::new(self.mesh.tets(), &rest, &order.tet_at, &order.rank);
+        let (corner_sums, local) = CornerSums::new(self.mesh.tets(), &order.tet_at, m);
+        let tet_blocks =
+            TetBlocks::new(self.mesh.tets(), &rest, &order.tet_at, &order.rank, &local);
         // D_m^-1 is kept in the blocks only (72 bytes per tet not held twice).
         let RestShape { volume, .. } = rest;
         Ok(Model {
@@ -191,6 +196,7 @@ impl ModelBuilder {
             tet_at: order.tet_at,
             tet_position: order.tet_position,
             tet_blocks,
+            corner_sums,
         })
     }
 }

@@ -12,8 +12,8 @@ use std::ops::Range;
 
 use crate::batch_polar::{polar_lanes, Lanes, EXACT, LANES, PD_LOCAL};
 use crate::elasticity::{
-    block_corner_rows, block_corners, block_deformation_gradients, chunked_pass, Block,
-    ElasticSummary, GradBlock, TetBlock, TetBlocks, BLOCK, CHUNK_BLOCKS,
+    add_corner_rows, block_corner_rows, block_deformation_gradients, chunked_pass, Block,
+    ElasticSummary, GradientSink, TetBlock, TetBlocks, BLOCK, CHUNK_BLOCKS,
 };
 use crate::linalg::Vec3;
 use crate::material::Arap;
@@ -26,30 +26,29 @@ const _: () = assert!(BLOCK.is_multiple_of(LANES));
 enum Sink<'a> {
     /// The ARAP energy summary alone.
     Energy,
-    /// The ARAP energy summary and the corner gradients `V 2 mu (F - R) D_m^-T`, one [`GradBlock`] per
-    /// block (the layout of the elastic gradient's gather).
-    Gradient(&'a mut [GradBlock]),
+    /// The ARAP energy summary and the corner gradients `V 2 mu (F - R) D_m^-T`, added into the chunk's
+    /// accumulator (`corner_sums`).
+    Gradient(&'a mut [Vec3]),
     /// The PD corner terms `2 mu V R D_m^-T`, per tet in block order (no summary). Per tet and not per block: the PD
     /// right-hand side gathers them 10 times per step, and a vertex's incident tets, close in index, then
     /// share cache lines whichever corner the vertex is (measured 1.9x faster than from blocks).
     PdTerms(&'a mut [[Vec3; 4]]),
 }
 
-/// ARAP energy and corner gradients of every tet (`out`: one [`GradBlock`] per block), summed per chunk of
-/// [`TET_CHUNK`] tets in chunk order; as `elasticity`'s per-tet pass for any material, bit for bit. `xk`:
-/// positions in the kernels' vertex order (`Model::kernel_positions`), as for every pass here.
+/// ARAP energy and gradient (to `sink`), summed per chunk of [`TET_CHUNK`] tets in chunk order; as
+/// `elasticity`'s per-tet pass for any material, bit for bit. `xk`: positions in the kernels' vertex order
+/// (`Model::kernel_positions`), as for every pass here.
 pub(crate) fn arap_gradient_pass(
     arap: &Arap,
     model: &Model,
     xk: &[Vec3],
-    out: &mut [GradBlock],
-    parts: &mut Vec<ElasticSummary>,
+    sink: GradientSink,
 ) -> ElasticSummary {
     let blocks = &model.tet_blocks;
-    chunked_pass(model.num_tets(), out, parts, |c, chunk, len| {
+    chunked_pass(model, sink, |c, acc, len| {
         let first = c * CHUNK_BLOCKS;
-        let range = first..first + chunk.len();
-        run(arap.mu, blocks, range, xk, Sink::Gradient(chunk), len)
+        let range = first..first + len.div_ceil(BLOCK);
+        run(arap.mu, blocks, range, xk, Sink::Gradient(acc), len)
     })
 }
 
@@ -178,9 +177,10 @@ fn rotation_blocks(
                 }
             }
             Sink::Energy => arap_block(mu, tb, &mut w, valid, &mut s),
-            Sink::Gradient(grads) => {
+            Sink::Gradient(acc) => {
                 arap_block(mu, tb, &mut w, valid, &mut s);
-                block_corners(&w.p, &tb.vol, &tb.dm, &mut w.h, &mut w.h0, &mut grads[b]);
+                block_corner_rows(&w.p, &tb.vol, &tb.dm, &mut w.h, &mut w.h0);
+                add_corner_rows(&w.h, &w.h0, &tb.loc, valid, acc);
             }
         }
     }
