@@ -1,21 +1,24 @@
 """Type stubs of the compiled extension ``fepr._core`` (thin bindings of the Rust crate fepr-core).
 
-The public API is in :mod:`fepr`; these functions are its building blocks.
+The public API is in :mod:`fepr`; these functions are its building blocks. SI units throughout. Every class,
+method and argument of ``crates/fepr-python/src/lib.rs`` is declared here; ``tests/test_core_stub.py`` checks
+the names, kinds and argument lists against the compiled module.
 """
 
-from typing import Dict, List, Optional, Tuple
+from typing import List, Optional, Sequence, Tuple, TypedDict
 
 import numpy as np
 import numpy.typing as npt
 
 __version__: str
+#: Names of the base integrators, as used in scene files and by ``Simulation(integrator=...)``.
 INTEGRATORS: List[str]
 
 def validate_mesh(
     vertices: npt.NDArray[np.float64], tets: npt.NDArray[np.int64]
 ) -> Tuple[npt.NDArray[np.int64], int, int]:
-    """Validate a mesh; returns (positively oriented tets (k, 4), number flipped, number unreferenced).
-    Raises ValueError naming the tet or vertex."""
+    """Validate a mesh (vertices (m, 3) m, tets (k, 4)); returns (positively oriented tets (k, 4) int64,
+    number flipped, number of unreferenced vertices). Raises ValueError naming the tet or vertex."""
 
 def material_eval(
     model: str,
@@ -25,9 +28,36 @@ def material_eval(
     f: npt.NDArray[np.float64],
     derivative: bool = True,
 ) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], Optional[npt.NDArray[np.float64]]]:
-    """Energy densities (n,), first Piola stresses (n, 3, 3) and stress derivatives (n, 9, 9) at F (n, 3, 3)."""
+    """Evaluate material ``model`` ("neo_hookean", "stable_neo_hookean", "arap", "constraint_neo_hookean";
+    Young's modulus in Pa) at deformation gradients ``f`` (n, 3, 3): energy densities (n,) J/m^3, first Piola
+    stresses (n, 3, 3) Pa and, if ``derivative``, stress derivatives (n, 9, 9) Pa (row-major flattening of F),
+    else None. ``j0`` is used by "neo_hookean" only."""
+
+class _ProjectionReportDict(TypedDict):
+    """What ``Simulation.last_projection()`` returns (the fields of ``fepr.ProjectionReport``)."""
+
+    iterations: int
+    converged: bool
+    residual: float
+    initial_residual: float
+    correction: float
+    s: float
+    t: float
+    fallback: bool
+    bound_hit: bool
+    least_squares_solves: int
+    halvings: int
+    active_rows: int
+    base_energy: float
+    warm_start: bool
+    stiffness_metric: bool
+    restarts: int
+    frozen_vertices: int
 
 class Simulation:
+    """The simulation: model, state, integrator and projection (see ``fepr.Simulation`` for the documented
+    API)."""
+
     def __init__(
         self,
         vertices: npt.NDArray[np.float64],
@@ -51,7 +81,7 @@ class Simulation:
         max_halvings: int,
         impact_bound: Optional[float],
         gravity: Tuple[float, float, float],
-        pinned: List[int],
+        pinned: Sequence[int],
         damping: float,
         threads: Optional[int],
         slack: str = "auto",
@@ -62,35 +92,106 @@ class Simulation:
         metric: str = "auto",
         xpbd_substeps: int = 20,
         xpbd_iterations: int = 1,
-    ) -> None: ...
-    def step(self, n: int) -> int: ...
-    positions: npt.NDArray[np.float64]
-    velocities: npt.NDArray[np.float64]
+    ) -> None:
+        """``mass_kind``: "density" (``mass_value`` kg/m^3) or "node_mass" (``mass_value`` kg per vertex, or
+        ``node_masses`` (m,) kg). ``warm_start_threshold`` defaults to infinity (no warm start)."""
+
+    def step(self, n: int) -> int:
+        """Take ``n`` steps with the GIL released; returns the number taken. Raises RuntimeError (naming the
+        step) on a runaway to a non-finite state."""
+
     @property
-    def time(self) -> float: ...
+    def positions(self) -> npt.NDArray[np.float64]:
+        """Positions (m, 3), m (a copy)."""
+
+    @positions.setter
+    def positions(self, x: npt.NDArray[np.float64]) -> None:
+        """Set the positions (m, 3), m, finite; re-measures the running references."""
+
+    @property
+    def velocities(self) -> npt.NDArray[np.float64]:
+        """Velocities (m, 3), m/s (a copy)."""
+
+    @velocities.setter
+    def velocities(self, v: npt.NDArray[np.float64]) -> None:
+        """Set the velocities (m, 3), m/s, finite (pinned rows are set to zero); re-measures the references."""
+
+    @property
+    def time(self) -> float:
+        """Simulated time, s."""
+
     @property
     def num_steps(self) -> int: ...
     @property
-    def dt(self) -> float: ...
+    def dt(self) -> float:
+        """Time step, s."""
+
     @property
     def integrator(self) -> str: ...
     @property
-    def masses(self) -> npt.NDArray[np.float64]: ...
+    def masses(self) -> npt.NDArray[np.float64]:
+        """Lumped vertex masses (m,), kg."""
+
     @property
-    def total_mass(self) -> float: ...
+    def total_mass(self) -> float:
+        """kg."""
+
     @property
-    def length_scale(self) -> float: ...
+    def length_scale(self) -> float:
+        """Half diagonal of the rest bounding box, m."""
+
     @property
-    def rest_positions(self) -> npt.NDArray[np.float64]: ...
+    def rest_positions(self) -> npt.NDArray[np.float64]:
+        """Rest positions (m, 3), m."""
+
     @property
-    def pinned(self) -> npt.NDArray[np.bool_]: ...
-    def measure(self) -> Tuple[float, float, float, float, float, int]: ...
+    def pinned(self) -> npt.NDArray[np.bool_]:
+        """Pinned-vertex mask (m,)."""
+
+    def measure(self) -> Tuple[float, float, float, float, float, int]:
+        """(kinetic, elastic, gravitational, total energy (J), smallest det F, number of inverted tets) of the
+        current state."""
+
     def momenta(
         self,
-    ) -> Tuple[Tuple[float, float, float], Tuple[float, float, float], Tuple[float, float, float]]: ...
-    def elastic_energy_gradient(self, x: npt.NDArray[np.float64]) -> Tuple[float, npt.NDArray[np.float64]]: ...
-    def bench_energy_gradient(self, repeats: int, threads: int) -> Tuple[float, int, int]: ...
-    def last_projection(self) -> Optional[Dict[str, object]]: ...
+    ) -> Tuple[Tuple[float, float, float], Tuple[float, float, float], Tuple[float, float, float]]:
+        """(P kg m/s, L about the centre of mass kg m^2/s, centre of mass m)."""
+
+    def elastic_energy_gradient(self, x: npt.NDArray[np.float64]) -> Tuple[float, npt.NDArray[np.float64]]:
+        """Elastic energy (J) and its gradient (m, 3) J/m at positions ``x`` (m, 3)."""
+
+    def bench_energy_gradient(self, repeats: int, threads: int) -> Tuple[float, int, int]:
+        """Time ``repeats`` energy + gradient evaluations on ``threads`` threads: (seconds per evaluation, the
+        energy's bits, a checksum of the gradient's bits)."""
+
+    def last_projection(self) -> Optional[_ProjectionReportDict]:
+        """The last step's projection report, or None (no projection, or no step yet)."""
+
+    def first_runaway(self, start: int) -> Optional[int]:
+        """First step at or after ``start`` whose ``runaway`` flag is set, or None."""
+
+    def set_obstacles(self, obstacles: Sequence[Tuple[str, Sequence[float], float, float]]) -> None:
+        """Obstacles as ``(kind, params, restitution, friction)``: "plane" [point (3), normal (3)], "sphere"
+        [center (3), radius], "box" [center (3), half extents (3), 9 rotation entries (rows)], "capsule" [a (3),
+        b (3), radius]; lengths in m. Replaces the previous list. Raises ValueError for a bad obstacle."""
+
+    def set_kinematic_pins(self, groups: Sequence[Tuple[Sequence[int], str, Sequence[float], Sequence[float]]]) -> None:
+        """Kinematic pin groups ``(vertices, kind, params, times)``: "sinusoid" params [amplitude (3) m,
+        frequency Hz, phase rad] (``times`` ignored); "keyframes" params = offsets flattened (k * 3) m with
+        ``times`` (k,) s. The vertices must be pinned. Raises ValueError for a bad group."""
+
+    def set_damping(self, air: float, rayleigh: float) -> None:
+        """Air (mass-proportional, 1/s) and Rayleigh (stiffness-proportional, s) damping, each >= 0."""
+
+    def set_external_forces(self, forces: Optional[npt.NDArray[np.float64]]) -> None:
+        """Constant external force per vertex, (m, 3) N; None removes it."""
+
+    def set_drag(self, drag: Optional[Tuple[int, Tuple[float, float, float], float]]) -> None:
+        """The drag spring ``(vertex, target (3,) m, stiffness N/m)``, or None to release it."""
+
     @staticmethod
-    def history_columns() -> List[str]: ...
-    def history(self) -> npt.NDArray[np.float64]: ...
+    def history_columns() -> List[str]:
+        """Column names of :meth:`history`, in order."""
+
+    def history(self) -> npt.NDArray[np.float64]:
+        """The per-step diagnostics as a (rows, columns) float64 array (row 0: the initial state)."""

@@ -47,7 +47,6 @@ SUM_COLUMNS: Tuple[str, ...] = (
     "pz",
     "budget",
     "budget_total",
-    "energy_budget",
     "work_contact",
     "work_damping",
     "work_pins",

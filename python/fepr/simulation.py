@@ -10,7 +10,7 @@ import csv
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Union
+from typing import Dict, FrozenSet, Iterator, List, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 
@@ -238,8 +238,29 @@ class History:
 
     ``h["total"]`` is a column as a (rows,) float64 array; ``h.columns`` lists the names; ``h.as_dict()``
     gives all columns. Energies in J, momenta in kg m/s, angular momenta (about the centre of mass) in
-    kg m^2/s, times in s, wall times in ms.
+    kg m^2/s, times in s, wall times in ms. Every column is described in ``docs/concepts.md`` (Diagnostics).
+    The counts and 0/1 flags (:attr:`INTEGER_COLUMNS`) are integer-valued floats in memory and integers in the
+    CSV that :meth:`to_csv` writes.
     """
+
+    #: The columns that hold counts or 0/1 flags (written as integers by :meth:`to_csv`).
+    INTEGER_COLUMNS: FrozenSet[str] = frozenset(
+        {
+            "base_iterations",
+            "base_line_search",
+            "base_substeps",
+            "step",
+            "proj_iterations",
+            "proj_converged",
+            "proj_fallback",
+            "proj_bound_hit",
+            "proj_warm_start",
+            "proj_frozen",
+            "inverted",
+            "runaway",
+            "contacts",
+        }
+    )
 
     def __init__(self, data: np.ndarray, columns: Sequence[str]):
         self._data = data
@@ -263,21 +284,15 @@ class History:
         return {c: self._data[:, i].copy() for i, c in enumerate(self.columns)}
 
     def to_csv(self, path: Union[str, Path]) -> None:
-        ints = {
-            "step",
-            "proj_iterations",
-            "proj_converged",
-            "proj_fallback",
-            "proj_bound_hit",
-            "inverted",
-            "runaway",
-            "proj_warm_start",
-        }
+        """Write the history as CSV: a header of column names, then one row per step. The counts and flags
+        (:attr:`INTEGER_COLUMNS`) are written as integers (``3``, not ``3.0``), the other columns as floats
+        (shortest round-trip form; ``nan`` where undefined)."""
+        ints = [c in self.INTEGER_COLUMNS for c in self.columns]
         with open(path, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(self.columns)
             for row in self._data:
-                w.writerow([str(int(v)) if c in ints else repr(float(v)) for c, v in zip(self.columns, row)])
+                w.writerow([str(int(v)) if i and np.isfinite(v) else repr(float(v)) for i, v in zip(ints, row)])
 
     def __repr__(self) -> str:
         return f"History({len(self)} rows, columns={self.columns})"

@@ -5,8 +5,9 @@
 //! v_{n+1} = (x_{n+1} - x_n) / h
 //! ```
 //!
-//! solved by Newton's method, a sparse Cholesky factorisation whose symbolic analysis is done once per model
-//! (mesh and pin set) and reused for every numeric factorisation, and a backtracking (Armijo) line search.
+//! solved by Newton's method, a sparse Cholesky factorisation whose symbolic analysis is done once per mesh and
+//! pin set (redone when [`Model::structure_key`] changes, e.g. after pins were changed between steps) and reused
+//! for every numeric factorisation, and a backtracking (Armijo) line search.
 //! Pinned degrees of freedom are eliminated. Each iteration first factorises the exact Hessian
 //! `M/h^2 + d2E_el`; only when that is not positive definite are the element Hessians projected to positive
 //! semi-definite (and the matrix refactorised). The projected Hessian always gives a descent direction, but it
@@ -21,7 +22,7 @@ use crate::error::{invalid, Result};
 use crate::hessian::HessianAssembler;
 use crate::integrators::{finish_positional_step, Integrator, StepReport};
 use crate::linalg::{dot, scale, Vec3};
-use crate::model::{Model, State};
+use crate::model::{Model, ModelKey, State};
 use crate::sparse::SparseCholesky;
 
 /// Newton settings for backward Euler.
@@ -71,7 +72,9 @@ pub struct ImplicitEuler {
     pub settings: NewtonSettings,
     assembler: Option<HessianAssembler>,
     cholesky: Option<SparseCholesky>,
-    /// Symbolic analyses performed (one per model).
+    /// The model's [`Model::structure_key`] that `assembler` and `cholesky` were built for.
+    structure: Option<ModelKey>,
+    /// Symbolic analyses performed (one per mesh and pin set).
     pub symbolic_analyses: usize,
     /// Newton decrements of the last step, one per iteration (for convergence studies).
     pub last_decrements: Vec<f64>,
@@ -141,7 +144,11 @@ impl Integrator for ImplicitEuler {
 
     fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
         let m = model.num_vertices();
-        if self.assembler.is_none() {
+        // The pattern and the symbolic analysis depend on the mesh and the pin set only (masses and material
+        // are read at every assembly): rebuild them when either changed since they were built.
+        let structure = model.structure_key();
+        if self.assembler.is_none() || self.structure != Some(structure) {
+            self.structure = Some(structure);
             let asm = HessianAssembler::new(model);
             match SparseCholesky::analyse(&asm.pattern, 1) {
                 Ok(c) => self.cholesky = Some(c),

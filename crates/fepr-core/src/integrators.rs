@@ -5,7 +5,7 @@
 use crate::elasticity::{elastic_energy_gradient, ElasticWorkspace};
 use crate::invariants::{angular_momentum, center_of_mass, kinetic_energy, linear_momentum};
 use crate::linalg::{scale, Vec3};
-use crate::model::{Model, State};
+use crate::model::{Model, ModelKey, State};
 
 /// What a base step reports besides the new state.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -49,12 +49,13 @@ pub trait Integrator: Send + Sync {
     fn is_implicit(&self) -> bool {
         false
     }
-    /// Offer the elastic gradient `grad` (J/m, shape (m, 3)) at positions `x`, computed by the projection at
-    /// the end of a step, for the **next** call of [`Integrator::step`] on the same model only. An integrator
-    /// that starts its step with the gradient at the current positions may take the buffer (swap it) and skip
-    /// that evaluation when the positions it then sees are still bit-identical to `x` (so the result is the
-    /// same bits either way). Default: ignore the offer.
-    fn offer_elastic_gradient(&mut self, _x: &[Vec3], _grad: &mut Vec<Vec3>) {}
+    /// Offer the elastic gradient `grad` (J/m, shape (m, 3)) of `model` at positions `x`, computed by the
+    /// projection at the end of a step, for the **next** call of [`Integrator::step`] only. An integrator that
+    /// starts its step with the gradient at the current positions may take the buffer (swap it) and skip that
+    /// evaluation when the positions it then sees are still bit-identical to `x` and the model's
+    /// [`Model::elastic_key`] (mesh and material) is still the one of `model` (so the result is the same bits
+    /// either way). Default: ignore the offer.
+    fn offer_elastic_gradient(&mut self, _model: &Model, _x: &[Vec3], _grad: &mut Vec<Vec3>) {}
 }
 
 /// Symplectic (semi-implicit) Euler, the seed's integrator:
@@ -67,6 +68,8 @@ pub struct SymplecticEuler {
     /// Positions of a gradient offered by the projection (see [`Integrator::offer_elastic_gradient`]);
     /// empty when there is no offer. The gradient itself is then in `grad`.
     offered_x: Vec<Vec3>,
+    /// [`Model::elastic_key`] of the model the offered gradient belongs to.
+    offered_key: Option<ModelKey>,
     /// Steps that reused an offered gradient instead of evaluating it (for tests and benchmarks).
     pub reused_gradients: usize,
 }
@@ -91,7 +94,12 @@ impl Integrator for SymplecticEuler {
         // The projection's last evaluation is usually at exactly these positions (fepr-spec: symplectic Euler
         // + FEPR would otherwise evaluate the gradient at x_{n+1} twice); reuse it only when every bit agrees.
         let offered = std::mem::take(&mut self.offered_x);
-        if offered.len() == m && self.grad.len() == m && same_bits(&offered, &state.x) {
+        let offered_key = self.offered_key.take();
+        if offered.len() == m
+            && self.grad.len() == m
+            && same_bits(&offered, &state.x)
+            && offered_key == Some(model.elastic_key())
+        {
             self.reused_gradients += 1;
         } else {
             self.grad.resize(m, [0.0; 3]);
@@ -145,13 +153,14 @@ impl Integrator for SymplecticEuler {
         report
     }
 
-    fn offer_elastic_gradient(&mut self, x: &[Vec3], grad: &mut Vec<Vec3>) {
+    fn offer_elastic_gradient(&mut self, model: &Model, x: &[Vec3], grad: &mut Vec<Vec3>) {
         if x.len() != grad.len() {
             return;
         }
         std::mem::swap(&mut self.grad, grad);
         self.offered_x.clear();
         self.offered_x.extend_from_slice(x);
+        self.offered_key = Some(model.elastic_key());
     }
 }
 
@@ -247,7 +256,7 @@ mod tests {
             &mut exact,
         );
         let mut se = SymplecticEuler::new();
-        se.offer_elastic_gradient(&start.x, &mut exact);
+        se.offer_elastic_gradient(&model, &start.x, &mut exact);
         let mut reused = start.clone();
         se.step(&model, &mut reused, h);
         assert_eq!(se.reused_gradients, 1);
@@ -259,7 +268,7 @@ mod tests {
         other[5][1] = f64::from_bits(other[5][1].to_bits() + 1);
         let mut garbage = vec![[1e30; 3]; model.num_vertices()];
         let mut se = SymplecticEuler::new();
-        se.offer_elastic_gradient(&other, &mut garbage);
+        se.offer_elastic_gradient(&model, &other, &mut garbage);
         let mut ignored = start.clone();
         se.step(&model, &mut ignored, h);
         assert_eq!(se.reused_gradients, 0);
@@ -275,7 +284,7 @@ mod tests {
             &mut ElasticWorkspace::default(),
             &mut exact2,
         );
-        se.offer_elastic_gradient(&start.x, &mut exact2);
+        se.offer_elastic_gradient(&model, &start.x, &mut exact2);
         se.step(&model, &mut twice, h);
         twice.x.clone_from(&start.x);
         twice.v.clone_from(&start.v);

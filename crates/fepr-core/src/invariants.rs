@@ -1,6 +1,17 @@
-//! The single implementation of the quantities FEPR conserves (fepr-spec section 1): kinetic, elastic,
-//! gravitational and total energy (J), centre of mass (m), linear momentum (kg m/s) and angular momentum
-//! about the centre of mass (kg m^2/s). Integrators, the projection and the diagnostics all use these.
+//! The quantities FEPR conserves (fepr-spec section 1), measured sequentially: kinetic, elastic, gravitational
+//! and total energy (J), centre of mass (m), linear momentum (kg m/s) and angular momentum about the centre of
+//! mass (kg m^2/s).
+//!
+//! Who uses them: the simulation ([`measure`] for the initial row, the running references, the energy scale and
+//! the diagnostics of steps without projection; [`center_of_mass`] for the targets), symplectic Euler's damping
+//! report, the contact response, and the projection for the base step's `P*` and `L*` (the slack columns).
+//!
+//! The projection does **not** evaluate its constraints with these functions: its per-vertex pass
+//! (`projection::vertex_moments`, in parallel over fixed chunks of vertices, combined in chunk order) sums the
+//! kinetic and gravitational energy, P, L about the *target* centre of mass and C itself, by the same formulas,
+//! together with the moments of its small system; the [`Invariants`] it returns (L converted to the actual
+//! centre of mass) are those sums, and they become the diagnostics row of a projected step. They agree with
+//! [`measure`] to round-off, not bit for bit. Both take the elastic energy from [`crate::elasticity`].
 
 use crate::elasticity::{elastic_energy, ElasticSummary};
 use crate::linalg::{add, cross, dot, scale, sub, Vec3};

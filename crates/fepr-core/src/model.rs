@@ -9,10 +9,21 @@ use crate::material::Material;
 use crate::mesh::{lumped_masses, MassSpec, RestShape, TetMesh};
 
 /// The fixed part of a simulation. Build it with [`ModelBuilder`].
+///
+/// The material, masses, pins, gravity and damping are public fields and may be changed between steps (keep
+/// `total_mass` the sum of `masses`): the integrators, the projection and the world read them at every step, and
+/// the data they build from the model once (sparsity patterns, factorisations, colourings, the stiffness metric)
+/// is keyed on [`Model::key`], [`Model::structure_key`] or [`Model::elastic_key`] and rebuilt when its key
+/// changes. What [`crate::simulation::Simulation`] validated when it was built or set (a nonzero `damping` only
+/// with symplectic Euler, kinematic pins on pinned vertices) is not checked again. The mesh and the rest volumes
+/// are derived data: build a new model for another mesh.
 #[derive(Clone, Debug)]
 pub struct Model {
+    /// The rest mesh. Not to be replaced after [`ModelBuilder::build`] (the rest data and internal orders
+    /// are derived from it): build a new model instead.
     pub mesh: TetMesh,
-    /// Rest volume of every tet, m^3. (`D_m^-1` lives in the SIMD blocks only: [`Model::dm_inv`].)
+    /// Rest volume of every tet, m^3, derived from the mesh (not to be changed). (`D_m^-1` lives in the SIMD
+    /// blocks only: [`Model::dm_inv`].)
     pub rest_volume: Vec<f64>,
     pub material: Material,
     /// Lumped vertex masses, kg.
@@ -49,6 +60,8 @@ pub struct Model {
     pub(crate) tet_blocks: TetBlocks,
     /// How the gradient passes' chunks sum their corners into vertices (the blocks hold the local indices).
     pub(crate) corner_sums: CornerSums,
+    /// Hash of the rest mesh (vertex coordinates and tets), computed once by the builder (see [`ModelKey`]).
+    mesh_hash: u64,
 }
 
 impl Model {
@@ -179,6 +192,7 @@ impl ModelBuilder {
             TetBlocks::new(self.mesh.tets(), &rest, &order.tet_at, &order.rank, &local);
         // D_m^-1 is kept in the blocks only (72 bytes per tet not held twice).
         let RestShape { volume, .. } = rest;
+        let mesh_hash = hash_mesh(&self.mesh);
         Ok(Model {
             mesh: self.mesh,
             rest_volume: volume,
@@ -197,8 +211,113 @@ impl ModelBuilder {
             tet_position: order.tet_position,
             tet_blocks,
             corner_sums,
+            mesh_hash,
         })
     }
+}
+
+/// A fingerprint of the parts of a [`Model`] that integrators, the projection and the world build cached data
+/// from (see [`Model::key`], [`Model::structure_key`], [`Model::elastic_key`]). Equal keys of one model at two
+/// times mean that those parts did not change (up to a 64-bit hash collision; a change of a single value is
+/// always detected). Keys are for comparison within one process only.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct ModelKey(u64);
+
+impl Model {
+    /// Key of everything the elastic energy depends on besides the positions: the rest mesh and the material.
+    /// O(1) (the mesh's hash is computed once, by the builder).
+    pub fn elastic_key(&self) -> ModelKey {
+        let mut h = KeyHasher::new(1);
+        h.word(self.mesh_hash);
+        let (tag, params) = match self.material {
+            Material::NeoHookean(m) => (1, [m.mu, m.lambda, m.j0, 0.0]),
+            Material::StableNeoHookean(m) => (2, [m.mu, m.lambda, m.alpha, m.rest_offset]),
+            Material::Arap(m) => (3, [m.mu, 0.0, 0.0, 0.0]),
+            Material::ConstraintNeoHookean(m) => (4, [m.mu, m.lambda, m.alpha, 0.0]),
+        };
+        h.word(tag);
+        for p in params {
+            h.word(p.to_bits());
+        }
+        ModelKey(h.finish())
+    }
+
+    /// Key of the sparsity structure over the free degrees of freedom: the rest mesh and the pin set.
+    /// O(vertices / 64).
+    pub fn structure_key(&self) -> ModelKey {
+        let mut h = KeyHasher::new(2);
+        h.word(self.mesh_hash);
+        hash_pins(&mut h, &self.pinned);
+        ModelKey(h.finish())
+    }
+
+    /// Key of the rest mesh, the material, the pin set and the masses: what the Projective Dynamics factor,
+    /// the XPBD compliances and the projection's stiffness metric are built from. O(vertices).
+    pub fn key(&self) -> ModelKey {
+        let mut h = KeyHasher::new(3);
+        h.word(self.elastic_key().0);
+        hash_pins(&mut h, &self.pinned);
+        h.word(self.masses.len() as u64);
+        for m in &self.masses {
+            h.word(m.to_bits());
+        }
+        ModelKey(h.finish())
+    }
+}
+
+/// A 64-bit hash over a sequence of words. Each step `s <- rotl((s ^ w) * K, 29)` is a bijection of the state
+/// for a given word, so two sequences of equal length that differ in one word always hash differently.
+struct KeyHasher(u64);
+
+impl KeyHasher {
+    fn new(domain: u64) -> Self {
+        let mut h = Self(0x243f_6a88_85a3_08d3);
+        h.word(domain);
+        h
+    }
+    #[inline]
+    fn word(&mut self, w: u64) {
+        self.0 = (self.0 ^ w)
+            .wrapping_mul(0x9e37_79b9_7f4a_7c15)
+            .rotate_left(29);
+    }
+    fn finish(self) -> u64 {
+        let mut z = self.0;
+        z ^= z >> 31;
+        z = z.wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z ^ (z >> 29)
+    }
+}
+
+/// The pin mask, 64 vertices per word.
+fn hash_pins(h: &mut KeyHasher, pinned: &[bool]) {
+    h.word(pinned.len() as u64);
+    for chunk in pinned.chunks(64) {
+        h.word(
+            chunk
+                .iter()
+                .enumerate()
+                .fold(0u64, |w, (i, &p)| w | (u64::from(p) << i)),
+        );
+    }
+}
+
+/// Hash of a mesh's vertex coordinates and tets.
+fn hash_mesh(mesh: &TetMesh) -> u64 {
+    let mut h = KeyHasher::new(0);
+    h.word(mesh.num_vertices() as u64);
+    for p in mesh.vertices() {
+        for c in p {
+            h.word(c.to_bits());
+        }
+    }
+    h.word(mesh.num_tets() as u64);
+    for t in mesh.tets() {
+        for &v in t {
+            h.word(v as u64);
+        }
+    }
+    h.finish()
 }
 
 /// The internal orders of a mesh's vertices and tets (see [`Model::kernel_vertices`]).

@@ -7,7 +7,8 @@
 //!
 //! alternating a local step (`R_e` = rotation of the polar decomposition of `F_e`, parallel over tets) and a
 //! global step: one constant m x m matrix `M/h^2 + sum_e w_e G_e G_e^T` (G_e: the shape-function gradients),
-//! factorised once per run, solved for the x, y and z coordinates together. Pinned vertices are eliminated.
+//! factorised once per run (again when the step size or [`Model::key`] changes: material, masses, pins), solved
+//! for the x, y and z coordinates together. Pinned vertices are eliminated.
 //! The energy this minimises is the ARAP energy `Psi = mu |F - R|^2` ([`crate::material::Arap`]); with FEPR,
 //! the model's material must be that energy so that H is the PD energy (fepr-spec section 5).
 
@@ -19,7 +20,7 @@ use crate::hessian::shape_gradients;
 use crate::integrators::{finish_positional_step, Integrator, StepReport};
 use crate::linalg::{scale, Vec3};
 use crate::material::Material;
-use crate::model::{Model, State};
+use crate::model::{Model, ModelKey, State};
 use crate::sparse::{LowerPattern, SparseCholesky};
 
 /// Projective Dynamics settings.
@@ -49,6 +50,8 @@ struct Prefactored {
     mu: f64,
     /// The step size the matrix `M / h^2 + L` was factorised for, s.
     h: f64,
+    /// The [`Model::key`] it was factorised for.
+    key: ModelKey,
 }
 
 /// Wall-clock time of the phases of the last step, s (for benchmarks and profiling).
@@ -69,7 +72,7 @@ pub struct ProjectiveDynamics {
     /// Phase times of the last step.
     pub timing: PdTiming,
     pre: Option<Prefactored>,
-    /// Symbolic analyses and numeric factorisations performed (one each per run).
+    /// Symbolic analyses and numeric factorisations performed (one each per run, step size and model key).
     pub factorizations: usize,
     /// Per tet in the model's block order, the right-hand side terms `w_e R_e g_k` on its 4 corners (from the
     /// local step).
@@ -181,6 +184,7 @@ impl ProjectiveDynamics {
             pinned_coupling,
             mu,
             h,
+            key: model.key(),
         })
     }
 }
@@ -209,9 +213,14 @@ impl Integrator for ProjectiveDynamics {
     }
 
     fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
-        // The matrix depends on h: refactorise when the simulation changes it (impact substeps).
-        if self.pre.as_ref().is_some_and(|p| p.h != h) {
-            self.pre = None;
+        // The matrix depends on h, the masses, the pins and the material's mu: refactorise when the simulation
+        // changes h (impact substeps) or the model changed since the factorisation (a user of the Rust API may
+        // change `Model`'s public fields between steps, or step this integrator with another model).
+        if self.pre.is_some() {
+            let key = model.key();
+            if self.pre.as_ref().is_some_and(|p| p.h != h || p.key != key) {
+                self.pre = None;
+            }
         }
         if self.pre.is_none() {
             match Self::prefactor(model, h) {

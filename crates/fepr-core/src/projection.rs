@@ -25,7 +25,7 @@ use crate::elasticity::{
 use crate::error::{invalid, Result};
 use crate::invariants::Invariants;
 use crate::linalg::{cross, dot, solve_symmetric_psd, sub, Mat3, Vec3};
-use crate::model::{Model, State};
+use crate::model::{Model, ModelKey, State};
 use crate::parallel::reduce_chunks;
 
 /// Which constraint rows the projection enforces.
@@ -391,8 +391,10 @@ pub struct Projector {
     v_best: Vec<Vec3>,
     /// The base integrator is implicit (resolves `Metric::Auto`).
     implicit_base: bool,
-    /// `diag(K_0)_i / m_i` per vertex, 1/s^2 (computed once per model, for the stiffness metric).
+    /// `diag(K_0)_i / m_i` per vertex, 1/s^2 (for the stiffness metric; computed again when the model's
+    /// [`Model::key`] differs from `stiffness_key`, the key it was computed for).
     stiffness_ratio: Vec<f64>,
+    stiffness_key: Option<ModelKey>,
     /// `a_i = m_i / w_i` of this step's metric.
     metric_factor: Vec<f64>,
     /// Vertices whose positions this step's projection must not move (in contact with an obstacle).
@@ -468,8 +470,11 @@ impl Projector {
         let m = model.num_vertices();
         self.metric_factor.clear();
         if self.uses_stiffness_metric() {
-            if self.stiffness_ratio.len() != m {
+            // From the mesh, the material and the masses, which a user of the Rust API may change between steps.
+            let key = model.key();
+            if self.stiffness_key != Some(key) {
                 self.stiffness_ratio = rest_stiffness_ratio(model);
+                self.stiffness_key = Some(key);
             }
             let h2 = h * h;
             self.metric_factor

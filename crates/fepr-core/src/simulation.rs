@@ -498,7 +498,8 @@ impl Simulation {
                 p.set_frozen_positions(&self.contact_vertices);
                 let (rep, inv) = p.project(&self.model, &mut self.state, self.dt, &targets);
                 if let Some(grad) = p.take_final_gradient() {
-                    self.integrator.offer_elastic_gradient(&self.state.x, grad);
+                    self.integrator
+                        .offer_elastic_gradient(&self.model, &self.state.x, grad);
                 }
                 (Some(rep), inv, rep.base_energy)
             }

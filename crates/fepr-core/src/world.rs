@@ -21,7 +21,7 @@ use crate::error::{invalid, Result};
 use crate::hessian::{element_hessian, HessianAssembler};
 use crate::linalg::{add, cross, dot, scale, sub, Vec3};
 use crate::material::Hyperelastic;
-use crate::model::{Model, State};
+use crate::model::{Model, ModelKey, State};
 use crate::obstacles::Obstacle;
 use crate::sparse::SparseCholesky;
 
@@ -202,7 +202,9 @@ pub struct World {
     /// Constant external force per vertex, N (empty: none).
     pub(crate) forces: Vec<Vec3>,
     pub(crate) drag: Option<Drag>,
-    rayleigh: Option<(HessianAssembler, SparseCholesky)>,
+    /// Pattern and symbolic analysis of the Rayleigh damping solve, with the [`Model::structure_key`] (mesh and
+    /// pin set) they were built for.
+    rayleigh: Option<(HessianAssembler, SparseCholesky, ModelKey)>,
     values: Vec<f64>,
     rhs: Vec<f64>,
     step_forces: Vec<Vec3>,
@@ -463,12 +465,14 @@ impl World {
     }
 
     fn rayleigh(&mut self, model: &Model, state: &mut State, h: f64) -> Result<()> {
-        if self.rayleigh.is_none() {
+        // Built again when the pin set changed since (a user of the Rust API may change `Model::pinned`).
+        let key = model.structure_key();
+        if self.rayleigh.as_ref().is_none_or(|r| r.2 != key) {
             let asm = HessianAssembler::new(model);
             let chol = SparseCholesky::analyse(&asm.pattern, 1)?;
-            self.rayleigh = Some((asm, chol));
+            self.rayleigh = Some((asm, chol, key));
         }
-        let (asm, chol) = self.rayleigh.as_mut().expect("set above");
+        let (asm, chol, _) = self.rayleigh.as_mut().expect("set above");
         let hb = h * self.rayleigh_damping;
         // (M / (h b) + K) v' = M v / (h b) - K_fp v_p
         asm.assemble(model, &state.x, 1.0 / hb, true, &mut self.values);

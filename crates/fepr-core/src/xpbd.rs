@@ -17,7 +17,7 @@ use crate::hessian::shape_gradients;
 use crate::integrators::{Integrator, StepReport};
 use crate::linalg::{cofactor, det, scale, Mat3, Vec3};
 use crate::material::{ConstraintNeoHookean, Material};
-use crate::model::{Model, State};
+use crate::model::{Model, ModelKey, State};
 
 /// XPBD settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -41,8 +41,10 @@ impl Default for XpbdSettings {
     }
 }
 
-/// Per-run data: the colouring and the per-tet constants.
+/// Per-run data: the colouring and the per-tet constants (rebuilt when [`Model::key`] changes).
 struct Prepared {
+    /// The [`Model::key`] this was prepared for (material, masses, pins, mesh).
+    key: ModelKey,
     /// Tets of each colour, in tet order.
     colours: Vec<Vec<usize>>,
     grads: Vec<[Vec3; 4]>,
@@ -151,6 +153,7 @@ impl Xpbd {
             })
             .collect();
         Prepared {
+            key: model.key(),
             colours: colour_tets(model),
             grads,
             compliance,
@@ -350,6 +353,11 @@ impl Integrator for Xpbd {
             state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
             return StepReport::default();
         };
+        // The compliances, inverse masses and colouring come from the model: prepare them again when it changed
+        // since (public fields changed between steps, or another model).
+        if self.pre.as_ref().is_some_and(|p| p.key != model.key()) {
+            self.pre = None;
+        }
         if self.pre.is_none() {
             self.pre = Some(Self::prepare(model, mat));
         }

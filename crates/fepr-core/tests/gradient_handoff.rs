@@ -34,8 +34,8 @@ impl Integrator for Counting {
         self.1.store(self.0.reused_gradients, Ordering::Relaxed);
         r
     }
-    fn offer_elastic_gradient(&mut self, x: &[[f64; 3]], grad: &mut Vec<[f64; 3]>) {
-        self.0.offer_elastic_gradient(x, grad);
+    fn offer_elastic_gradient(&mut self, model: &Model, x: &[[f64; 3]], grad: &mut Vec<[f64; 3]>) {
+        self.0.offer_elastic_gradient(model, x, grad);
     }
 }
 

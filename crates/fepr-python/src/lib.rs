@@ -181,6 +181,11 @@ fn material_eval<'py>(
     ))
 }
 
+// From Python the model is fixed once built: no method here writes `inner.model` (the world setters change the
+// core's `World`, the state setters the `State`), so the integrators' and the projection's cached data built
+// from the model (factorisations, patterns, the stiffness metric) cannot go stale through this module. The core
+// keys that data on `Model::key` / `Model::structure_key` all the same (the Rust API lets users change the
+// model's public fields between steps), so a method added here that changes the model needs nothing more.
 /// The simulation: model, state, integrator and projection (see `fepr.Simulation` for the documented API).
 #[pyclass(module = "fepr._core")]
 struct Simulation {
