@@ -63,7 +63,7 @@ impl ElasticWorkspace {
     }
 }
 
-/// Tets per block of the per-tet buffers and of the batched Neo-Hookean kernel. A multiple of 8 (the f64
+/// Tets per block of the rest data and of the batched kernels. A multiple of 8 (the f64
 /// lanes of AVX-512) that divides [`TET_CHUNK`], so every chunk but the last is made of whole blocks.
 pub const BLOCK: usize = 16;
 const _: () = assert!(TET_CHUNK.is_multiple_of(BLOCK) && BLOCK.is_multiple_of(8));

@@ -39,8 +39,9 @@ pub struct Model {
     /// Half diagonal of the rest bounding box, metres (the length scale r of fepr-spec section 2).
     pub length_scale: f64,
     /// Vertex rank (`kernel_rank`) -> (4 * block position + corner) incidence (CSR offsets and slots,
-    /// ascending per vertex), for deterministic gathers of the per-tet values, which live in block order (see
-    /// `tet_at`). A slot's user tet is `tet_at[slot / 4]`; user vertex `v`'s slots start at
+    /// ascending per vertex; see `tet_at`), for the deterministic gathers of per-tet values in block order
+    /// (PD's right-hand side, XPBD's colouring; the elastic gradient sums its corners per chunk instead:
+    /// `corner_sums`). A slot's user tet is `tet_at[slot / 4]`; user vertex `v`'s slots start at
     /// `incidence_offsets[kernel_rank[v]]`.
     pub(crate) incidence_offsets: Vec<usize>,
     pub(crate) incidence_slots: Vec<u32>,
