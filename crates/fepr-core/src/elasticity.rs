@@ -1119,4 +1119,50 @@ pub(crate) mod tests {
         assert!((s.min_j - 1.0).abs() < 1e-12);
         assert!(grad.iter().flatten().all(|g| g.abs() < 1e-9));
     }
+
+    #[test]
+    fn vertices_no_tet_references_get_a_zero_gradient() {
+        // A 12^3 grid (10,368 tets: 11 chunks, so border vertices exist) plus two vertices that no tet
+        // references (allowed with node masses): their gradient must be exactly zero,
+        // whatever the scratch held, and the others must match the same grid without them.
+        let (mut v, t) = grid_mesh(12);
+        let plain = {
+            let (mesh, _) = TetMesh::new(v.clone(), &t).unwrap();
+            ModelBuilder::new(mesh, materials()[0])
+                .mass(MassSpec::NodeMass(0.1))
+                .build()
+                .unwrap()
+        };
+        v.push([5.0, 5.0, 5.0]);
+        v.insert(0, [-5.0, 0.0, 0.0]);
+        let t: Vec<[i64; 4]> = t.iter().map(|tet| tet.map(|i| i + 1)).collect();
+        let (mesh, report) = TetMesh::new(v, &t).unwrap();
+        assert_eq!(report.unreferenced, 2);
+        let model = ModelBuilder::new(mesh, materials()[0])
+            .mass(MassSpec::NodeMass(0.1))
+            .build()
+            .unwrap();
+        assert!(model.num_tets() > 4 * crate::parallel::TET_CHUNK);
+        let x = deformed(&model, 4);
+        let mut grad = vec![[f64::NAN; 3]; x.len()];
+        let mut ws = ElasticWorkspace::default();
+        for _ in 0..2 {
+            elastic_energy_gradient(&model, &x, &mut ws, &mut grad);
+            let m = x.len();
+            assert_eq!((grad[0], grad[m - 1]), ([0.0; 3], [0.0; 3]));
+        }
+        let mut want = vec![[0.0; 3]; x.len() - 2];
+        elastic_energy_gradient(
+            &plain,
+            &x[1..x.len() - 1],
+            &mut ElasticWorkspace::default(),
+            &mut want,
+        );
+        let scale = want.iter().flatten().fold(0.0f64, |a, g| a.max(g.abs()));
+        for (g, w) in grad[1..x.len() - 1].iter().zip(&want) {
+            for a in 0..3 {
+                assert!((g[a] - w[a]).abs() <= 1e-12 * scale, "{g:?} vs {w:?}");
+            }
+        }
+    }
 }
