@@ -53,13 +53,16 @@ pub struct ElasticWorkspace {
     partials: Vec<ElasticSummary>,
     /// `x` in the kernels' vertex order (`Model::kernel_positions`).
     x_kernel: Vec<Vec3>,
+    /// The gradient in the kernels' vertex order, before it is put in user order.
+    grad_kernel: Vec<Vec3>,
 }
 
 impl ElasticWorkspace {
     /// Bytes held by the workspace.
     pub fn bytes(&self) -> usize {
         self.partials.capacity() * std::mem::size_of::<ElasticSummary>()
-            + (self.corner_acc.capacity() + self.x_kernel.capacity()) * std::mem::size_of::<Vec3>()
+            + (self.corner_acc.capacity() + self.x_kernel.capacity() + self.grad_kernel.capacity())
+                * std::mem::size_of::<Vec3>()
     }
 }
 
@@ -264,6 +267,7 @@ pub fn elastic_energy_gradient(
     let sink = GradientSink {
         acc: &mut ws.corner_acc,
         parts: &mut ws.partials,
+        grad_kernel: &mut ws.grad_kernel,
         grad,
     };
     let xk = &mut ws.x_kernel;
@@ -280,11 +284,12 @@ pub fn elastic_energy_gradient(
     }
 }
 
-/// Where a gradient pass puts its results: the chunks' accumulators and summaries (scratch) and the
-/// gradient (user order, shape (m, 3)).
+/// Where a gradient pass puts its results: the chunks' accumulators and summaries and the gradient in the
+/// kernels' vertex order (scratch), and the gradient (user order, shape (m, 3)).
 pub(crate) struct GradientSink<'a> {
     pub(crate) acc: &'a mut Vec<Vec3>,
     pub(crate) parts: &'a mut Vec<ElasticSummary>,
+    pub(crate) grad_kernel: &'a mut Vec<Vec3>,
     pub(crate) grad: &'a mut [Vec3],
 }
 
@@ -303,9 +308,13 @@ where
     let parts = sink.parts;
     parts.clear();
     parts.resize(num_tets.div_ceil(TET_CHUNK), ElasticSummary::zero());
-    model.corner_sums.run(sink.acc, parts, sink.grad, |c, acc| {
-        chunk_fn(c, acc, (num_tets - c * TET_CHUNK).min(TET_CHUNK))
-    });
+    sink.grad_kernel.resize(sink.grad.len(), [0.0; 3]);
+    model
+        .corner_sums
+        .run(sink.acc, parts, sink.grad_kernel, |c, acc| {
+            chunk_fn(c, acc, (num_tets - c * TET_CHUNK).min(TET_CHUNK))
+        });
+    model.user_order(sink.grad_kernel, sink.grad);
     parts.iter().fold(ElasticSummary::zero(), |a, b| {
         ElasticSummary::combine(a, *b)
     })
@@ -967,10 +976,11 @@ pub(crate) mod tests {
         pass: impl FnOnce(GradientSink) -> ElasticSummary,
     ) -> (ElasticSummary, Vec<u64>) {
         let mut grad = vec![[f64::NAN; 3]; model.num_vertices()];
-        let (mut acc, mut parts) = (Vec::new(), Vec::new());
+        let (mut acc, mut parts, mut gk) = (Vec::new(), Vec::new(), Vec::new());
         let s = pass(GradientSink {
             acc: &mut acc,
             parts: &mut parts,
+            grad_kernel: &mut gk,
             grad: &mut grad,
         });
         (s, grad.iter().flatten().map(|g| g.to_bits()).collect())

@@ -89,6 +89,21 @@ impl Model {
             });
     }
 
+    /// `out[v] = gk[kernel_rank[v]]`: values in the kernels' vertex order put in user order (parallel over
+    /// fixed chunks).
+    pub(crate) fn user_order(&self, gk: &[Vec3], out: &mut [Vec3]) {
+        use rayon::prelude::*;
+        const CHUNK: usize = 8192;
+        assert_eq!(gk.len(), out.len(), "one value per vertex");
+        out.par_chunks_mut(CHUNK)
+            .zip(self.kernel_rank.par_chunks(CHUNK))
+            .for_each(|(o, rs)| {
+                for (p, &r) in o.iter_mut().zip(rs) {
+                    *p = gk[r as usize];
+                }
+            });
+    }
+
     pub fn num_vertices(&self) -> usize {
         self.mesh.num_vertices()
     }
@@ -188,7 +203,12 @@ impl ModelBuilder {
         let length_scale = self.mesh.half_diagonal();
         let order = KernelOrder::new(&self.mesh);
         let (incidence_offsets, incidence_slots) = order.incidence(&self.mesh);
-        let (corner_sums, local) = CornerSums::new(self.mesh.tets(), &order.tet_at, m);
+        // In the kernels' vertex order: each chunk's vertices then sit close together in the sums it writes
+        // (written in user order, two threads' chunks shared cache lines: 1.2x on two threads on the bunny).
+        let ranked: Vec<[usize; 4]> = (self.mesh.tets().iter())
+            .map(|t| t.map(|v| order.rank[v] as usize))
+            .collect();
+        let (corner_sums, local) = CornerSums::new(&ranked, &order.tet_at, m);
         let tet_blocks =
             TetBlocks::new(self.mesh.tets(), &rest, &order.tet_at, &order.rank, &local);
         // D_m^-1 is kept in the blocks only (72 bytes per tet not held twice).
