@@ -586,8 +586,11 @@ impl Projector {
         let mut best_is_base = true;
         let mut best_eval = cur;
         let (mut best_s, mut best_t) = (0.0, 0.0);
-        self.x_best.clear();
-        self.v_best.clear();
+        // The best iterate lives in `x`/`v` while it is the current one (`best_in_x`), and is moved to
+        // `x_best`/`v_best` by a buffer swap only when a later iterate replaces it: no copies per iteration.
+        let mut best_in_x = false;
+        self.x_best.resize(m, [0.0; 3]);
+        self.v_best.resize(m, [0.0; 3]);
 
         // Attempts: if an attempt ends with tets inverted that the base step had upright (a near-degenerate
         // sliver flipped by the position correction), freeze the positions of those tets' vertices (their
@@ -613,8 +616,7 @@ impl Projector {
                     best_norm = cur_norm;
                     best_is_base = false;
                     best_eval = cur;
-                    self.x_best.extend_from_slice(&self.x);
-                    self.v_best.extend_from_slice(&self.v);
+                    best_in_x = true;
                 }
             }
 
@@ -690,10 +692,12 @@ impl Projector {
                         best_eval = cur;
                         best_s = s;
                         best_t = t;
-                        self.x_best.clear();
-                        self.x_best.extend_from_slice(&self.x);
-                        self.v_best.clear();
-                        self.v_best.extend_from_slice(&self.v);
+                        best_in_x = true;
+                    } else if best_in_x {
+                        // The best iterate was just swapped into the trial buffers: keep it.
+                        std::mem::swap(&mut self.x_trial, &mut self.x_best);
+                        std::mem::swap(&mut self.v_trial, &mut self.v_best);
+                        best_in_x = false;
                     }
                 }
                 if !report.converged
@@ -717,6 +721,11 @@ impl Projector {
             }
             report.restarts += 1;
             report.frozen_vertices += frozen;
+            if best_in_x {
+                self.x_best.copy_from_slice(&self.x);
+                self.v_best.copy_from_slice(&self.v);
+                best_in_x = false;
+            }
             self.x.copy_from_slice(&self.x_base);
             self.v.copy_from_slice(&self.v_base);
             s = 0.0;
@@ -731,13 +740,19 @@ impl Projector {
         // `grad` is at `x` (every evaluation into it is at the iterate it belongs to).
         self.grad_is_final = report.converged && grad_at_x;
         if report.converged {
-            state.x.copy_from_slice(&self.x);
-            state.v.copy_from_slice(&self.v);
+            // The result's buffers become the state's (the old ones are overwritten next time).
+            std::mem::swap(&mut state.x, &mut self.x);
+            std::mem::swap(&mut state.v, &mut self.v);
         } else {
             report.fallback = true;
             if !best_is_base && best_norm < base_norm {
-                state.x.copy_from_slice(&self.x_best);
-                state.v.copy_from_slice(&self.v_best);
+                let (xb, vb) = if best_in_x {
+                    (&self.x, &self.v)
+                } else {
+                    (&self.x_best, &self.v_best)
+                };
+                state.x.copy_from_slice(xb);
+                state.v.copy_from_slice(vb);
                 fin = best_eval;
                 s = best_s;
                 t = best_t;

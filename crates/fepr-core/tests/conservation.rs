@@ -446,3 +446,63 @@ fn warm_start_computes_the_elastic_gradient_only_when_an_iteration_needs_it() {
         }
     }
 }
+
+#[test]
+fn unconverged_projection_returns_its_best_iterate_with_matching_invariants() {
+    // A tolerance no iterate meets: every run ends in the fallback and must return the best iterate it saw
+    // (kept by buffer swaps, not copies), with the invariants of that very state. Up to 12 iterations and no
+    // step halving: the later iterates jitter at round-off, so worse iterates follow the best one (the swap
+    // path).
+    use fepr_core::invariants::measure;
+    use fepr_core::projection::{ProjectionSettings, Projector, Targets};
+    let model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0; 3]);
+    let mut base = State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &base.x);
+    scaled(&mut base, 1.04, c);
+    for (x, v) in base.x.iter().zip(base.v.iter_mut()) {
+        *v = [0, 1, 2].map(|a| 0.3 * (x[(a + 1) % 3] - c[(a + 1) % 3]) + 0.02 * (4.0 * x[a]).cos());
+    }
+    let inv = measure(&model, &base);
+    let targets = Targets {
+        energy: 0.97 * inv.total,
+        momentum: inv.momentum,
+        angular_momentum: inv.angular_momentum,
+        center_of_mass: inv.center_of_mass,
+        energy_scale: inv.total,
+        uncertain_impulses: false,
+    };
+    let mut previous = f64::INFINITY;
+    for iterations in 1..=12 {
+        let settings = ProjectionSettings {
+            tolerance: 1e-300,
+            max_iterations: iterations,
+            max_halvings: 0,
+            ..Default::default()
+        };
+        let mut proj = Projector::new(settings).unwrap();
+        let mut state = base.clone();
+        let (report, out) = proj.project(&model, &mut state, 1.0 / 30.0, &targets);
+        assert!(!report.converged && report.fallback, "{report:?}");
+        assert!(
+            report.final_residual < report.initial_residual,
+            "{report:?}"
+        );
+        assert!(
+            report.final_residual <= previous,
+            "{iterations} iterations: {} after {previous}",
+            report.final_residual
+        );
+        previous = report.final_residual;
+        let again = measure(&model, &state);
+        assert!(rel(again.total, out.total) <= 1e-12, "{again:?} vs {out:?}");
+        for a in 0..3 {
+            assert!(
+                (again.momentum[a] - out.momentum[a]).abs() <= 1e-12 * norm(inv.momentum).max(1e-9)
+            );
+        }
+    }
+    assert!(
+        previous < 1e-12,
+        "the iterations reach round-off: {previous}"
+    );
+}
