@@ -1,5 +1,5 @@
 //! The rotation factor of the polar decomposition for many matrices at once, bit for bit
-//! [`linalg::polar_rotation`]'s.
+//! [`crate::linalg::polar_rotation`]'s.
 //!
 //! One scaled Newton iteration on one 3x3 matrix is a short dependency chain (two square roots and a
 //! division per iteration), so the scalar routine is latency-bound (about 150 ns on this machine). Here
