@@ -27,7 +27,8 @@ where
 /// parallel regions) instead of parking, so that the parallel regions of one simulation step start on
 /// threads that are already running. Rayon parks an idle thread after a few dozen yields, and waking it
 /// costs tens of microseconds on a virtual machine (an interrupt between virtual CPUs), once per region;
-/// a Projective Dynamics step has about 40 regions, a symplectic Euler + FEPR step about 8. Measured on the
+/// a Projective Dynamics step enters about 30 (three per PD iteration: local step, right-hand side, solve),
+/// a symplectic Euler + FEPR step 6-8 (counted in the code). Measured on the
 /// bunny (2 threads, alternating runs): PD + FEPR 25.6-26.1 -> 17.5-25.6 ms per step, and bunny2 symplectic
 /// Euler + FEPR 2.29-3.13 -> 2.15-2.52 ms. The other threads run at full load while the guard lives, doing the
 /// pool's work as soon as there is any, and yield to the operating system whenever there is none (other

@@ -426,7 +426,7 @@ impl Simulation {
     /// (spikes of elastic energy with implicit integrators at large steps). The step is then redone from its
     /// start in substeps small enough for the depth, up to 16; the projection runs once, at the end.
     pub fn step(&mut self) -> Result<&StepDiagnostics> {
-        // A step enters 5-50 parallel regions with sequential work between them: keep the other threads
+        // A step enters 6-30 parallel regions with sequential work between them: keep the other threads
         // polling for work meanwhile instead of parking and waking them for each region (`KeepAwake`).
         let _awake = crate::parallel::KeepAwake::new();
         self.previous.clone_from(&self.state);
