@@ -452,6 +452,9 @@ fn time_energy_gradient(mesh: TetMesh, threads: usize, repeats: usize) {
         .build()
         .unwrap();
     pool.install(|| {
+        let _awake = std::env::var("EG_AWAKE")
+            .is_ok()
+            .then(fepr_core::parallel::KeepAwake::new);
         elastic_energy_gradient(model, &x, &mut ws, &mut grad);
         let t0 = Instant::now();
         for _ in 0..repeats {

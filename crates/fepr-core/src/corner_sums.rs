@@ -1,33 +1,38 @@
-//! Deterministic sums of per-tet corner values into vertices, fused into the per-tet passes (the elastic
-//! gradient: each vertex gets the sum of its corners' gradients).
+//! The chunk-local vertex numbering of the per-tet passes: each fixed chunk of [`TET_CHUNK`] tets gathers
+//! the positions of the vertices it touches into a small local array, and sums its corner values (the
+//! elastic gradient: each vertex gets the sum of its corners' gradients) into a small accumulator over the
+//! same vertices; the blocks hold every corner's local index.
 //!
-//! The passes run over fixed chunks of [`TET_CHUNK`] tets in block order. Each chunk adds its corner values
-//! into a small accumulator over the vertices it touches (the blocks hold every corner's local index), in
-//! ascending block position, while the values are still in registers: no per-tet buffer is written to
-//! memory and read back by a second pass. A vertex that only one chunk touches (most of them: the chunks are
-//! spatially compact) gets its sum written to the output, in user order, by that chunk. The others (on the
-//! chunks' borders, and vertices that no tet references) are summed afterwards from the chunks' partial
-//! sums, in chunk order. Neither order depends on the number of threads, so the sums are bit-identical for
-//! any thread count.
+//! The chunks run in parallel, in block order. Each adds its corner values in ascending block position,
+//! while they are still in registers: no per-tet buffer is written to memory and read back by a second
+//! pass, and no permuted copy of the positions is made. A second parallel pass over the vertices (user
+//! order, fixed tasks) then sums every vertex's partial sums in chunk order: most vertices have one (the
+//! chunks are spatially compact), those on chunk borders several, a vertex no tet references none. Neither
+//! order depends on the number of threads, so the sums are bit-identical for any thread count. The chunks
+//! write only their own accumulators and the vertex pass writes contiguous runs of the output, so no two
+//! threads write one cache line (writing the sums in user order from the chunks measured 1.2x slower on two
+//! threads on the bunny).
+
+use std::cell::Cell;
 
 use rayon::prelude::*;
 
 use crate::linalg::Vec3;
 use crate::parallel::TET_CHUNK;
 
-/// Marks a [`CornerSums::dest`] entry whose vertex is summed after the chunks (the low bits: its index in
-/// [`CornerSums::shared_vertex`]).
-const SHARED: u32 = 1 << 31;
-
 // Local indices are u16: a chunk touches at most 4 TET_CHUNK vertices.
 const _: () = assert!(4 * TET_CHUNK <= u16::MAX as usize + 1);
 
-/// Shared vertices per parallel task in the second pass (fewer than twice this run inline, without waking
-/// another thread).
-const SHARED_TASK: usize = 2048;
+/// Vertices per task of the vertex pass (a mesh with fewer runs it inline, without waking another thread).
+const VERTEX_TASK: usize = 4096;
 
-/// The chunk-local vertex numbering of a mesh's tets and how the chunks' sums reach the vertices. Built once
-/// with the model (about 5 bytes per tet; the accumulators, in the workspace, about 9).
+thread_local! {
+    /// The chunk-local positions of the chunk that this thread runs (reused: no allocation once grown).
+    static LOCAL_POSITIONS: Cell<Vec<Vec3>> = const { Cell::new(Vec::new()) };
+}
+
+/// The chunk-local vertex numbering of a mesh's tets, and how the chunks' sums reach the vertices. Built once
+/// with the model (about 7 bytes per tet; the accumulators, in the workspace, about 9).
 #[derive(Clone, Debug, Default)]
 pub(crate) struct CornerSums {
     /// Accumulator entries per chunk (the largest local vertex count): chunk `c`'s entries are
@@ -35,35 +40,29 @@ pub(crate) struct CornerSums {
     stride: usize,
     /// Local vertex count of every chunk.
     count: Vec<u32>,
-    /// Per entry (`c * stride + j`, `j < count[c]`): the user vertex whose sum chunk `c` completes, or
-    /// `SHARED | s` for shared vertex `s`.
-    dest: Vec<u32>,
-    /// User vertex of every shared vertex (ascending).
-    shared_vertex: Vec<u32>,
-    /// The entries holding shared vertex `s`'s partial sums, in chunk order:
-    /// `shared_entries[shared_offsets[s]..shared_offsets[s + 1]]` (none for a vertex no tet references).
-    shared_offsets: Vec<usize>,
-    shared_entries: Vec<u32>,
+    /// Per entry (`c * stride + j`, `j < count[c]`): the user vertex that is chunk `c`'s local vertex `j`.
+    vertex: Vec<u32>,
+    /// The entries holding user vertex `v`'s partial sums, in chunk order:
+    /// `vertex_entries[vertex_offsets[v]..vertex_offsets[v + 1]]` (none for a vertex no tet references).
+    vertex_offsets: Vec<u32>,
+    vertex_entries: Vec<u32>,
 }
 
 impl CornerSums {
-    /// The numbering of `tets` placed in blocks by `tet_at` (position -> user tet; chunk `c` holds positions
-    /// `c TET_CHUNK ..`), and every position's local corner indices (`local[p][corner]`).
+    /// The numbering of `tets` (user vertex indices) placed in blocks by `tet_at` (position -> user tet;
+    /// chunk `c` holds positions `c TET_CHUNK ..`), and every position's local corner indices
+    /// (`local[p][corner]`).
     pub(crate) fn new(
         tets: &[[usize; 4]],
         tet_at: &[u32],
         num_vertices: usize,
     ) -> (Self, Vec<[u16; 4]>) {
-        assert!(
-            num_vertices < SHARED as usize,
-            "vertex indices fit in 31 bits"
-        );
+        u32::try_from(num_vertices).expect("vertex indices fit in u32");
         let num_chunks = tet_at.len().div_ceil(TET_CHUNK);
         let mut local = vec![[0u16; 4]; tet_at.len()];
-        // Every chunk's vertices in first-seen order, and how many chunks touch each vertex.
+        // Every chunk's vertices in first-seen order (the order its tets load them).
         let (mut chunk_offsets, mut chunk_vertices) = (vec![0usize], Vec::new());
-        let (mut local_of, mut chunks_at) =
-            (vec![u16::MAX; num_vertices], vec![0u32; num_vertices]);
+        let mut local_of = vec![u16::MAX; num_vertices];
         for (c, positions) in tet_at.chunks(TET_CHUNK).enumerate() {
             let first = chunk_vertices.len();
             for (k, &e) in positions.iter().enumerate() {
@@ -71,7 +70,6 @@ impl CornerSums {
                     if local_of[v] == u16::MAX {
                         local_of[v] = (chunk_vertices.len() - first) as u16;
                         chunk_vertices.push(v as u32);
-                        chunks_at[v] += 1;
                     }
                     local[c * TET_CHUNK + k][corner] = local_of[v];
                 }
@@ -87,121 +85,105 @@ impl CornerSums {
             .collect();
         let stride = count.iter().copied().max().unwrap_or(0) as usize;
         u32::try_from(num_chunks * stride).expect("accumulator entries fit in u32");
-        // Shared vertices (touched by several chunks, or by none) in ascending order, with room for one
-        // partial sum per chunk that touches them.
-        let mut shared_index = vec![u32::MAX; num_vertices];
-        let (mut shared_vertex, mut shared_offsets) = (Vec::new(), vec![0usize]);
-        for (v, &n) in chunks_at.iter().enumerate() {
-            if n != 1 {
-                shared_index[v] = shared_vertex.len() as u32;
-                shared_vertex.push(v as u32);
-                shared_offsets.push(shared_offsets.last().copied().unwrap_or(0) + n as usize);
-            }
+        let mut vertex = vec![0u32; num_chunks * stride];
+        let mut vertex_offsets = vec![0u32; num_vertices + 1];
+        for &v in &chunk_vertices {
+            vertex_offsets[v as usize + 1] += 1;
         }
-        let mut fill = shared_offsets.clone();
-        let mut shared_entries = vec![0u32; fill.last().copied().unwrap_or(0)];
-        let mut dest = vec![0u32; num_chunks * stride];
+        for v in 0..num_vertices {
+            vertex_offsets[v + 1] += vertex_offsets[v];
+        }
+        let mut fill = vertex_offsets.clone();
+        let mut vertex_entries = vec![0u32; chunk_vertices.len()];
         for c in 0..num_chunks {
             let vertices = &chunk_vertices[chunk_offsets[c]..chunk_offsets[c + 1]];
             for (j, &v) in vertices.iter().enumerate() {
                 let entry = c * stride + j;
-                let s = shared_index[v as usize];
-                dest[entry] = if s == u32::MAX {
-                    v
-                } else {
-                    // Chunks in ascending order: each shared vertex's entries end up in chunk order.
-                    shared_entries[fill[s as usize]] = entry as u32;
-                    fill[s as usize] += 1;
-                    SHARED | s
-                };
+                vertex[entry] = v;
+                // Chunks in ascending order: each vertex's entries end up in chunk order.
+                vertex_entries[fill[v as usize] as usize] = entry as u32;
+                fill[v as usize] += 1;
             }
         }
         let sums = Self {
             stride,
             count,
-            dest,
-            shared_vertex,
-            shared_offsets,
-            shared_entries,
+            vertex,
+            vertex_offsets,
+            vertex_entries,
         };
         (sums, local)
     }
 
-    /// Runs `chunk_fn(c, acc)` for every chunk `c` in parallel, where `acc` is chunk `c`'s accumulator
-    /// (zeroed, indexed by local vertex) into which it adds its corner values in ascending block position,
-    /// and writes every vertex's sum to `out` (user order, shape (num_vertices, 3)); `parts[c]` gets the
-    /// chunk's return value. `acc` is scratch memory, grown on the first call.
+    /// Runs `f` with chunk `c`'s vertex positions in local order (`xl[j] = x[v]` for local vertex `j`),
+    /// gathered into this thread's reused buffer.
+    pub(crate) fn with_positions<R>(
+        &self,
+        c: usize,
+        x: &[Vec3],
+        f: impl FnOnce(&[Vec3]) -> R,
+    ) -> R {
+        let first = c * self.stride;
+        let vertices = &self.vertex[first..first + self.count[c] as usize];
+        // Taken out of the cell, not borrowed: a nested call (none today) would allocate, not panic.
+        let mut xl = LOCAL_POSITIONS.take();
+        xl.clear();
+        xl.extend(vertices.iter().map(|&v| x[v as usize]));
+        let result = f(&xl);
+        LOCAL_POSITIONS.set(xl);
+        result
+    }
+
+    /// Runs `chunk_fn(c, xl, acc)` for every chunk `c` in parallel, where `xl` holds the chunk's vertex
+    /// positions from `x` (local order, [`CornerSums::with_positions`]) and `acc` is its accumulator (zeroed,
+    /// indexed by local vertex) into which it adds its corner values in ascending block position; then
+    /// writes every vertex's sum to `out` (user order, shape (num_vertices, 3)). `parts[c]` gets the chunk's
+    /// return value. `acc` is scratch memory, grown on the first call.
     pub(crate) fn run<S, F>(
         &self,
+        x: &[Vec3],
         acc: &mut Vec<Vec3>,
         parts: &mut [S],
         out: &mut [Vec3],
         chunk_fn: F,
     ) where
         S: Send,
-        F: Fn(usize, &mut [Vec3]) -> S + Sync,
+        F: Fn(usize, &[Vec3], &mut [Vec3]) -> S + Sync,
     {
         let num_chunks = self.count.len();
         assert_eq!(parts.len(), num_chunks, "one result per chunk");
+        assert_eq!(
+            out.len() + 1,
+            self.vertex_offsets.len(),
+            "one sum per vertex"
+        );
         acc.resize(num_chunks * self.stride, [0.0; 3]);
-        // Every write is checked against the output's length (`VertexWriter::write`).
-        let m = out.len();
-        let out_ptr = VertexWriter(out.as_mut_ptr(), m);
-        let (dest, count) = (&self.dest, &self.count);
+        let count = &self.count;
         acc.par_chunks_mut(self.stride.max(1))
             .zip(parts.par_iter_mut())
             .enumerate()
             .for_each(|(c, (acc, part))| {
                 let acc = &mut acc[..count[c] as usize];
                 acc.fill([0.0; 3]);
-                *part = chunk_fn(c, acc);
-                let dest = &dest[c * self.stride..c * self.stride + acc.len()];
-                for (&d, sum) in dest.iter().zip(acc.iter()) {
-                    if d & SHARED == 0 {
-                        // SAFETY: `d` is a user vertex whose sum only this entry holds (the construction
-                        // gives each vertex touched by one chunk exactly one entry), so no other task
-                        // writes it, and `out` outlives the parallel loop.
-                        unsafe { out_ptr.write(d as usize, *sum) };
-                    }
-                }
+                *part = self.with_positions(c, x, |xl| chunk_fn(c, xl, acc));
             });
         let acc = &acc[..];
-        let (offsets, entries) = (&self.shared_offsets, &self.shared_entries);
-        self.shared_vertex
-            .par_iter()
+        let (offsets, entries) = (&self.vertex_offsets, &self.vertex_entries);
+        out.par_chunks_mut(VERTEX_TASK)
             .enumerate()
-            .with_min_len(SHARED_TASK)
-            .for_each(|(s, &v)| {
-                let mut sum = [0.0; 3];
-                if let Some((&first, rest)) = entries[offsets[s]..offsets[s + 1]].split_first() {
-                    sum = acc[first as usize];
-                    for &e in rest {
-                        let p = acc[e as usize];
-                        sum = [sum[0] + p[0], sum[1] + p[1], sum[2] + p[2]];
-                    }
+            .for_each(|(t, out)| {
+                for (k, sum) in out.iter_mut().enumerate() {
+                    let v = t * VERTEX_TASK + k;
+                    let mine = &entries[offsets[v] as usize..offsets[v + 1] as usize];
+                    *sum = match mine.split_first() {
+                        None => [0.0; 3],
+                        Some((&first, rest)) => rest.iter().fold(acc[first as usize], |s, &e| {
+                            let p = acc[e as usize];
+                            [s[0] + p[0], s[1] + p[1], s[2] + p[2]]
+                        }),
+                    };
                 }
-                // SAFETY: shared vertices are distinct, and the chunks wrote none of them.
-                unsafe { out_ptr.write(v as usize, sum) };
             });
-    }
-}
-
-/// Writes to distinct elements of one output slice from several tasks.
-#[derive(Clone, Copy)]
-struct VertexWriter(*mut Vec3, usize);
-
-// SAFETY: the callers write disjoint elements only (see the SAFETY comments at the writes).
-unsafe impl Send for VertexWriter {}
-unsafe impl Sync for VertexWriter {}
-
-impl VertexWriter {
-    /// # Safety
-    /// No other thread may access element `i` during the write.
-    #[inline(always)]
-    unsafe fn write(self, i: usize, value: Vec3) {
-        assert!(i < self.1, "vertex {i} out of range");
-        // SAFETY: in range (checked); exclusive by the caller's contract.
-        unsafe { self.0.add(i).write(value) };
     }
 }
 
@@ -268,6 +250,7 @@ mod tests {
         let tet_at: Vec<u32> = (0..k).map(|p| ((p * 5) % k) as u32).collect();
         let (sums, local) = CornerSums::new(&tets, &tet_at, m);
         let want = sums_by_reference(&tets, &tet_at, m);
+        let x: Vec<Vec3> = (0..m).map(|v| [v as f64, 0.5 * v as f64, -1.0]).collect();
         assert_eq!(want[m - 1], [0.0; 3], "the unreferenced vertex");
         for threads in [1, 2, 3] {
             let pool = rayon::ThreadPoolBuilder::new()
@@ -277,10 +260,13 @@ mod tests {
             let got = pool.install(|| {
                 let (mut acc, mut parts) = (Vec::new(), vec![0usize; k.div_ceil(TET_CHUNK)]);
                 let mut out = vec![[f64::NAN; 3]; m];
-                sums.run(&mut acc, &mut parts, &mut out, |c, acc| {
+                sums.run(&x, &mut acc, &mut parts, &mut out, |c, xl, acc| {
                     let end = ((c + 1) * TET_CHUNK).min(k);
                     for p in c * TET_CHUNK..end {
                         for corner in 0..4 {
+                            // The local positions are the corners' own.
+                            let v = tets[tet_at[p] as usize][corner];
+                            assert_eq!(xl[local[p][corner] as usize], x[v]);
                             let a = &mut acc[local[p][corner] as usize];
                             let val = value(p, corner);
                             for i in 0..3 {

@@ -17,7 +17,7 @@
 //! thanks to the mass term in most iterations, converges quadratically near the solution.
 //! Backward Euler is unconditionally stable but numerically dissipative: FEPR on top restores the energy.
 
-use crate::elasticity::{elastic_energy_gradient, elastic_energy_with, ElasticWorkspace};
+use crate::elasticity::{elastic_energy, elastic_energy_gradient, ElasticWorkspace};
 use crate::error::{invalid, Result};
 use crate::hessian::HessianAssembler;
 use crate::integrators::{finish_positional_step, Integrator, StepReport};
@@ -97,7 +97,7 @@ impl ImplicitEuler {
     }
 
     /// `Phi(x)` (J).
-    fn objective(model: &Model, x: &[Vec3], y: &[Vec3], h: f64, ws: &mut ElasticWorkspace) -> f64 {
+    fn objective(model: &Model, x: &[Vec3], y: &[Vec3], h: f64) -> f64 {
         let mut inertia = 0.0;
         let mut grav = 0.0;
         for i in 0..x.len() {
@@ -105,7 +105,7 @@ impl ImplicitEuler {
             inertia += model.masses[i] * dot(d, d);
             grav -= model.masses[i] * dot(model.gravity, x[i]);
         }
-        inertia / (2.0 * h * h) + grav + elastic_energy_with(model, x, ws).energy
+        inertia / (2.0 * h * h) + grav + elastic_energy(model, x).energy
     }
 
     /// Evaluate `Phi` and its gradient (into `self.grad`). Also returns the magnitude scale of `Phi`
@@ -176,8 +176,8 @@ impl Integrator for ImplicitEuler {
         // start-of-step energy, less gravity's share), so with a monotone line search the step can never end
         // with more energy than it started with, even when y inverts slivers and Newton cannot recover within
         // its iterations; starting from y alone would then hand a wildly energetic state to the next step.
-        let mut x = if Self::objective(model, &x_n, &self.y, h, &mut self.ws)
-            < Self::objective(model, &self.y, &self.y, h, &mut self.ws)
+        let mut x = if Self::objective(model, &x_n, &self.y, h)
+            < Self::objective(model, &self.y, &self.y, h)
         {
             x_n.clone()
         } else {
@@ -261,7 +261,7 @@ impl Integrator for ImplicitEuler {
                         }
                     }
                 }
-                let phi_trial = Self::objective(model, &self.x_trial, &self.y, h, &mut self.ws);
+                let phi_trial = Self::objective(model, &self.x_trial, &self.y, h);
                 if phi_trial <= phi + 1e-4 * alpha * slope {
                     break true;
                 }

@@ -45,21 +45,20 @@ pub struct Model {
     /// `incidence_offsets[kernel_rank[v]]`.
     pub(crate) incidence_offsets: Vec<usize>,
     pub(crate) incidence_slots: Vec<u32>,
-    /// The kernels' internal vertex order (invisible to users): rank -> user vertex, the Morton (Z-curve)
-    /// order of the rest positions (ties by index). The per-tet kernels read positions permuted into this
-    /// order (`x_k[r] = x[kernel_vertices[r]]`), so that neighbouring tets load neighbouring memory.
-    pub(crate) kernel_vertices: Vec<u32>,
-    /// User vertex -> rank (the inverse of `kernel_vertices`).
+    /// User vertex -> rank in the internal vertex order (invisible to users): the Morton (Z-curve) order of
+    /// the rest positions (ties by index). It orders the tets (`tet_at`), so that a chunk of consecutive
+    /// tets is spatially compact, and the incidence lists.
     pub(crate) kernel_rank: Vec<u32>,
     /// The internal tet order of the blocks: position -> user tet (tets sorted stably by their smallest
     /// vertex rank).
     pub(crate) tet_at: Vec<u32>,
     /// User tet -> position in the blocks (the inverse of `tet_at`).
     pub(crate) tet_position: Vec<u32>,
-    /// Rest data in SIMD-friendly blocks for the per-tet kernels (104 bytes per tet), in the internal tet
-    /// order with vertex ranks as indices; the only copy of `D_m^-1`.
+    /// Rest data in SIMD-friendly blocks for the per-tet kernels (88 bytes per tet), in the internal tet
+    /// order, with every corner's local index in its chunk (`corner_sums`); the only copy of `D_m^-1`.
     pub(crate) tet_blocks: TetBlocks,
-    /// How the gradient passes' chunks sum their corners into vertices (the blocks hold the local indices).
+    /// The chunks' local vertex numbering: how the per-tet passes' chunks gather their positions and sum
+    /// their corners into vertices (the blocks hold the local indices).
     pub(crate) corner_sums: CornerSums,
     /// Hash of the rest mesh (vertex coordinates and tets), computed once by the builder (see [`ModelKey`]).
     mesh_hash: u64,
@@ -70,38 +69,6 @@ impl Model {
     #[inline]
     pub fn dm_inv(&self, e: usize) -> crate::linalg::Mat3 {
         self.tet_blocks.dm_inv_at(self.tet_position[e] as usize)
-    }
-
-    /// Positions in the kernels' internal vertex order: `out[r] = x[kernel_vertices[r]]` (a copy, O(vertices),
-    /// parallel over fixed chunks).
-    pub(crate) fn kernel_positions(&self, x: &[Vec3], out: &mut Vec<Vec3>) {
-        use rayon::prelude::*;
-        const CHUNK: usize = 8192;
-        let order = &self.kernel_vertices;
-        assert_eq!(x.len(), order.len(), "one position per vertex");
-        out.resize(order.len(), [0.0; 3]);
-        out.par_chunks_mut(CHUNK)
-            .zip(order.par_chunks(CHUNK))
-            .for_each(|(o, vs)| {
-                for (p, &v) in o.iter_mut().zip(vs) {
-                    *p = x[v as usize];
-                }
-            });
-    }
-
-    /// `out[v] = gk[kernel_rank[v]]`: values in the kernels' vertex order put in user order (parallel over
-    /// fixed chunks).
-    pub(crate) fn user_order(&self, gk: &[Vec3], out: &mut [Vec3]) {
-        use rayon::prelude::*;
-        const CHUNK: usize = 8192;
-        assert_eq!(gk.len(), out.len(), "one value per vertex");
-        out.par_chunks_mut(CHUNK)
-            .zip(self.kernel_rank.par_chunks(CHUNK))
-            .for_each(|(o, rs)| {
-                for (p, &r) in o.iter_mut().zip(rs) {
-                    *p = gk[r as usize];
-                }
-            });
     }
 
     pub fn num_vertices(&self) -> usize {
@@ -203,14 +170,8 @@ impl ModelBuilder {
         let length_scale = self.mesh.half_diagonal();
         let order = KernelOrder::new(&self.mesh);
         let (incidence_offsets, incidence_slots) = order.incidence(&self.mesh);
-        // In the kernels' vertex order: each chunk's vertices then sit close together in the sums it writes
-        // (written in user order, two threads' chunks shared cache lines: 1.2x on two threads on the bunny).
-        let ranked: Vec<[usize; 4]> = (self.mesh.tets().iter())
-            .map(|t| t.map(|v| order.rank[v] as usize))
-            .collect();
-        let (corner_sums, local) = CornerSums::new(&ranked, &order.tet_at, m);
-        let tet_blocks =
-            TetBlocks::new(self.mesh.tets(), &rest, &order.tet_at, &order.rank, &local);
+        let (corner_sums, local) = CornerSums::new(self.mesh.tets(), &order.tet_at, m);
+        let tet_blocks = TetBlocks::new(&rest, &order.tet_at, &local);
         // D_m^-1 is kept in the blocks only (72 bytes per tet not held twice).
         let RestShape { volume, .. } = rest;
         let mesh_hash = hash_mesh(&self.mesh);
@@ -226,7 +187,6 @@ impl ModelBuilder {
             length_scale,
             incidence_offsets,
             incidence_slots,
-            kernel_vertices: order.vertices,
             kernel_rank: order.rank,
             tet_at: order.tet_at,
             tet_position: order.tet_position,
@@ -341,10 +301,8 @@ fn hash_mesh(mesh: &TetMesh) -> u64 {
     h.finish()
 }
 
-/// The internal orders of a mesh's vertices and tets (see [`Model::kernel_vertices`]).
+/// The internal orders of a mesh's vertices and tets (see [`Model::kernel_rank`]).
 struct KernelOrder {
-    /// Rank -> user vertex.
-    vertices: Vec<u32>,
     /// User vertex -> rank.
     rank: Vec<u32>,
     /// Position -> user tet.
@@ -375,7 +333,6 @@ impl KernelOrder {
             tet_position[e as usize] = p as u32;
         }
         Self {
-            vertices,
             rank,
             tet_at,
             tet_position,

@@ -77,8 +77,6 @@ pub struct ProjectiveDynamics {
     /// Per tet in the model's block order, the right-hand side terms `w_e R_e g_k` on its 4 corners (from the
     /// local step).
     corner_terms: Vec<[Vec3; 4]>,
-    /// The iterate in the model's internal vertex order, for the local step.
-    x_kernel: Vec<Vec3>,
     /// Global-step right-hand sides, then solutions: one row (x, y, z) per free vertex.
     rhs: Vec<Vec3>,
     x_n: Vec<Vec3>,
@@ -271,13 +269,7 @@ impl Integrator for ProjectiveDynamics {
             let t0 = Instant::now();
             // Local step: the closest rotation R_e to each F_e and its corner terms w_e R_e g_k, in parallel
             // (rotation_blocks: bit for bit linalg::polar_rotation).
-            model.kernel_positions(&x, &mut self.x_kernel);
-            crate::rotation_blocks::pd_rotation_terms(
-                pre.mu,
-                model,
-                &self.x_kernel,
-                &mut self.corner_terms,
-            );
+            crate::rotation_blocks::pd_rotation_terms(pre.mu, model, &x, &mut self.corner_terms);
             let t1 = Instant::now();
             // Global step right-hand side, row c for free vertex c: M (y / h^2 + g) + sum_e w_e R_e g_e,k over
             // the tets at the vertex, gathered in parallel in ascending block position (deterministic).

@@ -556,7 +556,7 @@ impl Projector {
         // gradient is computed only when an iteration needs it (`grad_at_x`).
         let lazy_gradient = self.settings.warm_start_threshold.is_finite();
         let mut cur = if lazy_gradient {
-            evaluate_energy(&pb, &self.x, &self.v, s, t, &mut self.ws)
+            evaluate_energy(&pb, &self.x, &self.v, s, t)
         } else {
             evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad)
         };
@@ -1160,15 +1160,8 @@ fn evaluate(
 
 /// [`evaluate`] without the elastic gradient: the same constraint values, energies and momenta; the gradient
 /// moments of `S` are left at zero (not to be solved with).
-fn evaluate_energy(
-    pb: &Problem,
-    x: &[Vec3],
-    v: &[Vec3],
-    s: f64,
-    t: f64,
-    ws: &mut ElasticWorkspace,
-) -> Eval {
-    let el = crate::elasticity::elastic_energy_with(pb.model, x, ws);
+fn evaluate_energy(pb: &Problem, x: &[Vec3], v: &[Vec3], s: f64, t: f64) -> Eval {
+    let el = crate::elasticity::elastic_energy(pb.model, x);
     evaluate_with_elastic(pb, x, v, s, t, el, None)
 }
 

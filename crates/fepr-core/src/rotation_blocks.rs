@@ -36,31 +36,33 @@ enum Sink<'a> {
 }
 
 /// ARAP energy and gradient (to `sink`), summed per chunk of [`TET_CHUNK`] tets in chunk order; as
-/// `elasticity`'s per-tet pass for any material, bit for bit. `xk`: positions in the kernels' vertex order
-/// (`Model::kernel_positions`), as for every pass here.
+/// `elasticity`'s per-tet pass for any material, bit for bit.
 pub(crate) fn arap_gradient_pass(
     arap: &Arap,
     model: &Model,
-    xk: &[Vec3],
+    x: &[Vec3],
     sink: GradientSink,
 ) -> ElasticSummary {
     let blocks = &model.tet_blocks;
-    chunked_pass(model, sink, |c, acc, len| {
+    chunked_pass(model, x, sink, |c, xl, acc, len| {
         let first = c * CHUNK_BLOCKS;
         let range = first..first + len.div_ceil(BLOCK);
-        run(arap.mu, blocks, range, xk, Sink::Gradient(acc), len)
+        run(arap.mu, blocks, range, xl, Sink::Gradient(acc), len)
     })
 }
 
 /// The ARAP energy summary alone.
-pub(crate) fn arap_energy(arap: &Arap, model: &Model, xk: &[Vec3]) -> ElasticSummary {
+pub(crate) fn arap_energy(arap: &Arap, model: &Model, x: &[Vec3]) -> ElasticSummary {
     let blocks = &model.tet_blocks;
     reduce_chunks(
         model.num_tets(),
         TET_CHUNK,
         |range| {
             let b = range.start / BLOCK..range.end.div_ceil(BLOCK);
-            run(arap.mu, blocks, b, xk, Sink::Energy, range.len())
+            let c = range.start / TET_CHUNK;
+            (model.corner_sums).with_positions(c, x, |xl| {
+                run(arap.mu, blocks, b, xl, Sink::Energy, range.len())
+            })
         },
         ElasticSummary::combine,
     )
@@ -71,8 +73,8 @@ pub(crate) fn arap_energy(arap: &Arap, model: &Model, xk: &[Vec3]) -> ElasticSum
 /// its corner terms `w R g_k` with `w = 2 mu V` and `g_k` the shape-function gradients (corners 1..3: the
 /// columns of `w R D_m^-T`; corner 0 minus their sum), into `out[p]` for the tet at block position `p`
 /// (`Model::tet_at`; shape (num_tets, 4, 3)). Parallel over fixed chunks; each tet's terms depend on that
-/// tet alone. `xk`: positions in the kernels' vertex order.
-pub(crate) fn pd_rotation_terms(mu: f64, model: &Model, xk: &[Vec3], out: &mut [[Vec3; 4]]) {
+/// tet alone.
+pub(crate) fn pd_rotation_terms(mu: f64, model: &Model, x: &[Vec3], out: &mut [[Vec3; 4]]) {
     let (blocks, k) = (&model.tet_blocks, model.num_tets());
     assert_eq!(out.len(), k, "one entry per tet");
     out.par_chunks_mut(TET_CHUNK)
@@ -81,7 +83,9 @@ pub(crate) fn pd_rotation_terms(mu: f64, model: &Model, xk: &[Vec3], out: &mut [
             let first = c * CHUNK_BLOCKS;
             let range = first..first + chunk.len().div_ceil(BLOCK);
             let len = chunk.len();
-            run(mu, blocks, range, xk, Sink::PdTerms(chunk), len);
+            (model.corner_sums).with_positions(c, x, |xl| {
+                run(mu, blocks, range, xl, Sink::PdTerms(chunk), len);
+            });
         });
 }
 
@@ -247,9 +251,7 @@ mod tests {
         let x = deformed(&model, 3);
         let mu = 123.0;
         let mut out = vec![[[0.0; 3]; 4]; model.num_tets()];
-        let mut xk = Vec::new();
-        model.kernel_positions(&x, &mut xk);
-        pd_rotation_terms(mu, &model, &xk, &mut out);
+        pd_rotation_terms(mu, &model, &x, &mut out);
         for e in 0..model.num_tets() {
             let pos = model.tet_position[e] as usize;
             let f = crate::elasticity::deformation_gradient(&model, &x, e);
