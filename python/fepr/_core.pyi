@@ -53,6 +53,7 @@ class _ProjectionReportDict(TypedDict):
     stiffness_metric: bool
     restarts: int
     frozen_vertices: int
+    evaluations: int
 
 class Simulation:
     """The simulation: model, state, integrator and projection (see ``fepr.Simulation`` for the documented

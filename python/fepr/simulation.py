@@ -231,6 +231,7 @@ class ProjectionReport:
     stiffness_metric: bool
     restarts: int
     frozen_vertices: int
+    evaluations: int
 
 
 class History:
@@ -256,6 +257,7 @@ class History:
             "proj_bound_hit",
             "proj_warm_start",
             "proj_frozen",
+            "proj_evaluations",
             "inverted",
             "runaway",
             "contacts",

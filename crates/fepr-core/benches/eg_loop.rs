@@ -2,6 +2,10 @@
 //! `cargo bench -p fepr-core --bench eg_loop -- CELLS THREADS REPEATS` (a CELLS^3 box, 6 tets per cell).
 //! `cargo bench -p fepr-core --bench eg_loop -- eg STEM THREADS REPEATS`: the same on a TetGen mesh
 //! `STEM.node`/`STEM.ele`.
+//! `cargo bench -p fepr-core --bench eg_loop -- proj STEM THREADS REPEATS`: the FEPR projection alone after
+//! one symplectic Euler step (dt = 1 ms) from the same set-up, the same input every call: ms per call (best
+//! and median), iterations, and the energy + gradient in the same pool for the ratio.
+//! `EG_AWAKE=1` (with `eg` and `proj`): hold `parallel::KeepAwake` around the timed loop, as a step does.
 //! `cargo bench -p fepr-core --bench eg_loop -- small` times the small dense kernels instead (polar
 //! decomposition, 3x3 and 9x9 symmetric eigen-decompositions, PSD projection), one thread, ns per call.
 //! `cargo bench -p fepr-core --bench eg_loop -- newton STEM STEPS` runs backward Euler (no projection) on a
@@ -377,6 +381,13 @@ fn main() {
         );
         return;
     }
+    if raw.first().map(String::as_str) == Some("proj") {
+        let num =
+            |i: usize, default: usize| raw.get(i).and_then(|s| s.parse().ok()).unwrap_or(default);
+        let mesh = load_tetgen(std::path::Path::new(&raw[1])).expect("a TetGen mesh");
+        time_projection(mesh, num(2, 1), num(3, 200));
+        return;
+    }
     if raw.first().map(String::as_str) == Some("eg") {
         let num =
             |i: usize, default: usize| raw.get(i).and_then(|s| s.parse().ok()).unwrap_or(default);
@@ -465,6 +476,77 @@ fn time_energy_gradient(mesh: TetMesh, threads: usize, repeats: usize) {
             "tets {} threads {threads}: {:.1} ns/tet",
             model.num_tets(),
             dt * 1e9 / model.num_tets() as f64
+        );
+    });
+}
+
+/// Times `Projector::project` on the state after one symplectic Euler step from the set-up of
+/// [`time_energy_gradient`] (targets: the invariants of the initial state), the same input every call.
+fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
+    use fepr_core::integrators::{Integrator, SymplecticEuler};
+    use fepr_core::invariants::measure;
+    use fepr_core::model::State;
+    use fepr_core::projection::{ProjectionSettings, Projector, Targets};
+    let model = ModelBuilder::new(
+        mesh,
+        Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
+    )
+    .mass(MassSpec::NodeMass(0.05))
+    .build()
+    .unwrap();
+    let mut start = State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &start.x);
+    for p in start.x.iter_mut() {
+        *p = [0, 1, 2].map(|a| c[a] + 1.05 * (p[a] - c[a]));
+    }
+    let inv = measure(&model, &start);
+    let targets = Targets {
+        energy: inv.total,
+        momentum: inv.momentum,
+        angular_momentum: inv.angular_momentum,
+        center_of_mass: inv.center_of_mass,
+        energy_scale: inv.total.abs(),
+        uncertain_impulses: false,
+    };
+    let h = 1e-3;
+    let mut base = start.clone();
+    SymplecticEuler::new().step(&model, &mut base, h);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        let _awake = std::env::var("EG_AWAKE").is_ok().then(fepr_core::parallel::KeepAwake::new);
+        let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
+        let mut state = base.clone();
+        let (report, _) = proj.project(&model, &mut state, h, &targets);
+        let mut times = Vec::with_capacity(repeats);
+        for _ in 0..repeats {
+            state.x.copy_from_slice(&base.x);
+            state.v.copy_from_slice(&base.v);
+            let t0 = Instant::now();
+            std::hint::black_box(proj.project(&model, &mut state, h, &targets));
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        let (mut grad, mut ws) = (vec![[0.0; 3]; start.x.len()], ElasticWorkspace::default());
+        let mut eg = Vec::with_capacity(repeats);
+        for _ in 0..repeats {
+            let t0 = Instant::now();
+            std::hint::black_box(elastic_energy_gradient(&model, &base.x, &mut ws, &mut grad));
+            eg.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        for t in [&mut times, &mut eg] {
+            t.sort_by(f64::total_cmp);
+        }
+        let (best, median) = (times[0], times[repeats / 2]);
+        println!(
+            "tets {} threads {threads}: projection {best:.3} / {median:.3} ms (best / median), {} iterations; \
+             E+G {:.3} / {:.3} ms; per evaluation / E+G (best) {:.2}",
+            model.num_tets(),
+            report.iterations,
+            eg[0],
+            eg[repeats / 2],
+            best / (1.0 + report.iterations as f64) / eg[0]
         );
     });
 }

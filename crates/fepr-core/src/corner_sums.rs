@@ -6,7 +6,7 @@
 //! The chunks run in parallel, in block order. Each adds its corner values in ascending block position,
 //! while they are still in registers: no per-tet buffer is written to memory and read back by a second
 //! pass, and no permuted copy of the positions is made. A second parallel pass over the vertices (user
-//! order, fixed tasks) then sums every vertex's partial sums in chunk order: most vertices have one (the
+//! order, fixed tasks; here or in the caller's own vertex pass) then sums every vertex's partial sums in chunk order: most vertices have one (the
 //! chunks are spatially compact), those on chunk borders several, a vertex no tet references none. Neither
 //! order depends on the number of threads, so the sums are bit-identical for any thread count. The chunks
 //! write only their own accumulators and the vertex pass writes contiguous runs of the output, so no two
@@ -115,8 +115,8 @@ impl CornerSums {
         (sums, local)
     }
 
-    /// Runs `f` with chunk `c`'s vertex positions in local order (`xl[j] = x[v]` for local vertex `j`),
-    /// gathered into this thread's reused buffer.
+    /// Runs `f` with chunk `c`'s vertex positions in local order (`xl[j] = x[v]` for its local vertex `j`,
+    /// user vertex `v`), gathered into this thread's reused buffer.
     pub(crate) fn with_positions<R>(
         &self,
         c: usize,
@@ -135,28 +135,17 @@ impl CornerSums {
     }
 
     /// Runs `chunk_fn(c, xl, acc)` for every chunk `c` in parallel, where `xl` holds the chunk's vertex
-    /// positions from `x` (local order, [`CornerSums::with_positions`]) and `acc` is its accumulator (zeroed,
-    /// indexed by local vertex) into which it adds its corner values in ascending block position; then
-    /// writes every vertex's sum to `out` (user order, shape (num_vertices, 3)). `parts[c]` gets the chunk's
-    /// return value. `acc` is scratch memory, grown on the first call.
-    pub(crate) fn run<S, F>(
-        &self,
-        x: &[Vec3],
-        acc: &mut Vec<Vec3>,
-        parts: &mut [S],
-        out: &mut [Vec3],
-        chunk_fn: F,
-    ) where
+    /// positions (local order, [`CornerSums::with_positions`]) and `acc` is its accumulator (zeroed, indexed
+    /// by local vertex) into which it adds its corner values in ascending block position. `parts[c]` gets the
+    /// chunk's return value. `acc` is scratch memory, grown on the first call; the vertices' sums are then
+    /// [`CornerSums::vertex_sum`] (or all of them: [`CornerSums::sums_into`]).
+    pub(crate) fn chunks<S, F>(&self, x: &[Vec3], acc: &mut Vec<Vec3>, parts: &mut [S], chunk_fn: F)
+    where
         S: Send,
         F: Fn(usize, &[Vec3], &mut [Vec3]) -> S + Sync,
     {
         let num_chunks = self.count.len();
         assert_eq!(parts.len(), num_chunks, "one result per chunk");
-        assert_eq!(
-            out.len() + 1,
-            self.vertex_offsets.len(),
-            "one sum per vertex"
-        );
         acc.resize(num_chunks * self.stride, [0.0; 3]);
         let count = &self.count;
         acc.par_chunks_mut(self.stride.max(1))
@@ -167,21 +156,35 @@ impl CornerSums {
                 acc.fill([0.0; 3]);
                 *part = self.with_positions(c, x, |xl| chunk_fn(c, xl, acc));
             });
-        let acc = &acc[..];
+    }
+
+    /// User vertex `v`'s sum: its partial sums in `acc` (from [`CornerSums::chunks`]) added in chunk order
+    /// (zero for a vertex no tet references).
+    #[inline(always)]
+    pub(crate) fn vertex_sum(&self, acc: &[Vec3], v: usize) -> Vec3 {
         let (offsets, entries) = (&self.vertex_offsets, &self.vertex_entries);
+        let mine = &entries[offsets[v] as usize..offsets[v + 1] as usize];
+        match mine.split_first() {
+            None => [0.0; 3],
+            Some((&first, rest)) => rest.iter().fold(acc[first as usize], |s, &e| {
+                let p = acc[e as usize];
+                [s[0] + p[0], s[1] + p[1], s[2] + p[2]]
+            }),
+        }
+    }
+
+    /// Every vertex's sum into `out` (user order, shape (num_vertices, 3)), in parallel over fixed tasks.
+    pub(crate) fn sums_into(&self, acc: &[Vec3], out: &mut [Vec3]) {
+        assert_eq!(
+            out.len() + 1,
+            self.vertex_offsets.len(),
+            "one sum per vertex"
+        );
         out.par_chunks_mut(VERTEX_TASK)
             .enumerate()
             .for_each(|(t, out)| {
                 for (k, sum) in out.iter_mut().enumerate() {
-                    let v = t * VERTEX_TASK + k;
-                    let mine = &entries[offsets[v] as usize..offsets[v + 1] as usize];
-                    *sum = match mine.split_first() {
-                        None => [0.0; 3],
-                        Some((&first, rest)) => rest.iter().fold(acc[first as usize], |s, &e| {
-                            let p = acc[e as usize];
-                            [s[0] + p[0], s[1] + p[1], s[2] + p[2]]
-                        }),
-                    };
+                    *sum = self.vertex_sum(acc, t * VERTEX_TASK + k);
                 }
             });
     }
@@ -260,7 +263,7 @@ mod tests {
             let got = pool.install(|| {
                 let (mut acc, mut parts) = (Vec::new(), vec![0usize; k.div_ceil(TET_CHUNK)]);
                 let mut out = vec![[f64::NAN; 3]; m];
-                sums.run(&x, &mut acc, &mut parts, &mut out, |c, xl, acc| {
+                sums.chunks(&x, &mut acc, &mut parts, |c, xl, acc| {
                     let end = ((c + 1) * TET_CHUNK).min(k);
                     for p in c * TET_CHUNK..end {
                         for corner in 0..4 {
@@ -277,6 +280,7 @@ mod tests {
                     end - c * TET_CHUNK
                 });
                 assert_eq!(parts.iter().sum::<usize>(), k);
+                sums.sums_into(&acc, &mut out);
                 out
             });
             let bits = |o: &[Vec3]| o.iter().flatten().map(|g| g.to_bits()).collect::<Vec<_>>();

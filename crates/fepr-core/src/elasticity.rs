@@ -240,10 +240,22 @@ pub fn elastic_energy_gradient(
     ws: &mut ElasticWorkspace,
     grad: &mut [Vec3],
 ) -> ElasticSummary {
+    let summary = elastic_gradient_chunks(model, x, ws);
+    model.corner_sums.sums_into(&ws.corner_acc, grad);
+    summary
+}
+
+/// The per-tet half of [`elastic_energy_gradient`] at `x`: the energy summary, and the chunks' partial
+/// gradient sums in `ws` (a caller with its own pass over the vertices sums them there). Vertex `v`'s gradient is then
+/// [`ElasticWorkspace::gradient_at`].
+pub(crate) fn elastic_gradient_chunks(
+    model: &Model,
+    x: &[Vec3],
+    ws: &mut ElasticWorkspace,
+) -> ElasticSummary {
     let sink = GradientSink {
         acc: &mut ws.corner_acc,
         parts: &mut ws.partials,
-        grad,
     };
     match &model.material {
         Material::NeoHookean(nh) => neo_hookean_pass(Lanes::detect(), nh, model, x, sink),
@@ -252,22 +264,28 @@ pub fn elastic_energy_gradient(
     }
 }
 
-/// Where a gradient pass puts its results: the chunks' accumulators and summaries (scratch), and the
-/// gradient (user order, shape (m, 3)).
+impl ElasticWorkspace {
+    /// The elastic gradient on user vertex `v` (J/m) from the last [`elastic_gradient_chunks`] of `model`.
+    #[inline(always)]
+    pub(crate) fn gradient_at(&self, model: &Model, v: usize) -> Vec3 {
+        model.corner_sums.vertex_sum(&self.corner_acc, v)
+    }
+}
+
+/// Where a gradient pass puts its results: the chunks' partial gradient sums and summaries.
 pub(crate) struct GradientSink<'a> {
     pub(crate) acc: &'a mut Vec<Vec3>,
     pub(crate) parts: &'a mut Vec<ElasticSummary>,
-    pub(crate) grad: &'a mut [Vec3],
 }
 
 /// Blocks per chunk of [`TET_CHUNK`] tets.
 pub(crate) const CHUNK_BLOCKS: usize = TET_CHUNK / BLOCK;
 
-/// A gradient pass at `x` over fixed chunks of [`TET_CHUNK`] tets: `chunk_fn(c, xl, acc, len)` reads chunk
-/// `c`'s vertex positions from `xl` and adds its corner gradients into its accumulator `acc` (both indexed
-/// by local vertex: [`TetBlock::loc`]), and returns its summary; the gradient goes to `sink.grad`
-/// (`CornerSums::run`), and the summaries, written in place (no allocation once `parts` has grown), are
-/// combined in chunk order.
+/// A gradient pass at `x` over fixed chunks of [`TET_CHUNK`] tets:
+/// `chunk_fn(c, xl, acc, len)` reads chunk `c`'s vertex positions from `xl` and adds its corner gradients
+/// into its accumulator `acc` (both indexed by local vertex: [`TetBlock::loc`]), and returns its summary;
+/// the partial sums stay in `sink.acc` (`CornerSums::chunks`), and the summaries, written in place (no
+/// allocation once `parts` has grown), are combined in chunk order.
 pub(crate) fn chunked_pass<F>(
     model: &Model,
     x: &[Vec3],
@@ -281,11 +299,9 @@ where
     let parts = sink.parts;
     parts.clear();
     parts.resize(num_tets.div_ceil(TET_CHUNK), ElasticSummary::zero());
-    model
-        .corner_sums
-        .run(x, sink.acc, parts, sink.grad, |c, xl, acc| {
-            chunk_fn(c, xl, acc, (num_tets - c * TET_CHUNK).min(TET_CHUNK))
-        });
+    model.corner_sums.chunks(x, sink.acc, parts, |c, xl, acc| {
+        chunk_fn(c, xl, acc, (num_tets - c * TET_CHUNK).min(TET_CHUNK))
+    });
     parts.iter().fold(ElasticSummary::zero(), |a, b| {
         ElasticSummary::combine(a, *b)
     })
@@ -945,8 +961,8 @@ pub(crate) mod tests {
         let s = pass(GradientSink {
             acc: &mut acc,
             parts: &mut parts,
-            grad: &mut grad,
         });
+        model.corner_sums.sums_into(&acc, &mut grad);
         (s, grad.iter().flatten().map(|g| g.to_bits()).collect())
     }
 

@@ -20,13 +20,12 @@
 use rayon::prelude::*;
 
 use crate::elasticity::{
-    deformation_gradient, elastic_energy_gradient, ElasticSummary, ElasticWorkspace,
+    deformation_gradient, elastic_gradient_chunks, ElasticSummary, ElasticWorkspace,
 };
 use crate::error::{invalid, Result};
 use crate::invariants::Invariants;
 use crate::linalg::{cross, dot, solve_symmetric_psd, sub, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
-use crate::parallel::reduce_chunks;
 
 /// Which constraint rows the projection enforces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -285,11 +284,17 @@ pub struct ProjectionReport {
     pub restarts: usize,
     /// Vertices whose positions were frozen by those restarts (their velocities stay free).
     pub frozen_vertices: usize,
+    /// Elastic evaluations (energy, or energy and gradient, over all tets), the first one included: an
+    /// iteration evaluates its trial point, and a second one where the full step overshoots.
+    pub evaluations: usize,
 }
 
 /// Everything an evaluation of `c(q)` produces.
 #[derive(Clone, Copy, Debug)]
 struct Eval {
+    /// The moments for `S` (below) were summed; without them (a trial point, most of which end the
+    /// projection) they are zero and must be summed before a solve.
+    s_moments: bool,
     c: [f64; ROWS],
     el: ElasticSummary,
     kinetic: f64,
@@ -320,6 +325,7 @@ impl Default for Eval {
     fn default() -> Self {
         let z = [0.0; 3];
         Self {
+            s_moments: false,
             c: [0.0; ROWS],
             el: ElasticSummary {
                 energy: 0.0,
@@ -351,6 +357,7 @@ impl Default for Eval {
 impl Eval {
     /// Add the vertex sums of `b` (a later chunk) to these.
     fn add(&mut self, b: &Eval) {
+        self.s_moments &= b.s_moments;
         let add3 = |a: &mut Vec3, b: &Vec3| (0..3).for_each(|k| a[k] += b[k]);
         self.kinetic += b.kinetic;
         self.gravitational += b.gravitational;
@@ -374,11 +381,18 @@ impl Eval {
     }
 }
 
+/// Scratch memory of an evaluation: the elastic pass's, and the vertex tasks' partial sums.
+#[derive(Clone, Debug, Default)]
+struct EvalScratch {
+    ws: ElasticWorkspace,
+    parts: Vec<Eval>,
+}
+
 /// The projection with its scratch memory (reused across steps).
 #[derive(Clone, Debug, Default)]
 pub struct Projector {
     pub settings: ProjectionSettings,
-    ws: ElasticWorkspace,
+    scratch: EvalScratch,
     grad: Vec<Vec3>,
     grad_trial: Vec<Vec3>,
     x_base: Vec<Vec3>,
@@ -397,6 +411,8 @@ pub struct Projector {
     stiffness_key: Option<ModelKey>,
     /// `a_i = m_i / w_i` of this step's metric.
     metric_factor: Vec<f64>,
+    /// `a_i / m_i` (`Problem::a_over_m`).
+    a_over_m: Vec<f64>,
     /// Vertices whose positions this step's projection must not move (in contact with an obstacle).
     frozen_positions: Vec<u32>,
     /// The full step's trial point while the model step length is tried.
@@ -419,6 +435,17 @@ struct Problem<'a> {
     eps: f64,
     /// `a_i = m_i / w_i`: the position block of D is `diag(m_i / a_i)`; 0 freezes a vertex's position.
     metric_factor: Vec<f64>,
+    /// `a_i / m_i` (the position block of D^-1), kept with `metric_factor` ([`Problem::refresh_a_over_m`]).
+    a_over_m: Vec<f64>,
+}
+
+impl Problem<'_> {
+    /// `a_over_m` from `metric_factor` and the masses.
+    fn refresh_a_over_m(&mut self) {
+        let masses = &self.model.masses;
+        self.a_over_m.clear();
+        (self.a_over_m).extend(self.metric_factor.iter().zip(masses).map(|(a, m)| a / m));
+    }
 }
 
 impl Projector {
@@ -541,6 +568,7 @@ impl Projector {
         self.prepare_metric(model, h);
         let mut pb = Problem {
             metric_factor: std::mem::take(&mut self.metric_factor),
+            a_over_m: std::mem::take(&mut self.a_over_m),
             model,
             h,
             targets,
@@ -550,15 +578,24 @@ impl Projector {
             row_scale: [1.0; ROWS],
             eps: self.settings.c_eps * mt * r * r,
         };
+        pb.refresh_a_over_m();
         let (mut s, mut t) = (0.0, 0.0);
         // With a warm start possible, the first evaluation skips the elastic gradient: the warm start changes
         // the velocities alone and often leaves nothing to iterate (after PD, every step on the bunny), so the
         // gradient is computed only when an iteration needs it (`grad_at_x`).
         let lazy_gradient = self.settings.warm_start_threshold.is_finite();
         let mut cur = if lazy_gradient {
-            evaluate_energy(&pb, &self.x, &self.v, s, t)
+            evaluate_energy(&pb, &self.x, &self.v, s, t, &mut self.scratch.parts)
         } else {
-            evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad)
+            evaluate(
+                &pb,
+                &self.x,
+                &self.v,
+                s,
+                t,
+                &mut self.scratch,
+                &mut self.grad,
+            )
         };
         let mut grad_at_x = !lazy_gradient;
         // Row scales (fepr-spec section 3), from the targets and the start-of-step state, not from the base
@@ -578,6 +615,7 @@ impl Projector {
             initial_residual: max_scaled(&pb, &cur.c),
             base_energy: cur.kinetic + cur.el.energy + cur.gravitational,
             stiffness_metric: self.uses_stiffness_metric(),
+            evaluations: 1,
             ..Default::default()
         };
         let mut cur_norm = norm_scaled(&pb, &cur.c);
@@ -609,7 +647,16 @@ impl Projector {
             {
                 // Only the velocities changed: the elastic energy (and gradient, if computed) at x still hold.
                 let grad = grad_at_x.then_some(&self.grad[..]);
-                cur = evaluate_with_elastic(&pb, &self.x, &self.v, s, t, cur.el, grad);
+                cur = evaluate_with_elastic(
+                    &pb,
+                    &self.x,
+                    &self.v,
+                    s,
+                    t,
+                    cur.el,
+                    grad,
+                    &mut self.scratch.parts,
+                );
                 cur_norm = norm_scaled(&pb, &cur.c);
                 report.warm_start = true;
                 if cur_norm < best_norm && cur.c.iter().all(|c| c.is_finite()) {
@@ -630,14 +677,31 @@ impl Projector {
                     if !grad_at_x {
                         // The same constraint values (the same bits for Neo-Hookean and ARAP, whose energy-only
                         // and gradient passes are gated bit-identical), now with the gradient and S's moments.
-                        cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+                        report.evaluations += 1;
+                        cur = evaluate(
+                            &pb,
+                            &self.x,
+                            &self.v,
+                            s,
+                            t,
+                            &mut self.scratch,
+                            &mut self.grad,
+                        );
                         grad_at_x = true;
+                    } else if !cur.s_moments {
+                        // An accepted trial point (summed without S's moments, which most trial points, ending
+                        // the projection, never need): sum them now; the constraint values keep their bits.
+                        let grad = Some(&self.grad[..]);
+                        let parts = &mut self.scratch.parts;
+                        cur =
+                            evaluate_with_elastic(&pb, &self.x, &self.v, s, t, cur.el, grad, parts);
                     }
                     let (lambda, used_lstsq) =
                         solve_multipliers(&pb, &cur, self.settings.regularization);
                     report.least_squares_solves += used_lstsq as usize;
                     let mut alpha = 1.0;
                     let mut accepted = None;
+                    report.evaluations += 1;
                     let mut cand = self.trial(&pb, s, t, &lambda, 1.0);
                     // Curvature-aware step length: along the step, P and C are linear in alpha, L is quadratic,
                     // so c(alpha) = (1 - alpha) c(0) + alpha^2 e with e = c(1) holds for them exactly and models H's
@@ -648,6 +712,7 @@ impl Projector {
                             // Keep the full step's buffers aside, so that falling back to it needs no
                             // second evaluation.
                             self.swap_trial_spare();
+                            report.evaluations += 1;
                             let alt = self.trial(&pb, s, t, &lambda, a_star);
                             if alt.0.c.iter().all(|c| c.is_finite()) && alt.1 < cand.1 {
                                 cand = alt;
@@ -659,6 +724,7 @@ impl Projector {
                     }
                     for halving in 0..=self.settings.max_halvings {
                         if halving > 0 {
+                            report.evaluations += 1;
                             cand = self.trial(&pb, s, t, &lambda, alpha);
                         }
                         let (trial, n, s_new, t_new) = cand;
@@ -716,6 +782,7 @@ impl Projector {
                 break;
             }
             let frozen = freeze_newly_inverted(model, &self.x_base, &self.x, &mut pb.metric_factor);
+            pb.refresh_a_over_m();
             if frozen == 0 {
                 break;
             }
@@ -730,7 +797,16 @@ impl Projector {
             self.v.copy_from_slice(&self.v_base);
             s = 0.0;
             t = 0.0;
-            cur = evaluate(&pb, &self.x, &self.v, s, t, &mut self.ws, &mut self.grad);
+            report.evaluations += 1;
+            cur = evaluate(
+                &pb,
+                &self.x,
+                &self.v,
+                s,
+                t,
+                &mut self.scratch,
+                &mut self.grad,
+            );
             grad_at_x = true;
             cur_norm = norm_scaled(&pb, &cur.c);
         }
@@ -758,13 +834,14 @@ impl Projector {
                 t = best_t;
             } else {
                 // state still holds q~ (never modified above).
+                report.evaluations += 1;
                 fin = evaluate(
                     &pb,
                     &state.x,
                     &state.v,
                     0.0,
                     0.0,
-                    &mut self.ws,
+                    &mut self.scratch,
                     &mut self.grad,
                 );
                 s = 0.0;
@@ -791,7 +868,16 @@ impl Projector {
                 report.bound_hit = true;
                 report.correction = cap;
                 self.grad_is_final = true; // both branches below evaluate at the returned state
-                fin = evaluate(&pb, &state.x, &state.v, s, t, &mut self.ws, &mut self.grad);
+                report.evaluations += 1;
+                fin = evaluate(
+                    &pb,
+                    &state.x,
+                    &state.v,
+                    s,
+                    t,
+                    &mut self.scratch,
+                    &mut self.grad,
+                );
                 if fin.el.inverted > base_inverted || !fin.c.iter().all(|c| c.is_finite()) {
                     // The scaled-back state inverts tets the base step did not: keep the base state.
                     state.x.copy_from_slice(&self.x_base);
@@ -799,7 +885,16 @@ impl Projector {
                     s = 0.0;
                     t = 0.0;
                     report.correction = 0.0;
-                    fin = evaluate(&pb, &state.x, &state.v, s, t, &mut self.ws, &mut self.grad);
+                    report.evaluations += 1;
+                    fin = evaluate(
+                        &pb,
+                        &state.x,
+                        &state.v,
+                        s,
+                        t,
+                        &mut self.scratch,
+                        &mut self.grad,
+                    );
                 }
                 report.converged = max_scaled(&pb, &fin.c) <= tol;
                 report.fallback |= !report.converged;
@@ -826,6 +921,7 @@ impl Projector {
             inverted: fin.el.inverted,
         };
         self.metric_factor = std::mem::take(&mut pb.metric_factor);
+        self.a_over_m = std::mem::take(&mut pb.a_over_m);
         (report, inv)
     }
 }
@@ -859,25 +955,16 @@ impl Projector {
         lambda: &[f64; ROWS],
         alpha: f64,
     ) -> (Eval, f64, f64, f64) {
-        let (s_new, t_new) = apply_step(
+        let step = Step::new(pb, &self.x, &self.v, &self.grad, lambda, alpha);
+        let (s_new, t_new) = step.slack(s, t);
+        let e = evaluate_step(
             pb,
-            &self.x,
-            &self.v,
-            s,
-            t,
-            &self.grad,
-            lambda,
-            alpha,
-            &mut self.x_trial,
-            &mut self.v_trial,
-        );
-        let e = evaluate(
-            pb,
-            &self.x_trial,
-            &self.v_trial,
+            &step,
             s_new,
             t_new,
-            &mut self.ws,
+            &mut self.scratch,
+            &mut self.x_trial,
+            &mut self.v_trial,
             &mut self.grad_trial,
         );
         let n = norm_scaled(pb, &e.c);
@@ -886,12 +973,12 @@ impl Projector {
 }
 
 /// Step length minimising the scaled residual norm of the model `c(alpha) = (1 - alpha) c0 + alpha^2 e`,
-/// `e = c1` (the residual after the full step), over `alpha` in [1/64, 1].
-fn model_step_length(pb: &Problem, c0: &[f64; ROWS], c1: &[f64; ROWS]) -> f64 {
+/// `e = c(1)` (the residual after the full step), over `alpha` in [1/64, 1].
+fn model_step_length(pb: &Problem, c0: &[f64; ROWS], e: &[f64; ROWS]) -> f64 {
     let norm2 = |a: f64| -> f64 {
         (0..ROWS)
             .filter(|&i| pb.active[i])
-            .map(|i| (((1.0 - a) * c0[i] + a * a * c1[i]) / pb.row_scale[i]).powi(2))
+            .map(|i| (((1.0 - a) * c0[i] + a * a * e[i]) / pb.row_scale[i]).powi(2))
             .sum()
     };
     let mut best = (1.0, norm2(1.0));
@@ -1143,31 +1230,99 @@ fn d_norm(pb: &Problem, x: &[Vec3], v: &[Vec3], s: f64, t: f64, xb: &[Vec3], vb:
 }
 
 /// Evaluate the constraints, the elastic gradient (into `grad`; the potential's is `grad E_el - m g`, formed
-/// where it is used) and the mass moments that `S` needs, in one parallel pass over fixed chunks of vertices
-/// (combined in chunk order: the same bits for any thread count).
+/// where it is used) and the mass moments that `S` needs: the elastic pass's chunks, then one parallel pass
+/// over fixed tasks of vertices that sums each vertex's gradient and the task's moments while they are in
+/// cache (combined in task order: the same bits for any thread count).
 fn evaluate(
     pb: &Problem,
     x: &[Vec3],
     v: &[Vec3],
     s: f64,
     t: f64,
-    ws: &mut ElasticWorkspace,
+    sc: &mut EvalScratch,
     grad: &mut [Vec3],
 ) -> Eval {
-    let el = elastic_energy_gradient(pb.model, x, ws, grad);
-    evaluate_with_elastic(pb, x, v, s, t, el, Some(grad))
+    let el = elastic_gradient_chunks(pb.model, x, &mut sc.ws);
+    let ws = &sc.ws;
+    let parts = task_parts(&mut sc.parts, grad.len());
+    grad.par_chunks_mut(VERTEX_MOMENT_CHUNK)
+        .zip(parts.par_iter_mut())
+        .enumerate()
+        .for_each(|(c, (g, part))| {
+            let first = c * VERTEX_MOMENT_CHUNK;
+            for (k, gk) in g.iter_mut().enumerate() {
+                *gk = ws.gradient_at(pb.model, first + k);
+            }
+            let r = first..first + g.len();
+            *part = vertex_moments::<true>(pb, first, &x[r.clone()], &v[r], Some(g));
+        });
+    finish(pb, s, t, el, sum_parts(parts))
+}
+
+/// [`evaluate`] at the trial point of `step` (`q - alpha D^-1 G lambda`, written to `x_out`, `v_out`, its
+/// elastic gradient to `g_out`), with the slack values `(s, t)` of that point; without the moments for `S`
+/// (`Eval::s_moments`). The trial point is written by a pass of its own: computing each position where the
+/// elastic chunks gather it (no pass, 1.5 times the work) measured slower on bunny2, its arrays read in
+/// the user's vertex order.
+#[allow(clippy::too_many_arguments)]
+fn evaluate_step(
+    pb: &Problem,
+    step: &Step,
+    s: f64,
+    t: f64,
+    sc: &mut EvalScratch,
+    x_out: &mut [Vec3],
+    v_out: &mut [Vec3],
+    g_out: &mut [Vec3],
+) -> Eval {
+    x_out
+        .par_chunks_mut(VERTEX_MOMENT_CHUNK)
+        .zip(v_out.par_chunks_mut(VERTEX_MOMENT_CHUNK))
+        .enumerate()
+        .for_each(|(c, (xo, vo))| {
+            let first = c * VERTEX_MOMENT_CHUNK;
+            for (k, (xk, vk)) in xo.iter_mut().zip(vo.iter_mut()).enumerate() {
+                *xk = step.position(first + k);
+                *vk = step.velocity(first + k);
+            }
+        });
+    let (x_out, v_out) = (&*x_out, &*v_out);
+    let el = elastic_gradient_chunks(pb.model, x_out, &mut sc.ws);
+    let ws = &sc.ws;
+    let parts = task_parts(&mut sc.parts, x_out.len());
+    g_out
+        .par_chunks_mut(VERTEX_MOMENT_CHUNK)
+        .zip(parts.par_iter_mut())
+        .enumerate()
+        .for_each(|(c, (go, part))| {
+            let first = c * VERTEX_MOMENT_CHUNK;
+            for (k, gk) in go.iter_mut().enumerate() {
+                *gk = ws.gradient_at(pb.model, first + k);
+            }
+            let r = first..first + go.len();
+            *part = vertex_moments::<false>(pb, first, &x_out[r.clone()], &v_out[r], Some(go));
+        });
+    finish(pb, s, t, el, sum_parts(parts))
 }
 
 /// [`evaluate`] without the elastic gradient: the same constraint values, energies and momenta; the gradient
 /// moments of `S` are left at zero (not to be solved with).
-fn evaluate_energy(pb: &Problem, x: &[Vec3], v: &[Vec3], s: f64, t: f64) -> Eval {
+fn evaluate_energy(
+    pb: &Problem,
+    x: &[Vec3],
+    v: &[Vec3],
+    s: f64,
+    t: f64,
+    parts: &mut Vec<Eval>,
+) -> Eval {
     let el = crate::elasticity::elastic_energy(pb.model, x);
-    evaluate_with_elastic(pb, x, v, s, t, el, None)
+    evaluate_with_elastic(pb, x, v, s, t, el, None, parts)
 }
 
-/// [`evaluate`] with the elastic energy summary `el` and gradient `grad` at `x` already at hand (after a change
-/// of the velocities alone): the same result, without the elastic pass. Without `grad`, the moments that
-/// need it are left at zero.
+/// [`evaluate`] with the elastic energy summary `el` (and gradient `grad`) at `x` already at hand (after a
+/// change of the velocities alone; or the energy alone): the same result, without the elastic pass. Without
+/// `grad`, the moments that need it are left at zero (not to be solved with).
+#[allow(clippy::too_many_arguments)]
 fn evaluate_with_elastic(
     pb: &Problem,
     x: &[Vec3],
@@ -1176,20 +1331,39 @@ fn evaluate_with_elastic(
     t: f64,
     el: ElasticSummary,
     grad: Option<&[Vec3]>,
+    parts: &mut Vec<Eval>,
 ) -> Eval {
-    let model = pb.model;
-    let mut e = reduce_chunks(
-        x.len(),
-        VERTEX_MOMENT_CHUNK,
-        |range| vertex_moments(pb, x, v, grad, range),
-        |mut a, b| {
-            a.add(&b);
+    let parts = task_parts(parts, x.len());
+    parts.par_iter_mut().enumerate().for_each(|(c, part)| {
+        let first = c * VERTEX_MOMENT_CHUNK;
+        let r = first..(first + VERTEX_MOMENT_CHUNK).min(x.len());
+        let g = grad.map(|g| &g[r.clone()]);
+        *part = vertex_moments::<true>(pb, first, &x[r.clone()], &v[r], g);
+    });
+    finish(pb, s, t, el, sum_parts(parts))
+}
+
+/// `parts` resized to one entry per vertex task of `m` vertices (no allocation once grown).
+fn task_parts(parts: &mut Vec<Eval>, m: usize) -> &mut [Eval] {
+    parts.resize(m.div_ceil(VERTEX_MOMENT_CHUNK), Eval::default());
+    &mut parts[..]
+}
+
+/// The vertex tasks' sums, added in task order.
+fn sum_parts(parts: &[Eval]) -> Eval {
+    match parts.split_first() {
+        None => Eval::default(),
+        Some((first, rest)) => rest.iter().fold(*first, |mut a, b| {
+            a.add(b);
             a
-        },
-    )
-    .unwrap_or_default();
+        }),
+    }
+}
+
+/// The constraint values of the vertex sums `e` with the elastic summary `el`, at slack values `(s, t)`.
+fn finish(pb: &Problem, s: f64, t: f64, el: ElasticSummary, mut e: Eval) -> Eval {
+    let mt = pb.model.total_mass;
     e.el = el;
-    let mt = model.total_mass;
     e.com = [e.mass_x[0] / mt, e.mass_x[1] / mt, e.mass_x[2] / mt];
     let tg = pb.targets;
     e.c[0] = e.kinetic + el.energy + e.gravitational - tg.energy;
@@ -1204,36 +1378,37 @@ fn evaluate_with_elastic(
 /// Vertices per parallel task of the moment pass and of the trial step.
 const VERTEX_MOMENT_CHUNK: usize = 2048;
 
-/// The sums of [`Eval`] over the vertices in `range` (`c`, `el` and `com` are left at zero): [`VL`] vertices
+/// The sums of [`Eval`] over the vertices `first..first + x.len()` (`x`, `v`, `grad`: their rows;
+/// `c`, `el` and `com` are left at zero): [`VL`] vertices
 /// at a time in structure-of-arrays lanes, each lane summed on its own in vertex order, the lanes added in
 /// lane order at the end (a fixed order: the same bits for any thread count). Summed one vertex at a time
 /// into one set of 45 sums, this pass took a third as long as the elastic energy + gradient it follows.
-fn vertex_moments(
+fn vertex_moments<const S: bool>(
     pb: &Problem,
+    first: usize,
     x: &[Vec3],
     v: &[Vec3],
     grad: Option<&[Vec3]>,
-    range: std::ops::Range<usize>,
 ) -> Eval {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
-        return unsafe { vertex_moments_avx2(pb, x, v, grad, range) };
+        return unsafe { vertex_moments_avx2::<S>(pb, first, x, v, grad) };
     }
-    vertex_moments_lanes(pb, x, v, grad, range)
+    vertex_moments_lanes::<S>(pb, first, x, v, grad)
 }
 
 /// [`vertex_moments_lanes`] compiled for AVX2 (no fused multiply-adds: the same bits).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn vertex_moments_avx2(
+unsafe fn vertex_moments_avx2<const S: bool>(
     pb: &Problem,
+    first: usize,
     x: &[Vec3],
     v: &[Vec3],
     grad: Option<&[Vec3]>,
-    range: std::ops::Range<usize>,
 ) -> Eval {
-    vertex_moments_lanes(pb, x, v, grad, range)
+    vertex_moments_lanes::<S>(pb, first, x, v, grad)
 }
 
 /// Vertices per lane group of [`vertex_moments`].
@@ -1272,34 +1447,40 @@ fn lanes(f: impl Fn(usize) -> f64) -> Lane {
 const UPPER: [(usize, usize); 6] = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
 
 #[inline(always)]
-fn vertex_moments_lanes(
+fn vertex_moments_lanes<const S: bool>(
     pb: &Problem,
+    first: usize,
     x: &[Vec3],
     v: &[Vec3],
     grad: Option<&[Vec3]>,
-    range: std::ops::Range<usize>,
 ) -> Eval {
     let model = pb.model;
     let (g, ct) = (model.gravity, pb.targets.center_of_mass);
+    let n = x.len();
+    assert!(
+        v.len() == n && grad.is_none_or(|g| g.len() == n),
+        "one row per vertex"
+    );
     let mut acc = [[0.0; VL]; q::COUNT];
-    for start in range.clone().step_by(VL) {
+    for start in (0..n).step_by(VL) {
         // Padding lanes: unit mass (no division by zero), zero state, neither free nor weighted, so every
         // sum gets +0 or -0 from them.
         let (mut xs, mut vs, mut gs) = ([[0.0; VL]; 3], [[0.0; VL]; 3], [[0.0; VL]; 3]);
         let (mut m, mut mf, mut af) = ([1.0; VL], [0.0; VL], [0.0; VL]);
-        for l in 0..VL.min(range.end - start) {
-            let i = start + l;
+        for l in 0..VL.min(n - start) {
+            // Row k of the slices is vertex i.
+            let (k, i) = (start + l, first + start + l);
             let mi = model.masses[i];
             // Gradient of the potential (elastic + gravity); `grad` keeps the elastic part alone, so that it
             // can be handed to the next base step (Integrator::offer_elastic_gradient).
-            let gi = total_gradient(grad.map_or([0.0; 3], |grad| grad[i]), mi, g);
+            let gi = total_gradient(grad.map_or([0.0; 3], |grad| grad[k]), mi, g);
             let free = !model.pinned[i];
             m[l] = mi;
             mf[l] = if free { mi } else { 0.0 };
             af[l] = if free { pb.metric_factor[i] } else { 0.0 };
             for a in 0..3 {
-                xs[a][l] = x[i][a];
-                vs[a][l] = v[i][a];
+                xs[a][l] = x[k][a];
+                vs[a][l] = v[k][a];
                 gs[a][l] = gi[a];
             }
         }
@@ -1318,12 +1499,22 @@ fn vertex_moments_lanes(
             let (b, c) = ((a + 1) % 3, (a + 2) % 3);
             lanes(|l| gs[b][l] * vs[c][l] - gs[c][l] * vs[b][l])
         });
-        let am = lanes(|l| af[l] * m[l]);
+        // The constraints' sums, then (with S) the moments for S; each sum's operations are the same either
+        // way (the same bits).
         add(q::KINETIC, lanes(|l| 0.5 * m[l] * vv[l]));
         add(
             q::GRAVITATIONAL,
             lanes(|l| -(m[l] * (g[0] * xs[0][l] + g[1] * xs[1][l] + g[2] * xs[2][l]))),
         );
+        for a in 0..3 {
+            add(q::MOMENTUM + a, lanes(|l| m[l] * vs[a][l]));
+            add(q::ANGULAR + a, lanes(|l| m[l] * rxv[a][l]));
+            add(q::MASS_X + a, lanes(|l| m[l] * xs[a][l]));
+        }
+        if !S {
+            continue;
+        }
+        let am = lanes(|l| af[l] * m[l]);
         add(q::FREE_MASS, mf);
         add(q::A_FREE_MASS, am);
         add(
@@ -1334,9 +1525,6 @@ fn vertex_moments_lanes(
         );
         add(q::TR_VV, lanes(|l| mf[l] * vv[l]));
         for a in 0..3 {
-            add(q::MOMENTUM + a, lanes(|l| m[l] * vs[a][l]));
-            add(q::ANGULAR + a, lanes(|l| m[l] * rxv[a][l]));
-            add(q::MASS_X + a, lanes(|l| m[l] * xs[a][l]));
             add(q::A_GRAD_SUM + a, lanes(|l| af[l] * gs[a][l]));
             add(q::A_GRAD_CROSS_V + a, lanes(|l| af[l] * gxv[a][l]));
             add(q::FREE_P + a, lanes(|l| mf[l] * vs[a][l]));
@@ -1360,6 +1548,7 @@ fn vertex_moments_lanes(
         s
     };
     Eval {
+        s_moments: S,
         kinetic: sum(q::KINETIC),
         gravitational: sum(q::GRAVITATIONAL),
         momentum: vec3(q::MOMENTUM),
@@ -1452,60 +1641,102 @@ fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> ([f64; ROWS], bool) 
     (lambda, lstsq)
 }
 
-/// `q_trial = q - alpha D^-1 G lambda`, written to `x_out`, `v_out`; returns the new (s, t).
-#[allow(clippy::too_many_arguments)]
-fn apply_step(
-    pb: &Problem,
-    x: &[Vec3],
-    v: &[Vec3],
-    s: f64,
-    t: f64,
-    grad: &[Vec3],
-    lambda: &[f64; ROWS],
+/// The trial point `q_trial = q - alpha D^-1 G lambda` of one iteration, vertex by vertex (every vertex's
+/// update is its own: no sums), so that it can be computed wherever it is needed ([`evaluate_step`]).
+struct Step<'a> {
+    model: &'a Model,
+    metric_factor: &'a [f64],
+    a_over_m: &'a [f64],
+    x: &'a [Vec3],
+    v: &'a [Vec3],
+    /// The elastic gradient at `x`.
+    grad: &'a [Vec3],
+    inv_h2: f64,
+    ct: Vec3,
+    lh: f64,
+    lp: Vec3,
+    ll: Vec3,
+    /// `lambda_C / m_total`.
+    lc_over_mt: Vec3,
     alpha: f64,
-    x_out: &mut [Vec3],
-    v_out: &mut [Vec3],
-) -> (f64, f64) {
-    let model = pb.model;
-    let h2 = pb.h * pb.h;
-    let mt = model.total_mass;
-    let lh = lambda[0];
-    let lp = [lambda[1], lambda[2], lambda[3]];
-    let ll = [lambda[4], lambda[5], lambda[6]];
-    let lc = [lambda[7], lambda[8], lambda[9]];
-    let ct = pb.targets.center_of_mass;
-    // Parallel over fixed chunks of vertices; every vertex's update is its own (no sums).
-    x_out
-        .par_chunks_mut(VERTEX_MOMENT_CHUNK)
-        .zip(v_out.par_chunks_mut(VERTEX_MOMENT_CHUNK))
-        .enumerate()
-        .for_each(|(c, (xo, vo))| {
-            let first = c * VERTEX_MOMENT_CHUNK;
-            for (k, (xo, vo)) in xo.iter_mut().zip(vo.iter_mut()).enumerate() {
-                let i = first + k;
-                if model.pinned[i] {
-                    *xo = x[i];
-                    *vo = v[i];
-                    continue;
-                }
-                // dx = W^-1 (x-block of G lambda) with W_i = m_i / a_i.
-                let ai = pb.metric_factor[i];
-                let a_inv_m = ai / model.masses[i];
-                let vxl = cross(v[i], ll);
-                let lxr = cross(ll, sub(x[i], ct));
-                let gi = total_gradient(grad[i], model.masses[i], model.gravity);
-                for a in 0..3 {
-                    let dx = lh * gi[a] * a_inv_m + ai * (vxl[a] + lc[a] / mt);
-                    let dv = (lh * v[i][a] + lp[a] + lxr[a]) / h2;
-                    xo[a] = x[i][a] - alpha * dx;
-                    vo[a] = v[i][a] - alpha * dv;
-                }
-            }
-        });
-    // d c_P / d s = -(P* - P_t); d c_L / d t = -(L* - L_t); D^-1 = 1/eps on s and t.
-    let s_new = s + alpha * dot(lp, pb.dp_star) / pb.eps;
-    let t_new = t + alpha * dot(ll, pb.dl_star) / pb.eps;
-    (s_new, t_new)
+    dp_star: Vec3,
+    dl_star: Vec3,
+    eps: f64,
+}
+
+impl<'a> Step<'a> {
+    fn new(
+        pb: &'a Problem,
+        x: &'a [Vec3],
+        v: &'a [Vec3],
+        grad: &'a [Vec3],
+        lambda: &[f64; ROWS],
+        alpha: f64,
+    ) -> Self {
+        Step {
+            model: pb.model,
+            metric_factor: &pb.metric_factor,
+            a_over_m: &pb.a_over_m,
+            x,
+            v,
+            grad,
+            inv_h2: 1.0 / (pb.h * pb.h),
+            ct: pb.targets.center_of_mass,
+            lh: lambda[0],
+            lp: [lambda[1], lambda[2], lambda[3]],
+            ll: [lambda[4], lambda[5], lambda[6]],
+            lc_over_mt: [7, 8, 9].map(|k| lambda[k] / pb.model.total_mass),
+            alpha,
+            dp_star: pb.dp_star,
+            dl_star: pb.dl_star,
+            eps: pb.eps,
+        }
+    }
+
+    /// Vertex `i`'s trial position, m (a pinned vertex keeps its own).
+    #[inline(always)]
+    fn position(&self, i: usize) -> Vec3 {
+        let (x, model) = (self.x[i], self.model);
+        if model.pinned[i] {
+            return x;
+        }
+        // dx = W^-1 (x-block of G lambda) with W_i = m_i / a_i (no divisions here: this runs for every vertex
+        // a chunk gathers).
+        let (ai, a_over_m) = (self.metric_factor[i], self.a_over_m[i]);
+        let vxl = cross(self.v[i], self.ll);
+        let gi = total_gradient(self.grad[i], model.masses[i], model.gravity);
+        let mut out = [0.0; 3];
+        for a in 0..3 {
+            let dx = self.lh * gi[a] * a_over_m + ai * (vxl[a] + self.lc_over_mt[a]);
+            out[a] = x[a] - self.alpha * dx;
+        }
+        out
+    }
+
+    /// Vertex `i`'s trial velocity, m/s (a pinned vertex keeps its own).
+    #[inline(always)]
+    fn velocity(&self, i: usize) -> Vec3 {
+        let v = self.v[i];
+        if self.model.pinned[i] {
+            return v;
+        }
+        let lxr = cross(self.ll, sub(self.x[i], self.ct));
+        let mut out = [0.0; 3];
+        for a in 0..3 {
+            let dv = (self.lh * v[a] + self.lp[a] + lxr[a]) * self.inv_h2;
+            out[a] = v[a] - self.alpha * dv;
+        }
+        out
+    }
+
+    /// The trial point's slack values from `(s, t)`: d c_P / d s = -(P* - P_t), d c_L / d t = -(L* - L_t),
+    /// and D^-1 = 1/eps on s and t.
+    fn slack(&self, s: f64, t: f64) -> (f64, f64) {
+        (
+            s + self.alpha * dot(self.lp, self.dp_star) / self.eps,
+            t + self.alpha * dot(self.ll, self.dl_star) / self.eps,
+        )
+    }
 }
 
 #[cfg(test)]
@@ -1573,8 +1804,9 @@ mod tests {
                 model.pinned[3] = true;
             }
             let h = 0.02;
-            let pb = Problem {
+            let mut pb = Problem {
                 metric_factor: factors.clone(),
+                a_over_m: Vec::new(),
                 model: &model,
                 h,
                 targets: &targets,
@@ -1584,10 +1816,11 @@ mod tests {
                 row_scale: [1.0; ROWS],
                 eps: 0.7,
             };
+            pb.refresh_a_over_m();
             let (s0, t0) = (0.1, -0.2);
             let mut grad = vec![[0.0; 3]; m];
-            let mut ws = ElasticWorkspace::default();
-            let e = evaluate(&pb, &x, &v, s0, t0, &mut ws, &mut grad);
+            let mut sc = EvalScratch::default();
+            let e = evaluate(&pb, &x, &v, s0, t0, &mut sc, &mut grad);
             let s_closed = small_matrix(&pb, &e);
             // Explicit gradients by finite differences of c(q), q = (x, v, s, t).
             let n = 6 * m + 2;
@@ -1599,7 +1832,7 @@ mod tests {
                     .map(|i| [q[3 * m + 3 * i], q[3 * m + 3 * i + 1], q[3 * m + 3 * i + 2]])
                     .collect();
                 let mut g = vec![[0.0; 3]; m];
-                let mut w = ElasticWorkspace::default();
+                let mut w = EvalScratch::default();
                 evaluate(&pb, &xs, &vs, q[6 * m], q[6 * m + 1], &mut w, &mut g).c
             };
             let mut q0 = vec![0.0; n];
@@ -1652,11 +1885,26 @@ mod tests {
                     );
                 }
             }
-            // The update direction D^-1 G lambda must match apply_step.
+            // The update direction D^-1 G lambda must match the trial step's.
             let lambda = [0.3, -0.2, 0.1, 0.05, 0.02, -0.04, 0.03, 0.2, -0.1, 0.07];
-            let mut xo = vec![[0.0; 3]; m];
-            let mut vo = vec![[0.0; 3]; m];
-            let (s1, t1) = apply_step(&pb, &x, &v, s0, t0, &grad, &lambda, 1.0, &mut xo, &mut vo);
+            let step = Step::new(&pb, &x, &v, &grad, &lambda, 1.0);
+            let (mut xo, mut vo, mut go) =
+                (vec![[0.0; 3]; m], vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
+            let (s1, t1) = step.slack(s0, t0);
+            let trial = evaluate_step(&pb, &step, s1, t1, &mut sc, &mut xo, &mut vo, &mut go);
+            // The trial evaluation is the plain evaluation at the trial point, bit for bit; its moments for S,
+            // summed afterwards, too.
+            let mut g1 = vec![[0.0; 3]; m];
+            let plain = evaluate(&pb, &xo, &vo, s1, t1, &mut EvalScratch::default(), &mut g1);
+            let bits = |e: &Eval| (e.c.map(f64::to_bits), e.el.energy.to_bits());
+            assert_eq!(bits(&trial), bits(&plain));
+            assert_eq!(go, g1);
+            assert!(plain.s_moments && !trial.s_moments);
+            let later =
+                evaluate_with_elastic(&pb, &xo, &vo, s1, t1, trial.el, Some(&go), &mut sc.parts);
+            assert_eq!(bits(&later), bits(&plain));
+            let s_bits = |e: &Eval| small_matrix(&pb, e).map(|row| row.map(f64::to_bits));
+            assert_eq!(s_bits(&later), s_bits(&plain));
             for k in 0..n {
                 let dq: f64 = dinv(k) * (0..ROWS).map(|r| g[k][r] * lambda[r]).sum::<f64>();
                 let got = if k < 3 * m {

@@ -212,6 +212,7 @@ fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py
     d.set_item("stiffness_metric", r.stiffness_metric)?;
     d.set_item("restarts", r.restarts)?;
     d.set_item("frozen_vertices", r.frozen_vertices)?;
+    d.set_item("evaluations", r.evaluations)?;
     Ok(d)
 }
 
@@ -261,9 +262,10 @@ const HISTORY_COLUMNS: &[&str] = &[
     "work_forces",
     "proj_frozen",
     "base_substeps",
+    "proj_evaluations",
 ];
 
-fn history_row(d: &StepDiagnostics) -> [f64; 44] {
+fn history_row(d: &StepDiagnostics) -> [f64; 45] {
     let i = &d.invariants;
     let p = d.projection.unwrap_or_default();
     let has = d.projection.is_some();
@@ -313,6 +315,7 @@ fn history_row(d: &StepDiagnostics) -> [f64; 44] {
         d.work.forces,
         if has { p.frozen_vertices as f64 } else { 0.0 },
         d.base.substeps as f64,
+        if has { p.evaluations as f64 } else { 0.0 },
     ]
 }
 
