@@ -161,9 +161,10 @@ class Simulation:
     def elastic_energy_gradient(self, x: npt.NDArray[np.float64]) -> Tuple[float, npt.NDArray[np.float64]]:
         """Elastic energy (J) and its gradient (m, 3) J/m at positions ``x`` (m, 3)."""
 
-    def bench_energy_gradient(self, repeats: int, threads: int) -> Tuple[float, int, int]:
-        """Time ``repeats`` energy + gradient evaluations on ``threads`` threads: (seconds per evaluation, the
-        energy's bits, a checksum of the gradient's bits)."""
+    def bench_energy_gradient(self, repeats: int, threads: int, awake: bool = False) -> Tuple[float, int, int]:
+        """Time ``repeats`` energy + gradient evaluations on ``threads`` threads, in up to ten batches (the best
+        batch's mean); with ``awake`` the pool's threads poll between evaluations, as in a step: (seconds per
+        evaluation, the energy's bits, a checksum of the gradient's bits)."""
 
     def last_projection(self) -> Optional[_ProjectionReportDict]:
         """The last step's projection report, or None (no projection, or no step yet)."""

@@ -386,6 +386,8 @@ impl Eval {
 struct EvalScratch {
     ws: ElasticWorkspace,
     parts: Vec<Eval>,
+    /// The D-norm's per-task sums.
+    norms: Vec<f64>,
 }
 
 /// The projection with its scratch memory (reused across steps).
@@ -544,26 +546,10 @@ impl Projector {
         }
         let r = model.length_scale;
         let mt = model.total_mass;
-        let p_star = crate::invariants::linear_momentum(&model.masses, &state.v);
-        let l_star = crate::invariants::angular_momentum(
-            &model.masses,
-            &state.x,
-            &state.v,
-            targets.center_of_mass,
-        );
         let slack = match self.settings.slack {
             Slack::On => true,
             Slack::Off => false,
             Slack::Auto => targets.uncertain_impulses,
-        };
-        // Without slack the s and t columns vanish (their gradients are -(P* - P_t) and -(L* - L_t)).
-        let (dp_star, dl_star) = if slack {
-            (
-                sub(p_star, targets.momentum),
-                sub(l_star, targets.angular_momentum),
-            )
-        } else {
-            ([0.0; 3], [0.0; 3])
         };
         self.prepare_metric(model, h);
         let mut pb = Problem {
@@ -572,8 +558,9 @@ impl Projector {
             model,
             h,
             targets,
-            dp_star,
-            dl_star,
+            // Set from the first evaluation below (at s = t = 0 it does not enter the constraints).
+            dp_star: [0.0; 3],
+            dl_star: [0.0; 3],
             active: self.active_rows(model, targets),
             row_scale: [1.0; ROWS],
             eps: self.settings.c_eps * mt * r * r,
@@ -598,6 +585,12 @@ impl Projector {
             )
         };
         let mut grad_at_x = !lazy_gradient;
+        if slack {
+            // P* and L* (about C_target) of the base step's state, summed by that evaluation. Without slack the
+            // s and t columns vanish (their gradients are -(P* - P_t) and -(L* - L_t)).
+            pb.dp_star = sub(cur.momentum, targets.momentum);
+            pb.dl_star = sub(cur.angular_momentum, targets.angular_momentum);
+        }
         // Row scales (fepr-spec section 3), from the targets and the start-of-step state, not from the base
         // step's result: a wild base step must not loosen the energy tolerance.
         let h_scale = targets.energy.abs().max(targets.energy_scale).max(1e-300);
@@ -851,7 +844,16 @@ impl Projector {
         }
 
         // D-norm of the correction; optional impact bound.
-        report.correction = d_norm(&pb, &state.x, &state.v, s, t, &self.x_base, &self.v_base);
+        report.correction = d_norm(
+            &pb,
+            &state.x,
+            &state.v,
+            s,
+            t,
+            &self.x_base,
+            &self.v_base,
+            &mut self.scratch.norms,
+        );
         if let Some(bound) = self.settings.impact_bound {
             let cap = bound * mt.sqrt() * r;
             if report.correction > cap && report.correction.is_finite() {
@@ -1218,15 +1220,33 @@ fn norm_scaled(pb: &Problem, c: &[f64; ROWS]) -> f64 {
 }
 
 /// `|q - q_base|_D` with `D = diag(W, h^2 M, eps, eps)`, `W = diag(m_i / a_i)`.
-fn d_norm(pb: &Problem, x: &[Vec3], v: &[Vec3], s: f64, t: f64, xb: &[Vec3], vb: &[Vec3]) -> f64 {
+#[allow(clippy::too_many_arguments)]
+fn d_norm(
+    pb: &Problem,
+    x: &[Vec3],
+    v: &[Vec3],
+    s: f64,
+    t: f64,
+    xb: &[Vec3],
+    vb: &[Vec3],
+    parts: &mut Vec<f64>,
+) -> f64 {
     let h2 = pb.h * pb.h;
-    let mut sum = pb.eps * (s * s + t * t);
-    for i in 0..x.len() {
-        let dx = sub(x[i], xb[i]);
-        let dv = sub(v[i], vb[i]);
-        sum += pb.model.masses[i] * (dot(dx, dx) / pb.metric_factor[i] + h2 * dot(dv, dv));
-    }
-    sum.sqrt()
+    // Over fixed vertex tasks, added in task order (the same bits for any thread count).
+    parts.resize(x.len().div_ceil(VERTEX_MOMENT_CHUNK), 0.0);
+    parts.par_iter_mut().enumerate().for_each(|(c, part)| {
+        let first = c * VERTEX_MOMENT_CHUNK;
+        let mut sum = 0.0;
+        for i in first..(first + VERTEX_MOMENT_CHUNK).min(x.len()) {
+            let (dx, dv) = (sub(x[i], xb[i]), sub(v[i], vb[i]));
+            // A frozen position (a_i = 0) is held: its term is 0, not 0/0.
+            let a = pb.metric_factor[i];
+            let dx2 = if a > 0.0 { dot(dx, dx) / a } else { 0.0 };
+            sum += pb.model.masses[i] * (dx2 + h2 * dot(dv, dv));
+        }
+        *part = sum;
+    });
+    (pb.eps * (s * s + t * t) + parts.iter().sum::<f64>()).sqrt()
 }
 
 /// Evaluate the constraints, the elastic gradient (into `grad`; the potential's is `grad E_el - m g`, formed

@@ -506,3 +506,36 @@ fn unconverged_projection_returns_its_best_iterate_with_matching_invariants() {
         "the iterations reach round-off: {previous}"
     );
 }
+
+/// Guards the D-norm of the correction with held positions (contact vertices, or a restart's frozen ones:
+/// `a_i = 0`): their term is 0, where it was 0/0 and made `correction` NaN.
+#[test]
+fn correction_is_finite_with_frozen_positions() {
+    use fepr_core::integrators::{Integrator, SymplecticEuler};
+    use fepr_core::projection::{ProjectionSettings, Projector, Targets};
+    let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0; 3]);
+    let mut start = State::at_rest(&model);
+    scaled(&mut start, 1.2, [0.0; 3]);
+    let inv = fepr_core::invariants::measure(&model, &start);
+    let targets = Targets {
+        energy: inv.total,
+        momentum: inv.momentum,
+        angular_momentum: inv.angular_momentum,
+        center_of_mass: inv.center_of_mass,
+        energy_scale: inv.total.abs(),
+        uncertain_impulses: false,
+    };
+    let h = 1.0 / 30.0;
+    let mut state = start.clone();
+    SymplecticEuler::new().step(&model, &mut state, h);
+    let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
+    proj.set_frozen_positions(&[0, 1]);
+    let (x0, x1) = (state.x[0], state.x[1]);
+    let (report, _) = proj.project(&model, &mut state, h, &targets);
+    assert!(report.iterations >= 1, "{report:?}");
+    assert!(
+        report.correction.is_finite() && report.correction > 0.0,
+        "{report:?}"
+    );
+    assert_eq!((state.x[0], state.x[1]), (x0, x1), "held positions moved");
+}
