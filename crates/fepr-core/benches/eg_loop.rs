@@ -442,14 +442,7 @@ fn main() {
 /// Times the energy + gradient of `mesh` (Neo-Hookean E = 1e3 Pa, nu = 0.3, 0.05 kg per node) at a 5% stretch,
 /// inside a pool of `threads` threads (ns per tet).
 fn time_energy_gradient(mesh: TetMesh, threads: usize, repeats: usize) {
-    let model = ModelBuilder::new(
-        mesh,
-        Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
-    )
-    .mass(MassSpec::NodeMass(0.05))
-    .build()
-    .unwrap();
-    let model = &model;
+    let model = &bench_model(mesh);
     let x: Vec<_> = model
         .mesh
         .vertices()
@@ -487,13 +480,7 @@ fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
     use fepr_core::invariants::measure;
     use fepr_core::model::State;
     use fepr_core::projection::{ProjectionSettings, Projector, Targets};
-    let model = ModelBuilder::new(
-        mesh,
-        Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
-    )
-    .mass(MassSpec::NodeMass(0.05))
-    .build()
-    .unwrap();
+    let model = bench_model(mesh);
     let mut start = State::at_rest(&model);
     let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &start.x);
     for p in start.x.iter_mut() {
@@ -549,4 +536,16 @@ fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
             best / (1.0 + report.iterations as f64) / eg[0]
         );
     });
+}
+
+/// The model of [`time_energy_gradient`] and [`time_projection`]: Neo-Hookean E = 1e3 Pa, nu = 0.3, 0.05 kg per
+/// node (the bunny2 set-up).
+fn bench_model(mesh: TetMesh) -> fepr_core::model::Model {
+    ModelBuilder::new(
+        mesh,
+        Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
+    )
+    .mass(MassSpec::NodeMass(0.05))
+    .build()
+    .unwrap()
 }

@@ -1262,6 +1262,19 @@ fn evaluate(
     sc: &mut EvalScratch,
     grad: &mut [Vec3],
 ) -> Eval {
+    evaluate_sums::<true>(pb, x, v, s, t, sc, grad)
+}
+
+/// [`evaluate`], with the moments for `S` only if `S` (`Eval::s_moments`).
+fn evaluate_sums<const S: bool>(
+    pb: &Problem,
+    x: &[Vec3],
+    v: &[Vec3],
+    s: f64,
+    t: f64,
+    sc: &mut EvalScratch,
+    grad: &mut [Vec3],
+) -> Eval {
     let el = elastic_gradient_chunks(pb.model, x, &mut sc.ws);
     let ws = &sc.ws;
     let parts = task_parts(&mut sc.parts, grad.len());
@@ -1274,7 +1287,7 @@ fn evaluate(
                 *gk = ws.gradient_at(pb.model, first + k);
             }
             let r = first..first + g.len();
-            *part = vertex_moments::<true>(pb, first, &x[r.clone()], &v[r], Some(g));
+            *part = vertex_moments::<S>(pb, first, &x[r.clone()], &v[r], Some(g));
         });
     finish(pb, s, t, el, sum_parts(parts))
 }
@@ -1306,23 +1319,7 @@ fn evaluate_step(
                 *vk = step.velocity(first + k);
             }
         });
-    let (x_out, v_out) = (&*x_out, &*v_out);
-    let el = elastic_gradient_chunks(pb.model, x_out, &mut sc.ws);
-    let ws = &sc.ws;
-    let parts = task_parts(&mut sc.parts, x_out.len());
-    g_out
-        .par_chunks_mut(VERTEX_MOMENT_CHUNK)
-        .zip(parts.par_iter_mut())
-        .enumerate()
-        .for_each(|(c, (go, part))| {
-            let first = c * VERTEX_MOMENT_CHUNK;
-            for (k, gk) in go.iter_mut().enumerate() {
-                *gk = ws.gradient_at(pb.model, first + k);
-            }
-            let r = first..first + go.len();
-            *part = vertex_moments::<false>(pb, first, &x_out[r.clone()], &v_out[r], Some(go));
-        });
-    finish(pb, s, t, el, sum_parts(parts))
+    evaluate_sums::<false>(pb, x_out, v_out, s, t, sc, g_out)
 }
 
 /// [`evaluate`] without the elastic gradient: the same constraint values, energies and momenta; the gradient
