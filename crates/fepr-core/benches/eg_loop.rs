@@ -21,7 +21,7 @@
 use std::time::Instant;
 
 mod common;
-use common::load_tetgen;
+use common::{bench_model, load_tetgen};
 
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
 use fepr_core::material::{Material, NeoHookean};
@@ -536,16 +536,4 @@ fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
             best / (1.0 + report.iterations as f64) / eg[0]
         );
     });
-}
-
-/// The model of [`time_energy_gradient`] and [`time_projection`]: Neo-Hookean E = 1e3 Pa, nu = 0.3, 0.05 kg per
-/// node (the bunny2 set-up).
-fn bench_model(mesh: TetMesh) -> fepr_core::model::Model {
-    ModelBuilder::new(
-        mesh,
-        Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
-    )
-    .mass(MassSpec::NodeMass(0.05))
-    .build()
-    .unwrap()
 }

@@ -8,15 +8,14 @@ use std::hint::black_box;
 use std::path::PathBuf;
 
 mod common;
-use common::{load_tetgen, vertex_pattern};
+use common::{bench_model as model, load_tetgen, vertex_pattern};
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
 use fepr_core::integrators::{Integrator, SymplecticEuler};
 use fepr_core::linalg::Vec3;
-use fepr_core::material::{Material, NeoHookean};
-use fepr_core::mesh::{MassSpec, TetMesh};
-use fepr_core::model::{Model, ModelBuilder, State};
+use fepr_core::mesh::TetMesh;
+use fepr_core::model::{Model, State};
 use fepr_core::projection::{ProjectionSettings, Projector};
 use fepr_core::simulation::Simulation;
 use fepr_core::sparse::{LowerPattern, SparseCholesky};
@@ -64,16 +63,6 @@ fn bunny2() -> Option<TetMesh> {
     let root =
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/meshes/seed/bunny2.1");
     load_tetgen(&root)
-}
-
-fn model(mesh: TetMesh) -> Model {
-    ModelBuilder::new(
-        mesh,
-        Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
-    )
-    .mass(MassSpec::NodeMass(0.05))
-    .build()
-    .unwrap()
 }
 
 /// Stretched by 5% about the centroid (the bench scenes' initial state).

@@ -44,3 +44,16 @@ pub fn vertex_pattern(model: &fepr_core::model::Model) -> fepr_core::sparse::Low
     }
     fepr_core::sparse::LowerPattern::from_columns(m, cols)
 }
+
+/// The bench scenes' model (the bunny2 set-up): Neo-Hookean E = 1e3 Pa, nu = 0.3, 0.05 kg per node.
+#[allow(dead_code)] // not every bench target that includes this module uses it
+pub fn bench_model(mesh: TetMesh) -> fepr_core::model::Model {
+    use fepr_core::material::{Material, NeoHookean};
+    fepr_core::model::ModelBuilder::new(
+        mesh,
+        Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
+    )
+    .mass(fepr_core::mesh::MassSpec::NodeMass(0.05))
+    .build()
+    .unwrap()
+}
