@@ -527,13 +527,14 @@ fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
         }
         let (best, median) = (times[0], times[repeats / 2]);
         println!(
-            "tets {} threads {threads}: projection {best:.3} / {median:.3} ms (best / median), {} iterations; \
+            "tets {} threads {threads}: projection {best:.3} / {median:.3} ms (best / median), {} iterations, {} evaluations; \
              E+G {:.3} / {:.3} ms; per evaluation / E+G (best) {:.2}",
             model.num_tets(),
             report.iterations,
+            report.evaluations,
             eg[0],
             eg[repeats / 2],
-            best / (1.0 + report.iterations as f64) / eg[0]
+            best / report.evaluations as f64 / eg[0]
         );
     });
 }

@@ -1313,11 +1313,7 @@ fn evaluate_step(
         .zip(v_out.par_chunks_mut(VERTEX_MOMENT_CHUNK))
         .enumerate()
         .for_each(|(c, (xo, vo))| {
-            let first = c * VERTEX_MOMENT_CHUNK;
-            for (k, (xk, vk)) in xo.iter_mut().zip(vo.iter_mut()).enumerate() {
-                *xk = step.position(first + k);
-                *vk = step.velocity(first + k);
-            }
+            step.write_rows(c * VERTEX_MOMENT_CHUNK, xo, vo);
         });
     evaluate_sums::<false>(pb, x_out, v_out, s, t, sc, g_out)
 }
@@ -1710,40 +1706,45 @@ impl<'a> Step<'a> {
         }
     }
 
-    /// Vertex `i`'s trial position, m (a pinned vertex keeps its own).
-    #[inline(always)]
-    fn position(&self, i: usize) -> Vec3 {
-        let (x, model) = (self.x[i], self.model);
-        if model.pinned[i] {
-            return x;
+    /// The trial positions (m) and velocities (m/s) of the vertices `first..first + x_out.len()`, into
+    /// `x_out` and `v_out`; a pinned vertex keeps its own. One pass over the vertices' arrays side by side.
+    fn write_rows(&self, first: usize, x_out: &mut [Vec3], v_out: &mut [Vec3]) {
+        let r = first..first + x_out.len();
+        let model = self.model;
+        let (g, ll, lc, lp, ct) = (model.gravity, self.ll, self.lc_over_mt, self.lp, self.ct);
+        let (lh, alpha, inv_h2) = (self.lh, self.alpha, self.inv_h2);
+        let state = self.x[r.clone()].iter().zip(&self.v[r.clone()]);
+        let per_vertex = self.grad[r.clone()]
+            .iter()
+            .zip(&model.masses[r.clone()])
+            .zip(
+                self.metric_factor[r.clone()]
+                    .iter()
+                    .zip(&self.a_over_m[r.clone()]),
+            )
+            .zip(&model.pinned[r]);
+        let rows = x_out
+            .iter_mut()
+            .zip(v_out.iter_mut())
+            .zip(state)
+            .zip(per_vertex);
+        for (((xo, vo), (x, v)), (((gr, &m), (&ai, &a_over_m)), &pinned)) in rows {
+            if pinned {
+                (*xo, *vo) = (*x, *v);
+                continue;
+            }
+            // dx = W^-1 (x-block of G lambda) with W_i = m_i / a_i (no division: `a_over_m` is kept with the
+            // metric); dv = the v-block over m_i h^-2.
+            let vxl = cross(*v, ll);
+            let lxr = cross(ll, sub(*x, ct));
+            for a in 0..3 {
+                let gi = gr[a] - m * g[a];
+                let dx = lh * gi * a_over_m + ai * (vxl[a] + lc[a]);
+                xo[a] = x[a] - alpha * dx;
+                let dv = (lh * v[a] + lp[a] + lxr[a]) * inv_h2;
+                vo[a] = v[a] - alpha * dv;
+            }
         }
-        // dx = W^-1 (x-block of G lambda) with W_i = m_i / a_i (no divisions here: this runs for every vertex
-        // a chunk gathers).
-        let (ai, a_over_m) = (self.metric_factor[i], self.a_over_m[i]);
-        let vxl = cross(self.v[i], self.ll);
-        let gi = total_gradient(self.grad[i], model.masses[i], model.gravity);
-        let mut out = [0.0; 3];
-        for a in 0..3 {
-            let dx = self.lh * gi[a] * a_over_m + ai * (vxl[a] + self.lc_over_mt[a]);
-            out[a] = x[a] - self.alpha * dx;
-        }
-        out
-    }
-
-    /// Vertex `i`'s trial velocity, m/s (a pinned vertex keeps its own).
-    #[inline(always)]
-    fn velocity(&self, i: usize) -> Vec3 {
-        let v = self.v[i];
-        if self.model.pinned[i] {
-            return v;
-        }
-        let lxr = cross(self.ll, sub(self.x[i], self.ct));
-        let mut out = [0.0; 3];
-        for a in 0..3 {
-            let dv = (self.lh * v[a] + self.lp[a] + lxr[a]) * self.inv_h2;
-            out[a] = v[a] - self.alpha * dv;
-        }
-        out
     }
 
     /// The trial point's slack values from `(s, t)`: d c_P / d s = -(P* - P_t), d c_L / d t = -(L* - L_t),
