@@ -1,4 +1,4 @@
-//! The chunk-local vertex numbering of the per-tet passes: each fixed chunk of [`TET_CHUNK`] tets gathers
+//! The chunk-local vertex numbering of the per-tet passes: each fixed chunk of tets (at most [`TET_CHUNK`]: [`tet_chunk_for`]) gathers
 //! the positions of the vertices it touches into a small local array, and sums its corner values (the
 //! elastic gradient: each vertex gets the sum of its corners' gradients) into a small accumulator over the
 //! same vertices; the blocks hold every corner's local index.
@@ -18,9 +18,9 @@ use std::cell::Cell;
 use rayon::prelude::*;
 
 use crate::linalg::Vec3;
-use crate::parallel::TET_CHUNK;
+use crate::parallel::{tet_chunk_for, TET_CHUNK};
 
-// Local indices are u16: a chunk touches at most 4 TET_CHUNK vertices.
+// Local indices are u16: a chunk touches at most 4 TET_CHUNK vertices (the largest chunk).
 const _: () = assert!(4 * TET_CHUNK <= u16::MAX as usize + 1);
 
 /// Vertices per task of the vertex pass (a mesh with fewer runs it inline, without waking another thread).
@@ -35,6 +35,8 @@ thread_local! {
 /// with the model (about 7 bytes per tet; the accumulators, in the workspace, about 9).
 #[derive(Clone, Debug, Default)]
 pub(crate) struct CornerSums {
+    /// Tets per chunk ([`tet_chunk_for`] the mesh's tet count; 0 only for the default, tet-less value).
+    chunk: usize,
     /// Accumulator entries per chunk (the largest local vertex count): chunk `c`'s entries are
     /// `c * stride .. c * stride + count[c]`.
     stride: usize,
@@ -50,7 +52,7 @@ pub(crate) struct CornerSums {
 
 impl CornerSums {
     /// The numbering of `tets` (user vertex indices) placed in blocks by `tet_at` (position -> user tet;
-    /// chunk `c` holds positions `c TET_CHUNK ..`), and every position's local corner indices
+    /// chunk `c` holds positions `c chunk ..`, [`tet_chunk_for`]), and every position's local corner indices
     /// (`local[p][corner]`).
     pub(crate) fn new(
         tets: &[[usize; 4]],
@@ -58,12 +60,13 @@ impl CornerSums {
         num_vertices: usize,
     ) -> (Self, Vec<[u16; 4]>) {
         u32::try_from(num_vertices).expect("vertex indices fit in u32");
-        let num_chunks = tet_at.len().div_ceil(TET_CHUNK);
+        let chunk = tet_chunk_for(tet_at.len());
+        let num_chunks = tet_at.len().div_ceil(chunk);
         let mut local = vec![[0u16; 4]; tet_at.len()];
         // Every chunk's vertices in first-seen order (the order its tets load them).
         let (mut chunk_offsets, mut chunk_vertices) = (vec![0usize], Vec::new());
         let mut local_of = vec![u16::MAX; num_vertices];
-        for (c, positions) in tet_at.chunks(TET_CHUNK).enumerate() {
+        for (c, positions) in tet_at.chunks(chunk).enumerate() {
             let first = chunk_vertices.len();
             for (k, &e) in positions.iter().enumerate() {
                 for (corner, &v) in tets[e as usize].iter().enumerate() {
@@ -71,7 +74,7 @@ impl CornerSums {
                         local_of[v] = (chunk_vertices.len() - first) as u16;
                         chunk_vertices.push(v as u32);
                     }
-                    local[c * TET_CHUNK + k][corner] = local_of[v];
+                    local[c * chunk + k][corner] = local_of[v];
                 }
             }
             for &v in &chunk_vertices[first..] {
@@ -106,6 +109,7 @@ impl CornerSums {
             }
         }
         let sums = Self {
+            chunk,
             stride,
             count,
             vertex,
@@ -113,6 +117,12 @@ impl CornerSums {
             vertex_entries,
         };
         (sums, local)
+    }
+
+    /// Tets per chunk: chunk `c` holds the block positions `c * chunk() ..` (a multiple of the block length).
+    #[inline]
+    pub(crate) fn chunk(&self) -> usize {
+        self.chunk
     }
 
     /// Runs `f` with chunk `c`'s vertex positions in local order (`xl[j] = x[v]` for its local vertex `j`,
@@ -195,20 +205,20 @@ mod tests {
     use super::*;
 
     /// Corner values that identify their slot: tet position p, corner c gets (p, c, 1).
-    fn sums_by_reference(tets: &[[usize; 4]], tet_at: &[u32], m: usize) -> Vec<Vec3> {
+    fn sums_by_reference(tets: &[[usize; 4]], tet_at: &[u32], m: usize, chunk: usize) -> Vec<Vec3> {
         // The documented order: per chunk, ascending position; the chunks' partials in chunk order.
         let mut out = vec![[0.0; 3]; m];
         for v in 0..m {
             let mut total: Option<Vec3> = None;
             for positions in tet_at
-                .chunks(TET_CHUNK)
+                .chunks(chunk)
                 .enumerate()
                 .map(|(c, ps)| (c, ps.len()))
             {
                 let (c, len) = positions;
                 let mut partial = [0.0; 3];
                 let mut touched = false;
-                for p in c * TET_CHUNK..c * TET_CHUNK + len {
+                for p in c * chunk..c * chunk + len {
                     for (corner, &w) in tets[tet_at[p] as usize].iter().enumerate() {
                         if w == v {
                             touched = true;
@@ -252,7 +262,9 @@ mod tests {
         // A scrambled placement: position p holds tet (p * 5) mod k.
         let tet_at: Vec<u32> = (0..k).map(|p| ((p * 5) % k) as u32).collect();
         let (sums, local) = CornerSums::new(&tets, &tet_at, m);
-        let want = sums_by_reference(&tets, &tet_at, m);
+        let chunk = sums.chunk();
+        assert!(k.div_ceil(chunk) > 4, "several chunks");
+        let want = sums_by_reference(&tets, &tet_at, m, chunk);
         let x: Vec<Vec3> = (0..m).map(|v| [v as f64, 0.5 * v as f64, -1.0]).collect();
         assert_eq!(want[m - 1], [0.0; 3], "the unreferenced vertex");
         for threads in [1, 2, 3] {
@@ -261,11 +273,11 @@ mod tests {
                 .build()
                 .unwrap();
             let got = pool.install(|| {
-                let (mut acc, mut parts) = (Vec::new(), vec![0usize; k.div_ceil(TET_CHUNK)]);
+                let (mut acc, mut parts) = (Vec::new(), vec![0usize; k.div_ceil(chunk)]);
                 let mut out = vec![[f64::NAN; 3]; m];
                 sums.chunks(&x, &mut acc, &mut parts, |c, xl, acc| {
-                    let end = ((c + 1) * TET_CHUNK).min(k);
-                    for p in c * TET_CHUNK..end {
+                    let end = ((c + 1) * chunk).min(k);
+                    for p in c * chunk..end {
                         for corner in 0..4 {
                             // The local positions are the corners' own.
                             let v = tets[tet_at[p] as usize][corner];
@@ -277,7 +289,7 @@ mod tests {
                             }
                         }
                     }
-                    end - c * TET_CHUNK
+                    end - c * chunk
                 });
                 assert_eq!(parts.iter().sum::<usize>(), k);
                 sums.sums_into(&acc, &mut out);

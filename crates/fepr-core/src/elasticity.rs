@@ -13,7 +13,7 @@ use crate::linalg::{det, matmul, transpose, Mat3, Vec3, COFACTOR_PAIRS};
 use crate::material::{ln, ln_core, ln_core_applies, Hyperelastic, Material, NeoHookean, LANES};
 use crate::mesh::{edge_matrix, RestShape};
 use crate::model::Model;
-use crate::parallel::{reduce_chunks, TET_CHUNK};
+use crate::parallel::{reduce_chunks, MIN_TET_CHUNK};
 
 /// Energy and element-health summary of one evaluation.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -62,9 +62,10 @@ impl ElasticWorkspace {
 }
 
 /// Tets per block of the rest data and of the batched kernels. A multiple of 8 (the f64
-/// lanes of AVX-512) that divides [`TET_CHUNK`], so every chunk but the last is made of whole blocks.
+/// lanes of AVX-512) that divides every chunk length (a power of two, at least
+/// [`MIN_TET_CHUNK`]), so every chunk but the last is made of whole blocks.
 pub const BLOCK: usize = 16;
-const _: () = assert!(TET_CHUNK.is_multiple_of(BLOCK) && BLOCK.is_multiple_of(8));
+const _: () = assert!(MIN_TET_CHUNK.is_multiple_of(BLOCK) && BLOCK.is_multiple_of(8));
 pub(crate) type Block = [f64; BLOCK];
 
 /// The rest data of [`BLOCK`] consecutive tets in structure-of-arrays form: the Neo-Hookean kernel reads
@@ -174,13 +175,13 @@ pub fn elastic_energy(model: &Model, x: &[Vec3]) -> ElasticSummary {
 
 /// Energy only, with the batched Neo-Hookean kernel (bit-identical to [`energy_impl`]).
 fn neo_hookean_energy(nh: &NeoHookean, model: &Model, x: &[Vec3]) -> ElasticSummary {
-    let (blocks, lanes) = (&model.tet_blocks, Lanes::detect());
+    let (blocks, lanes, chunk) = (&model.tet_blocks, Lanes::detect(), model.tet_chunk());
     reduce_chunks(
         model.num_tets(),
-        TET_CHUNK,
+        chunk,
         |range| {
             let b = range.start / BLOCK..range.end.div_ceil(BLOCK);
-            let c = range.start / TET_CHUNK;
+            let c = range.start / chunk;
             (model.corner_sums).with_positions(c, x, |xl| {
                 lanes.run::<false>(nh, blocks, b, xl, &mut [], range.len())
             })
@@ -196,7 +197,7 @@ fn energy_impl<M: Hyperelastic + Sync>(mat: &M, model: &Model, x: &[Vec3]) -> El
     let (tets, volume, tet_at) = (model.mesh.tets(), &model.rest_volume, &model.tet_at);
     reduce_chunks(
         k,
-        TET_CHUNK,
+        model.tet_chunk(),
         |range| {
             let mut s = ElasticSummary::zero();
             let (mut f, mut psi) = ([[[0.0; 3]; 3]; LANES], [0.0; LANES]);
@@ -278,10 +279,7 @@ pub(crate) struct GradientSink<'a> {
     pub(crate) parts: &'a mut Vec<ElasticSummary>,
 }
 
-/// Blocks per chunk of [`TET_CHUNK`] tets.
-pub(crate) const CHUNK_BLOCKS: usize = TET_CHUNK / BLOCK;
-
-/// A gradient pass at `x` over fixed chunks of [`TET_CHUNK`] tets:
+/// A gradient pass at `x` over the model's fixed chunks of tets ([`Model::tet_chunk`]):
 /// `chunk_fn(c, xl, acc, len)` reads chunk `c`'s vertex positions from `xl` and adds its corner gradients
 /// into its accumulator `acc` (both indexed by local vertex: [`TetBlock::loc`]), and returns its summary;
 /// the partial sums stay in `sink.acc` (`CornerSums::chunks`), and the summaries, written in place (no
@@ -295,12 +293,12 @@ pub(crate) fn chunked_pass<F>(
 where
     F: Fn(usize, &[Vec3], &mut [Vec3], usize) -> ElasticSummary + Sync,
 {
-    let num_tets = model.num_tets();
+    let (num_tets, chunk) = (model.num_tets(), model.tet_chunk());
     let parts = sink.parts;
     parts.clear();
-    parts.resize(num_tets.div_ceil(TET_CHUNK), ElasticSummary::zero());
+    parts.resize(num_tets.div_ceil(chunk), ElasticSummary::zero());
     model.corner_sums.chunks(x, sink.acc, parts, |c, xl, acc| {
-        chunk_fn(c, xl, acc, (num_tets - c * TET_CHUNK).min(TET_CHUNK))
+        chunk_fn(c, xl, acc, (num_tets - c * chunk).min(chunk))
     });
     parts.iter().fold(ElasticSummary::zero(), |a, b| {
         ElasticSummary::combine(a, *b)
@@ -319,8 +317,9 @@ fn element_pass<M: Hyperelastic + Sync>(
         let loc = &blocks.blocks[pos / BLOCK].loc;
         [0, 1, 2, 3].map(|c| loc[c][pos % BLOCK] as usize)
     };
+    let chunk = model.tet_chunk();
     chunked_pass(model, x, sink, |c, xl, acc, len| {
-        let first = c * TET_CHUNK;
+        let first = c * chunk;
         let mut s = ElasticSummary::zero();
         let (mut f, mut psi, mut p) =
             ([[[0.0; 3]; 3]; LANES], [0.0; LANES], [[[0.0; 3]; 3]; LANES]);
@@ -363,9 +362,9 @@ fn neo_hookean_pass(
     x: &[Vec3],
     sink: GradientSink,
 ) -> ElasticSummary {
-    let blocks = &model.tet_blocks;
+    let (blocks, chunk_blocks) = (&model.tet_blocks, model.tet_chunk() / BLOCK);
     chunked_pass(model, x, sink, |c, xl, acc, len| {
-        let first = c * CHUNK_BLOCKS;
+        let first = c * chunk_blocks;
         lanes.run::<true>(nh, blocks, first..first + len.div_ceil(BLOCK), xl, acc, len)
     })
 }
@@ -977,12 +976,8 @@ pub(crate) mod tests {
             for (i, p) in x.iter_mut().enumerate() {
                 p[2] *= (i as f64 * 0.9).cos();
             }
-            let k = model.num_tets();
-            assert!(
-                k <= TET_CHUNK,
-                "one chunk: its local positions serve every block"
-            );
-            let (blocks, all) = (&model.tet_blocks, 0..k.div_ceil(BLOCK));
+            let (k, chunk, blocks) = (model.num_tets(), model.tet_chunk(), &model.tet_blocks);
+            assert!(k > 2 * chunk, "several chunks");
             let pass = |lanes| {
                 gradient_bits(&model, |sink| {
                     neo_hookean_pass(lanes, &mat, &model, &x, sink)
@@ -1002,9 +997,16 @@ pub(crate) mod tests {
             }
             for lanes in widths {
                 let (sg, got) = pass(lanes);
-                let se = (model.corner_sums).with_positions(0, &x, |xl| {
-                    lanes.run::<false>(&mat, blocks, all.clone(), xl, &mut [], k)
-                });
+                // The energy-only kernel, chunk by chunk (each chunk's local positions serve its blocks).
+                let se = (0..k.div_ceil(chunk))
+                    .map(|c| {
+                        let r = c * chunk..((c + 1) * chunk).min(k);
+                        let b = r.start / BLOCK..r.end.div_ceil(BLOCK);
+                        (model.corner_sums).with_positions(c, &x, |xl| {
+                            lanes.run::<false>(&mat, blocks, b, xl, &mut [], r.len())
+                        })
+                    })
+                    .fold(ElasticSummary::zero(), ElasticSummary::combine);
                 assert_eq!(got, want, "{lanes:?}");
                 for t in [sg, se] {
                     assert_eq!(t.energy.to_bits(), sw.energy.to_bits(), "{lanes:?}");
@@ -1113,7 +1115,7 @@ pub(crate) mod tests {
 
     #[test]
     fn vertices_no_tet_references_get_a_zero_gradient() {
-        // A 12^3 grid (10,368 tets: 11 chunks, so border vertices exist) plus two vertices that no tet
+        // A 12^3 grid (10,368 tets: 21 chunks, so border vertices exist) plus two vertices that no tet
         // references (allowed with node masses): their gradient must be exactly zero,
         // whatever the scratch held, and the others must match the same grid without them.
         let (mut v, t) = grid_mesh(12);
@@ -1133,7 +1135,7 @@ pub(crate) mod tests {
             .mass(MassSpec::NodeMass(0.1))
             .build()
             .unwrap();
-        assert!(model.num_tets() > 4 * crate::parallel::TET_CHUNK);
+        assert!(model.num_tets() > 4 * model.tet_chunk());
         let x = deformed(&model, 4);
         let mut grad = vec![[f64::NAN; 3]; x.len()];
         let mut ws = ElasticWorkspace::default();

@@ -77,6 +77,12 @@ impl Model {
     pub fn num_tets(&self) -> usize {
         self.mesh.num_tets()
     }
+    /// Tets per chunk of the per-tet passes ([`crate::parallel::tet_chunk_for`] the tet count): chunk `c`
+    /// holds the block positions `c * tet_chunk() ..`.
+    #[inline]
+    pub(crate) fn tet_chunk(&self) -> usize {
+        self.corner_sums.chunk()
+    }
     pub fn num_pinned(&self) -> usize {
         self.pinned.iter().filter(|p| **p).count()
     }

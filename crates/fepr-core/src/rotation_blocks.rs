@@ -13,12 +13,12 @@ use std::ops::Range;
 use crate::batch_polar::{polar_lanes, Lanes, EXACT, LANES, PD_LOCAL};
 use crate::elasticity::{
     add_corner_rows, block_corner_rows, block_deformation_gradients, chunked_pass, Block,
-    ElasticSummary, GradientSink, TetBlock, TetBlocks, BLOCK, CHUNK_BLOCKS,
+    ElasticSummary, GradientSink, TetBlock, TetBlocks, BLOCK,
 };
 use crate::linalg::Vec3;
 use crate::material::Arap;
 use crate::model::Model;
-use crate::parallel::{reduce_chunks, TET_CHUNK};
+use crate::parallel::reduce_chunks;
 
 const _: () = assert!(BLOCK.is_multiple_of(LANES));
 
@@ -35,7 +35,7 @@ enum Sink<'a> {
     PdTerms(&'a mut [[Vec3; 4]]),
 }
 
-/// ARAP energy and gradient (to `sink`), summed per chunk of [`TET_CHUNK`] tets in chunk order; as
+/// ARAP energy and gradient (to `sink`), summed per chunk of tets ([`Model::tet_chunk`]) in chunk order; as
 /// `elasticity`'s per-tet pass for any material, bit for bit.
 pub(crate) fn arap_gradient_pass(
     arap: &Arap,
@@ -43,9 +43,9 @@ pub(crate) fn arap_gradient_pass(
     x: &[Vec3],
     sink: GradientSink,
 ) -> ElasticSummary {
-    let blocks = &model.tet_blocks;
+    let (blocks, chunk_blocks) = (&model.tet_blocks, model.tet_chunk() / BLOCK);
     chunked_pass(model, x, sink, |c, xl, acc, len| {
-        let first = c * CHUNK_BLOCKS;
+        let first = c * chunk_blocks;
         let range = first..first + len.div_ceil(BLOCK);
         run(arap.mu, blocks, range, xl, Sink::Gradient(acc), len)
     })
@@ -53,13 +53,13 @@ pub(crate) fn arap_gradient_pass(
 
 /// The ARAP energy summary alone.
 pub(crate) fn arap_energy(arap: &Arap, model: &Model, x: &[Vec3]) -> ElasticSummary {
-    let blocks = &model.tet_blocks;
+    let (blocks, chunk) = (&model.tet_blocks, model.tet_chunk());
     reduce_chunks(
         model.num_tets(),
-        TET_CHUNK,
+        chunk,
         |range| {
             let b = range.start / BLOCK..range.end.div_ceil(BLOCK);
-            let c = range.start / TET_CHUNK;
+            let c = range.start / chunk;
             (model.corner_sums).with_positions(c, x, |xl| {
                 run(arap.mu, blocks, b, xl, Sink::Energy, range.len())
             })
@@ -77,10 +77,11 @@ pub(crate) fn arap_energy(arap: &Arap, model: &Model, x: &[Vec3]) -> ElasticSumm
 pub(crate) fn pd_rotation_terms(mu: f64, model: &Model, x: &[Vec3], out: &mut [[Vec3; 4]]) {
     let (blocks, k) = (&model.tet_blocks, model.num_tets());
     assert_eq!(out.len(), k, "one entry per tet");
-    out.par_chunks_mut(TET_CHUNK)
+    let tet_chunk = model.tet_chunk();
+    out.par_chunks_mut(tet_chunk)
         .enumerate()
         .for_each(|(c, chunk)| {
-            let first = c * CHUNK_BLOCKS;
+            let first = c * (tet_chunk / BLOCK);
             let range = first..first + chunk.len().div_ceil(BLOCK);
             let len = chunk.len();
             (model.corner_sums).with_positions(c, x, |xl| {
