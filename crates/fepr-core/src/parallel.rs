@@ -5,23 +5,30 @@
 use rayon::prelude::*;
 use std::ops::Range;
 
-/// Chunk length for per-tet loops: the largest, used on meshes of 16 chunks or more (a smaller mesh is cut
+/// Chunk length for per-tet loops: the largest, used on meshes of 32 chunks or more (a smaller mesh is cut
 /// finer: [`tet_chunk_for`]).
 pub const TET_CHUNK: usize = 1024;
 
 /// The smallest chunk length of the per-tet loops.
 pub const MIN_TET_CHUNK: usize = 128;
 
-/// Tets per chunk of the per-tet loops on a mesh of `k` tets: [`TET_CHUNK`], or on a mesh of fewer than 16
-/// such chunks about a sixteenth of it (a power of two, at least [`MIN_TET_CHUNK`]), so that two threads get
-/// near-equal shares of a small mesh. With 1024-tet chunks the 4,406-tet armadillo had five chunks, three on
-/// one thread and two on the other (at most 1.43x on two threads), and a 1,296-tet box two (1.27x). The
-/// length depends on `k` alone, never on the thread count: the sums keep their bits for any number of
-/// threads.
+/// Tets per chunk of the per-tet loops on a mesh of `k` tets, a power of two: [`TET_CHUNK`] from 32,768 tets;
+/// below, about a thirty-second of the mesh while that is at least 512 tets (16,384 tets and more), else about a
+/// sixteenth (at least [`MIN_TET_CHUNK`]). So two threads get near-equal shares of small and mid-sized meshes:
+/// with 1024-tet chunks the 4,406-tet armadillo had five chunks, three on one thread and two on the other (at
+/// most 1.43x on two threads), a 1,296-tet box two (1.27x), and the 19,379-tet bunny 19 (measured 1.59-1.62x
+/// against 1.80x with 512-tet chunks, alternated). Finer than a sixteenth below 16,384 tets measured no
+/// better (box 10k) or worse (armadillo: 1.66x with 128-tet chunks against 1.85x with 256): each chunk's
+/// border vertices are summed from several chunks. The length depends on `k` alone, never on the thread
+/// count: the sums keep their bits for any number of threads.
 pub fn tet_chunk_for(k: usize) -> usize {
-    let sixteenth = (k / 16).max(1);
-    let floor_pow2 = 1usize << (usize::BITS - 1 - sixteenth.leading_zeros());
-    floor_pow2.clamp(MIN_TET_CHUNK, TET_CHUNK)
+    let floor_pow2 = |n: usize| 1usize << (usize::BITS - 1 - n.max(1).leading_zeros());
+    let thirty_second = floor_pow2(k / 32);
+    if thirty_second >= 512 {
+        thirty_second.min(TET_CHUNK)
+    } else {
+        floor_pow2(k / 16).clamp(MIN_TET_CHUNK, TET_CHUNK)
+    }
 }
 
 /// Reduce `0..n` by `map` over fixed chunks and `combine` in chunk order.
@@ -114,24 +121,32 @@ mod tests {
     #[test]
     fn tet_chunks_are_whole_blocks_and_cut_small_meshes_finer() {
         for k in [
-            0, 1, 100, 1_296, 4_406, 10_368, 16_383, 16_384, 29_548, 10_000_000,
+            0, 1, 100, 1_296, 4_406, 10_368, 16_383, 16_384, 19_379, 29_548, 32_767, 32_768,
+            10_000_000,
         ] {
             let c = tet_chunk_for(k);
             assert!(
                 c.is_power_of_two() && (MIN_TET_CHUNK..=TET_CHUNK).contains(&c),
                 "{k}: {c}"
             );
-            // At least 16 chunks where the smallest length allows it; fewer than 32 where it is cut finer.
+            // At least 16 chunks where the smallest length allows it, at least 32 from 16,384 tets; fewer
+            // than 64 where the mesh is cut finer than TET_CHUNK.
             if k >= 16 * MIN_TET_CHUNK {
                 assert!(k.div_ceil(c) >= 16, "{k}: {c}");
             }
+            if k >= 16_384 {
+                assert!(k.div_ceil(c) >= 32, "{k}: {c}");
+            }
             if MIN_TET_CHUNK < c && c < TET_CHUNK {
-                assert!(k / c < 32, "{k}: {c}");
+                assert!(k / c < 64, "{k}: {c}");
             }
         }
         assert_eq!(tet_chunk_for(1_296), MIN_TET_CHUNK);
         assert_eq!(tet_chunk_for(4_406), 256);
-        assert_eq!(tet_chunk_for(29_548), TET_CHUNK);
+        assert_eq!(tet_chunk_for(10_368), 512);
+        assert_eq!(tet_chunk_for(19_379), 512);
+        assert_eq!(tet_chunk_for(29_548), 512);
+        assert_eq!(tet_chunk_for(32_768), TET_CHUNK);
     }
 
     #[test]
