@@ -33,9 +33,9 @@ thread_local! {
 
 /// The chunk-local vertex numbering of a mesh's tets, and how the chunks' sums reach the vertices. Built once
 /// with the model (about 7 bytes per tet; the accumulators, in the workspace, about 9).
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub(crate) struct CornerSums {
-    /// Tets per chunk ([`tet_chunk_for`] the mesh's tet count; 0 only for the default, tet-less value).
+    /// Tets per chunk: [`tet_chunk_for`] the mesh's tet count.
     chunk: usize,
     /// Accumulator entries per chunk (the largest local vertex count): chunk `c`'s entries are
     /// `c * stride .. c * stride + count[c]`.
