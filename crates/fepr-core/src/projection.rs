@@ -1544,30 +1544,14 @@ fn vertex_moments_lanes<const S: bool>(
                 acc[k][l] += value[l];
             }
         };
-        let vv = lanes(|l| vs[0][l] * vs[0][l] + vs[1][l] * vs[1][l] + vs[2][l] * vs[2][l]);
-        let r: [Lane; 3] = std::array::from_fn(|a| lanes(|l| xs[a][l] - ct[a]));
-        let rxv: [Lane; 3] = std::array::from_fn(|a| {
-            let (b, c) = ((a + 1) % 3, (a + 2) % 3);
-            lanes(|l| r[b][l] * vs[c][l] - r[c][l] * vs[b][l])
-        });
         let gxv: [Lane; 3] = std::array::from_fn(|a| {
             let (b, c) = ((a + 1) % 3, (a + 2) % 3);
             lanes(|l| gs[b][l] * vs[c][l] - gs[c][l] * vs[b][l])
         });
-        // The constraints' sums, then (with S) the moments for S; each sum's operations are the same either
-        // way (the same bits).
-        add(q::KINETIC, lanes(|l| 0.5 * m[l] * vv[l]));
-        add(
-            q::GRAVITATIONAL,
-            lanes(|l| -(m[l] * (g[0] * xs[0][l] + g[1] * xs[1][l] + g[2] * xs[2][l]))),
-        );
-        for a in 0..3 {
-            add(q::MOMENTUM + a, lanes(|l| m[l] * vs[a][l]));
-            add(q::ANGULAR + a, lanes(|l| m[l] * rxv[a][l]));
-            add(q::MASS_X + a, lanes(|l| m[l] * xs[a][l]));
-        }
-        if !S {
-            continue;
+        // The constraints' sums (the same operations as without S: the same bits), then the moments for S.
+        let (terms, vv, r, rxv) = constraint_terms(xs, vs, m, g, ct);
+        for (k, t) in terms.into_iter().enumerate() {
+            add(k, t);
         }
         let am = lanes(|l| af[l] * m[l]);
         add(q::FREE_MASS, mf);
@@ -1638,20 +1622,10 @@ fn constraint_sums_lanes(pb: &Problem, first: usize, x: &[Vec3], v: &[Vec3]) -> 
     let masses = &pb.model.masses[first..first + n];
     let mut acc = [[0.0; VL]; q::MASS_X + 3];
     let mut group = |xs: [Lane; 3], vs: [Lane; 3], m: Lane| {
-        let vv = lanes(|l| vs[0][l] * vs[0][l] + vs[1][l] * vs[1][l] + vs[2][l] * vs[2][l]);
-        let r: [Lane; 3] = std::array::from_fn(|a| lanes(|l| xs[a][l] - ct[a]));
-        let rxv: [Lane; 3] = std::array::from_fn(|a| {
-            let (b, c) = ((a + 1) % 3, (a + 2) % 3);
-            lanes(|l| r[b][l] * vs[c][l] - r[c][l] * vs[b][l])
-        });
-        for l in 0..VL {
-            acc[q::KINETIC][l] += 0.5 * m[l] * vv[l];
-            acc[q::GRAVITATIONAL][l] +=
-                -(m[l] * (g[0] * xs[0][l] + g[1] * xs[1][l] + g[2] * xs[2][l]));
-            for a in 0..3 {
-                acc[q::MOMENTUM + a][l] += m[l] * vs[a][l];
-                acc[q::ANGULAR + a][l] += m[l] * rxv[a][l];
-                acc[q::MASS_X + a][l] += m[l] * xs[a][l];
+        let (terms, ..) = constraint_terms(xs, vs, m, g, ct);
+        for (a, t) in acc.iter_mut().zip(terms) {
+            for l in 0..VL {
+                a[l] += t[l];
             }
         }
     };
@@ -1688,6 +1662,34 @@ fn constraint_sums_lanes(pb: &Problem, first: usize, x: &[Vec3], v: &[Vec3]) -> 
         mass_x: vec3(q::MASS_X),
         ..Eval::default()
     }
+}
+
+/// One lane group's terms of the constraints' sums, indexed as [`q`] (`KINETIC` .. `MASS_X + 2`), and the
+/// `|v|^2`, `r = x - C_target` and `r x v` they are made of (the moments for `S` reuse them).
+#[inline(always)]
+fn constraint_terms(
+    xs: [Lane; 3],
+    vs: [Lane; 3],
+    m: Lane,
+    g: Vec3,
+    ct: Vec3,
+) -> ([Lane; q::MASS_X + 3], Lane, [Lane; 3], [Lane; 3]) {
+    let vv = lanes(|l| vs[0][l] * vs[0][l] + vs[1][l] * vs[1][l] + vs[2][l] * vs[2][l]);
+    let r: [Lane; 3] = std::array::from_fn(|a| lanes(|l| xs[a][l] - ct[a]));
+    let rxv: [Lane; 3] = std::array::from_fn(|a| {
+        let (b, c) = ((a + 1) % 3, (a + 2) % 3);
+        lanes(|l| r[b][l] * vs[c][l] - r[c][l] * vs[b][l])
+    });
+    let mut t = [[0.0; VL]; q::MASS_X + 3];
+    t[q::KINETIC] = lanes(|l| 0.5 * m[l] * vv[l]);
+    t[q::GRAVITATIONAL] =
+        lanes(|l| -(m[l] * (g[0] * xs[0][l] + g[1] * xs[1][l] + g[2] * xs[2][l])));
+    for a in 0..3 {
+        t[q::MOMENTUM + a] = lanes(|l| m[l] * vs[a][l]);
+        t[q::ANGULAR + a] = lanes(|l| m[l] * rxv[a][l]);
+        t[q::MASS_X + a] = lanes(|l| m[l] * xs[a][l]);
+    }
+    (t, vv, r, rxv)
 }
 
 /// Gradient of the potential energy at one vertex: the elastic gradient minus the gravity force `m g`.
