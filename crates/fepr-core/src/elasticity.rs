@@ -41,6 +41,24 @@ impl ElasticSummary {
             inverted: a.inverted + b.inverted,
         }
     }
+
+    /// The summary of `0..num_tets` from `map` over fixed chunks of `chunk` tets, combined in chunk order
+    /// (`parallel::reduce_chunks`; the chunks' summaries in this thread's reused buffer: no allocation once
+    /// it has grown, as the energy-only passes run inside the step loop).
+    pub(crate) fn over_chunks(
+        num_tets: usize,
+        chunk: usize,
+        map: impl Fn(std::ops::Range<usize>) -> Self + Sync,
+    ) -> Self {
+        thread_local! {
+            static PARTS: std::cell::Cell<Vec<ElasticSummary>> = const { std::cell::Cell::new(Vec::new()) };
+        }
+        // Taken out of the cell, not borrowed: a nested call (none today) would allocate, not panic.
+        let mut parts = PARTS.take();
+        let sum = reduce_chunks(num_tets, chunk, &mut parts, map, Self::combine);
+        PARTS.set(parts);
+        sum.unwrap_or_else(Self::zero)
+    }
 }
 
 /// Scratch memory for energy and gradient evaluations (reused across calls, no allocation in the step loop):
@@ -176,57 +194,45 @@ pub fn elastic_energy(model: &Model, x: &[Vec3]) -> ElasticSummary {
 /// Energy only, with the batched Neo-Hookean kernel (bit-identical to [`energy_impl`]).
 fn neo_hookean_energy(nh: &NeoHookean, model: &Model, x: &[Vec3]) -> ElasticSummary {
     let (blocks, lanes, chunk) = (&model.tet_blocks, Lanes::detect(), model.tet_chunk());
-    reduce_chunks(
-        model.num_tets(),
-        chunk,
-        |range| {
-            let b = range.start / BLOCK..range.end.div_ceil(BLOCK);
-            let c = range.start / chunk;
-            (model.corner_sums).with_positions(c, x, |xl| {
-                lanes.run::<false>(nh, blocks, b, xl, &mut [], range.len())
-            })
-        },
-        ElasticSummary::combine,
-    )
-    .unwrap_or_else(ElasticSummary::zero)
+    ElasticSummary::over_chunks(model.num_tets(), chunk, |range| {
+        let b = range.start / BLOCK..range.end.div_ceil(BLOCK);
+        let c = range.start / chunk;
+        (model.corner_sums).with_positions(c, x, |xl| {
+            lanes.run::<false>(nh, blocks, b, xl, &mut [], range.len())
+        })
+    })
 }
 
 /// Energy only, per tet through the material interface, summed in the blocks' tet order (as the kernels).
 fn energy_impl<M: Hyperelastic + Sync>(mat: &M, model: &Model, x: &[Vec3]) -> ElasticSummary {
     let k = model.num_tets();
     let (tets, volume, tet_at) = (model.mesh.tets(), &model.rest_volume, &model.tet_at);
-    reduce_chunks(
-        k,
-        model.tet_chunk(),
-        |range| {
-            let mut s = ElasticSummary::zero();
-            let (mut f, mut psi) = ([[[0.0; 3]; 3]; LANES], [0.0; LANES]);
-            for p0 in range.clone().step_by(LANES) {
-                // Full groups go through the material's batched call; the last, partial one per tet.
-                let n = LANES.min(range.end - p0);
+    ElasticSummary::over_chunks(k, model.tet_chunk(), |range| {
+        let mut s = ElasticSummary::zero();
+        let (mut f, mut psi) = ([[[0.0; 3]; 3]; LANES], [0.0; LANES]);
+        for p0 in range.clone().step_by(LANES) {
+            // Full groups go through the material's batched call; the last, partial one per tet.
+            let n = LANES.min(range.end - p0);
+            for l in 0..n {
+                let (p, e) = (p0 + l, tet_at[p0 + l] as usize);
+                f[l] = matmul(&edge_matrix(x, &tets[e]), &model.tet_blocks.dm_inv_at(p));
+            }
+            if n == LANES {
+                mat.energy_density_lanes(&f, &mut psi);
+            } else {
                 for l in 0..n {
-                    let (p, e) = (p0 + l, tet_at[p0 + l] as usize);
-                    f[l] = matmul(&edge_matrix(x, &tets[e]), &model.tet_blocks.dm_inv_at(p));
-                }
-                if n == LANES {
-                    mat.energy_density_lanes(&f, &mut psi);
-                } else {
-                    for l in 0..n {
-                        psi[l] = mat.energy_density(&f[l]);
-                    }
-                }
-                for l in 0..n {
-                    let j = det(&f[l]);
-                    s.energy += volume[tet_at[p0 + l] as usize] * psi[l];
-                    s.min_j = s.min_j.min(j);
-                    s.inverted += (j <= 0.0) as usize;
+                    psi[l] = mat.energy_density(&f[l]);
                 }
             }
-            s
-        },
-        ElasticSummary::combine,
-    )
-    .unwrap_or_else(ElasticSummary::zero)
+            for l in 0..n {
+                let j = det(&f[l]);
+                s.energy += volume[tet_at[p0 + l] as usize] * psi[l];
+                s.min_j = s.min_j.min(j);
+                s.inverted += (j <= 0.0) as usize;
+            }
+        }
+        s
+    })
 }
 
 /// Elastic energy and its gradient `dE_el/dx` (written to `grad`, shape (m, 3), J/m).

@@ -131,6 +131,22 @@ pub fn ddot(a: &Mat3, b: &Mat3) -> f64 {
 /// minimum-norm least-squares solution from a Jacobi eigen-decomposition (rank-revealing, cut-off relative
 /// to the largest eigenvalue). Returns the solution and whether the fallback was used.
 pub fn solve_symmetric_psd(a: &[f64], b: &[f64], n: usize, delta: f64) -> (Vec<f64>, bool) {
+    let (mut l, mut x) = (vec![0.0; n * n], vec![0.0; n]);
+    let lstsq = solve_symmetric_psd_into(a, b, n, delta, &mut l, &mut x);
+    (x, lstsq)
+}
+
+/// [`solve_symmetric_psd`] into caller-owned memory: `x` (length `n`) gets the solution, `l` (length at
+/// least `n * n`) is scratch for the factor. No allocation unless the least-squares fallback runs. Returns
+/// whether it did.
+pub fn solve_symmetric_psd_into(
+    a: &[f64],
+    b: &[f64],
+    n: usize,
+    delta: f64,
+    l: &mut [f64],
+    x: &mut [f64],
+) -> bool {
     debug_assert_eq!(a.len(), n * n);
     let trace: f64 = (0..n).map(|i| a[i * n + i]).sum();
     let shift = if trace > 0.0 {
@@ -138,19 +154,22 @@ pub fn solve_symmetric_psd(a: &[f64], b: &[f64], n: usize, delta: f64) -> (Vec<f
     } else {
         0.0
     };
-    let mut l = a.to_vec();
+    let (l, x) = (&mut l[..n * n], &mut x[..n]);
+    l.copy_from_slice(a);
     for i in 0..n {
         l[i * n + i] += shift;
     }
-    if let Some(x) = cholesky_solve(&mut l, b, n) {
-        if x.iter().all(|v| v.is_finite()) {
-            return (x, false);
-        }
+    x.copy_from_slice(&b[..n]);
+    if cholesky_solve_in_place(l, x, n) && x.iter().all(|v| v.is_finite()) {
+        return false;
     }
-    (eigen_least_squares(a, b, n), true)
+    x.copy_from_slice(&eigen_least_squares(a, b, n));
+    true
 }
 
-fn cholesky_solve(l: &mut [f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
+/// Factor `l` (n x n, row-major, lower triangle used) in place by Cholesky and solve `L L^T y = b` in `y`
+/// (holding `b` on entry); false if the matrix is not positive definite in floating point.
+fn cholesky_solve_in_place(l: &mut [f64], y: &mut [f64], n: usize) -> bool {
     // In-place lower Cholesky factor.
     for j in 0..n {
         let mut d = l[j * n + j];
@@ -158,7 +177,7 @@ fn cholesky_solve(l: &mut [f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
             d -= l[j * n + k] * l[j * n + k];
         }
         if d <= 0.0 || !d.is_finite() {
-            return None;
+            return false;
         }
         let d = d.sqrt();
         l[j * n + j] = d;
@@ -170,7 +189,6 @@ fn cholesky_solve(l: &mut [f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
             l[i * n + j] = s / d;
         }
     }
-    let mut y = b.to_vec();
     for i in 0..n {
         for k in 0..i {
             y[i] -= l[i * n + k] * y[k];
@@ -183,7 +201,7 @@ fn cholesky_solve(l: &mut [f64], b: &[f64], n: usize) -> Option<Vec<f64>> {
         }
         y[i] /= l[i * n + i];
     }
-    Some(y)
+    true
 }
 
 /// Cyclic Jacobi eigen-decomposition of a symmetric matrix: returns (eigenvalues, eigenvectors as columns

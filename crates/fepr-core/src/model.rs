@@ -412,11 +412,29 @@ fn morton_codes(points: &[Vec3]) -> Vec<u64> {
 }
 
 /// What changes during a run: positions (m), velocities (m/s) and time (s).
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Debug, PartialEq)]
 pub struct State {
     pub x: Vec<Vec3>,
     pub v: Vec<Vec3>,
     pub time: f64,
+}
+
+impl Clone for State {
+    fn clone(&self) -> Self {
+        Self {
+            x: self.x.clone(),
+            v: self.v.clone(),
+            time: self.time,
+        }
+    }
+
+    /// Copies into the existing buffers (no allocation once they are large enough): a simulation keeps the
+    /// previous step's state this way every step (the derived `clone_from` allocated two new arrays).
+    fn clone_from(&mut self, source: &Self) {
+        self.x.clone_from(&source.x);
+        self.v.clone_from(&source.v);
+        self.time = source.time;
+    }
 }
 
 impl State {

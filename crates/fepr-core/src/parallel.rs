@@ -31,19 +31,25 @@ pub fn tet_chunk_for(k: usize) -> usize {
     }
 }
 
-/// Reduce `0..n` by `map` over fixed chunks and `combine` in chunk order.
-pub fn reduce_chunks<A, M, C>(n: usize, chunk: usize, map: M, combine: C) -> Option<A>
+/// Reduce `0..n` by `map` over fixed chunks and `combine` in chunk order. The chunk results are collected
+/// in `parts` (reused: no allocation once it has grown to the chunk count).
+pub fn reduce_chunks<A, M, C>(
+    n: usize,
+    chunk: usize,
+    parts: &mut Vec<A>,
+    map: M,
+    combine: C,
+) -> Option<A>
 where
     A: Send,
     M: Fn(Range<usize>) -> A + Sync,
     C: Fn(A, A) -> A,
 {
-    let num_chunks = n.div_ceil(chunk);
-    let parts: Vec<A> = (0..num_chunks)
+    (0..n.div_ceil(chunk))
         .into_par_iter()
         .map(|c| map(c * chunk..((c + 1) * chunk).min(n)))
-        .collect();
-    parts.into_iter().reduce(combine)
+        .collect_into_vec(parts);
+    parts.drain(..).reduce(combine)
 }
 
 /// While alive, keeps the thread pool's other threads polling for work (as OpenMP runtimes spin-wait between
@@ -112,6 +118,7 @@ mod tests {
         reduce_chunks(
             n,
             1000,
+            &mut Vec::new(),
             |r| r.map(|i| (i as f64).sin()).sum::<f64>(),
             |a, b| a + b,
         )
@@ -204,6 +211,7 @@ mod tests {
                     reduce_chunks(
                         data.len(),
                         1000,
+                        &mut Vec::new(),
                         |r| data[r].iter().sum::<f64>(),
                         |a, b| a + b,
                     )

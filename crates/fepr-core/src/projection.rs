@@ -24,7 +24,7 @@ use crate::elasticity::{
 };
 use crate::error::{invalid, Result};
 use crate::invariants::Invariants;
-use crate::linalg::{cross, dot, solve_symmetric_psd, sub, Mat3, Vec3};
+use crate::linalg::{cross, dot, solve_symmetric_psd_into, sub, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
 
 /// Which constraint rows the projection enforces.
@@ -1745,17 +1745,23 @@ fn small_matrix(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
 /// Solve the scaled, regularised small system for the multipliers (zero for inactive rows).
 fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> ([f64; ROWS], bool) {
     let full = small_matrix(pb, e);
-    let idx: Vec<usize> = (0..ROWS).filter(|&i| pb.active[i]).collect();
-    let n = idx.len();
-    let mut a = vec![0.0; n * n];
-    let mut b = vec![0.0; n];
+    // On the stack (no allocation per iteration): at most ROWS active rows.
+    let mut idx = [0usize; ROWS];
+    let mut n = 0;
+    for i in (0..ROWS).filter(|&i| pb.active[i]) {
+        idx[n] = i;
+        n += 1;
+    }
+    let idx = &idx[..n];
+    let (mut a, mut b) = ([0.0; ROWS * ROWS], [0.0; ROWS]);
     for (p, &i) in idx.iter().enumerate() {
         b[p] = e.c[i] / pb.row_scale[i];
         for (q, &j) in idx.iter().enumerate() {
             a[p * n + q] = full[i][j] / (pb.row_scale[i] * pb.row_scale[j]);
         }
     }
-    let (y, lstsq) = solve_symmetric_psd(&a, &b, n, delta);
+    let (mut factor, mut y) = ([0.0; ROWS * ROWS], [0.0; ROWS]);
+    let lstsq = solve_symmetric_psd_into(&a[..n * n], &b[..n], n, delta, &mut factor, &mut y);
     let mut lambda = [0.0; ROWS];
     for (p, &i) in idx.iter().enumerate() {
         lambda[i] = y[p] / pb.row_scale[i];

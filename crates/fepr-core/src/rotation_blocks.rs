@@ -18,7 +18,6 @@ use crate::elasticity::{
 use crate::linalg::Vec3;
 use crate::material::Arap;
 use crate::model::Model;
-use crate::parallel::reduce_chunks;
 
 const _: () = assert!(BLOCK.is_multiple_of(LANES));
 
@@ -54,19 +53,13 @@ pub(crate) fn arap_gradient_pass(
 /// The ARAP energy summary alone.
 pub(crate) fn arap_energy(arap: &Arap, model: &Model, x: &[Vec3]) -> ElasticSummary {
     let (blocks, chunk) = (&model.tet_blocks, model.tet_chunk());
-    reduce_chunks(
-        model.num_tets(),
-        chunk,
-        |range| {
-            let b = range.start / BLOCK..range.end.div_ceil(BLOCK);
-            let c = range.start / chunk;
-            (model.corner_sums).with_positions(c, x, |xl| {
-                run(arap.mu, blocks, b, xl, Sink::Energy, range.len())
-            })
-        },
-        ElasticSummary::combine,
-    )
-    .unwrap_or_else(ElasticSummary::zero)
+    ElasticSummary::over_chunks(model.num_tets(), chunk, |range| {
+        let b = range.start / BLOCK..range.end.div_ceil(BLOCK);
+        let c = range.start / chunk;
+        (model.corner_sums).with_positions(c, x, |xl| {
+            run(arap.mu, blocks, b, xl, Sink::Energy, range.len())
+        })
+    })
 }
 
 /// The Projective Dynamics local step for shear modulus `mu`: every tet's closest rotation `R` to `F` and
