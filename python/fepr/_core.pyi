@@ -57,7 +57,8 @@ class _ProjectionReportDict(TypedDict):
 
 class Simulation:
     """The simulation: model, state, integrator and projection (see ``fepr.Simulation`` for the documented
-    API)."""
+    API). It runs on the mesh renumbered in a locality order; every per-vertex array and vertex index in and out
+    is in the caller's numbering."""
 
     def __init__(
         self,

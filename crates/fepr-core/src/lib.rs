@@ -41,6 +41,7 @@ pub mod ordering;
 pub mod parallel;
 pub mod pd;
 pub mod projection;
+pub mod renumber;
 pub(crate) mod rotation_blocks;
 pub mod simulation;
 pub mod sparse;

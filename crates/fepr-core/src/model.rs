@@ -324,14 +324,8 @@ impl KernelOrder {
         let m = verts.len();
         u32::try_from(m).expect("vertex indices fit in u32");
         u32::try_from(4 * tets.len()).expect("incidence slots fit in u32");
-        let code = morton_codes(verts);
-        let mut vertices: Vec<u32> = (0..m as u32).collect();
-        // Stable: ties keep index order.
-        vertices.sort_by_key(|&v| code[v as usize]);
-        let mut rank = vec![0u32; m];
-        for (r, &v) in vertices.iter().enumerate() {
-            rank[v as usize] = r as u32;
-        }
+        let order = crate::renumber::VertexOrder::locality(verts);
+        let rank: Vec<u32> = (0..m).map(|v| order.internal(v) as u32).collect();
         let mut tet_at: Vec<u32> = (0..tets.len() as u32).collect();
         tet_at.sort_by_key(|&e| tets[e as usize].iter().map(|&v| rank[v]).min().unwrap_or(0));
         let mut tet_position = vec![0u32; tets.len()];
@@ -368,47 +362,6 @@ impl KernelOrder {
         }
         (offsets, slots)
     }
-}
-
-/// Morton (Z-curve) codes of points: 21 bits per axis over the bounding box (the same scale on every axis).
-fn morton_codes(points: &[Vec3]) -> Vec<u64> {
-    const BITS: u32 = 21;
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for p in points {
-        for a in 0..3 {
-            lo[a] = lo[a].min(p[a]);
-            hi[a] = hi[a].max(p[a]);
-        }
-    }
-    let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0f64, f64::max);
-    let top = ((1u64 << BITS) - 1) as f64;
-    let s = if extent > 0.0 && extent.is_finite() {
-        top / extent
-    } else {
-        0.0
-    };
-    // Spread the low 21 bits of `v` to every third bit.
-    let spread = |v: u64| {
-        let mut v = v & 0x1f_ffff;
-        v = (v | (v << 32)) & 0x001f_0000_0000_ffff;
-        v = (v | (v << 16)) & 0x001f_0000_ff00_00ff;
-        v = (v | (v << 8)) & 0x100f_00f0_0f00_f00f;
-        v = (v | (v << 4)) & 0x10c3_0c30_c30c_30c3;
-        v = (v | (v << 2)) & 0x1249_2492_4924_9249;
-        v
-    };
-    points
-        .iter()
-        .map(|p| {
-            let mut code = 0u64;
-            for a in 0..3 {
-                let q = ((p[a] - lo[a]) * s).clamp(0.0, top) as u64;
-                code |= spread(q) << a;
-            }
-            code
-        })
-        .collect()
 }
 
 /// What changes during a run: positions (m), velocities (m/s) and time (s).

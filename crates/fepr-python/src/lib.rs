@@ -24,6 +24,7 @@ use fepr_core::pd::{PdSettings, ProjectiveDynamics};
 use fepr_core::projection::{
     ActiveRows, Metric, ProjectionReport, ProjectionSettings, Projector, Slack,
 };
+use fepr_core::renumber::VertexOrder;
 use fepr_core::simulation::{Simulation as CoreSimulation, StepDiagnostics};
 use fepr_core::world::{Drag, KinematicPins, PinMotion};
 use fepr_core::xpbd::{Xpbd, XpbdSettings};
@@ -47,11 +48,17 @@ fn to_vec3(a: &PyReadonlyArray2<f64>, name: &str) -> PyResult<Vec<Vec3>> {
     Ok(a.rows().into_iter().map(|r| [r[0], r[1], r[2]]).collect())
 }
 
-fn from_vec3<'py>(py: Python<'py>, v: &[Vec3]) -> Bound<'py, PyArray2<f64>> {
+/// Internal per-vertex rows as an (m, 3) array in the user's numbering.
+fn from_vec3_user<'py>(
+    py: Python<'py>,
+    order: &VertexOrder,
+    v: &[Vec3],
+) -> Bound<'py, PyArray2<f64>> {
     let mut a = Array2::<f64>::zeros((v.len(), 3));
-    for (i, p) in v.iter().enumerate() {
+    for (u, mut row) in a.rows_mut().into_iter().enumerate() {
+        let p = v[order.internal(u)];
         for c in 0..3 {
-            a[[i, c]] = p[c];
+            row[c] = p[c];
         }
     }
     a.into_pyarray(py)
@@ -186,11 +193,16 @@ fn material_eval<'py>(
 // from the model (factorisations, patterns, the stiffness metric) cannot go stale through this module. The core
 // keys that data on `Model::key` / `Model::structure_key` all the same (the Rust API lets users change the
 // model's public fields between steps), so a method added here that changes the model needs nothing more.
-/// The simulation: model, state, integrator and projection (see `fepr.Simulation` for the documented API).
+/// The simulation: model, state, integrator and projection (see `fepr.Simulation` for the documented API), on
+/// the mesh renumbered in a locality order; every per-vertex array in and out is in the user's numbering.
 #[pyclass(module = "fepr._core")]
 struct Simulation {
     inner: CoreSimulation,
     pool: Option<rayon::ThreadPool>,
+    /// The core runs on the mesh renumbered in a locality order (`fepr_core::renumber`: two threads share
+    /// their cores' caches better); every per-vertex array crossing this boundary is translated, so Python
+    /// sees the user's numbering.
+    order: VertexOrder,
 }
 
 fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py, PyDict>> {
@@ -363,7 +375,7 @@ impl Simulation {
         xpbd_substeps: usize,
         xpbd_iterations: usize,
     ) -> PyResult<Self> {
-        let (mesh, _) = build_mesh(&vertices, &tets)?;
+        let (user_mesh, _) = build_mesh(&vertices, &tets)?;
         let mat = make_material(material, youngs_modulus, poisson_ratio, j0)?;
         let mass = match (mass_kind, node_masses) {
             ("density", _) => MassSpec::Density(mass_value),
@@ -375,13 +387,32 @@ impl Simulation {
                 )))
             }
         };
-        let model = ModelBuilder::new(mesh, mat)
-            .mass(mass)
-            .gravity(gravity)
-            .pinned(pinned)
-            .damping(damping)
-            .build()
-            .map_err(value_error)?;
+        let build = |mesh: TetMesh, mass: MassSpec, pinned: Vec<usize>| {
+            ModelBuilder::new(mesh, mat)
+                .mass(mass)
+                .gravity(gravity)
+                .pinned(pinned)
+                .damping(damping)
+                .build()
+        };
+        let order = VertexOrder::locality(user_mesh.vertices());
+        let m = order.len();
+        let internal_mass = match &mass {
+            MassSpec::PerVertex(v) if v.len() == m => MassSpec::PerVertex(order.to_internal(v)),
+            other => other.clone(),
+        };
+        // Out-of-range indices stay as they are (the build names them).
+        let to_internal = |u: usize| if u < m { order.internal(u) } else { u };
+        let internal_pinned = pinned.iter().map(|&u| to_internal(u)).collect();
+        let model = match build(order.mesh(&user_mesh), internal_mass, internal_pinned) {
+            Ok(model) => model,
+            // Built again in the user's numbering, so that the error names the user's vertices.
+            Err(err) => {
+                return Err(value_error(
+                    build(user_mesh, mass, pinned).err().unwrap_or(err),
+                ))
+            }
+        };
         let integ: Box<dyn fepr_core::integrators::Integrator> = match integrator {
             "implicit_euler" => Box::new(
                 ImplicitEuler::new(NewtonSettings {
@@ -456,13 +487,13 @@ impl Simulation {
         };
         let state = State::at_rest(&model);
         let inner = CoreSimulation::new(model, state, integ, dt, projector).map_err(value_error)?;
-        Ok(Self { inner, pool })
+        Ok(Self { inner, pool, order })
     }
 
     /// Take `n` steps with the GIL released. Raises RuntimeError (naming the step) on a runaway to a non-finite state.
     /// Returns the number of steps taken.
     fn step(&mut self, py: Python<'_>, n: usize) -> PyResult<usize> {
-        let Self { inner, pool } = self;
+        let Self { inner, pool, .. } = self;
         let result = py.detach(|| {
             let mut run = || -> Result<usize, FeprError> {
                 for _ in 0..n {
@@ -480,7 +511,7 @@ impl Simulation {
 
     #[getter]
     fn positions<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
-        from_vec3(py, &self.inner.state.x)
+        from_vec3_user(py, &self.order, &self.inner.state.x)
     }
     #[setter]
     fn set_positions(&mut self, x: PyReadonlyArray2<'_, f64>) -> PyResult<()> {
@@ -491,7 +522,7 @@ impl Simulation {
     }
     #[getter]
     fn velocities<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
-        from_vec3(py, &self.inner.state.v)
+        from_vec3_user(py, &self.order, &self.inner.state.v)
     }
     #[setter]
     fn set_velocities(&mut self, v: PyReadonlyArray2<'_, f64>) -> PyResult<()> {
@@ -523,7 +554,7 @@ impl Simulation {
     }
     #[getter]
     fn masses<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<f64>> {
-        Array1::from(self.inner.model.masses.clone()).into_pyarray(py)
+        Array1::from(self.order.to_user(&self.inner.model.masses)).into_pyarray(py)
     }
     #[getter]
     fn total_mass(&self) -> f64 {
@@ -535,11 +566,11 @@ impl Simulation {
     }
     #[getter]
     fn rest_positions<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
-        from_vec3(py, self.inner.model.mesh.vertices())
+        from_vec3_user(py, &self.order, self.inner.model.mesh.vertices())
     }
     #[getter]
     fn pinned<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<bool>> {
-        Array1::from(self.inner.model.pinned.clone()).into_pyarray(py)
+        Array1::from(self.order.to_user(&self.inner.model.pinned)).into_pyarray(py)
     }
 
     /// (kinetic, elastic, gravitational, total, min_j, inverted) of the current state.
@@ -573,7 +604,7 @@ impl Simulation {
             &mut ElasticWorkspace::default(),
             &mut grad,
         );
-        Ok((s.energy, from_vec3(py, &grad)))
+        Ok((s.energy, from_vec3_user(py, &self.order, &grad)))
     }
     /// Benchmark helper: time `repeats` elastic energy + gradient evaluations at the current positions on
     /// `threads` worker threads (GIL released, workspace reused, after one warm-up evaluation), in up to ten
@@ -713,6 +744,7 @@ impl Simulation {
                     )))
                 }
             };
+            let vertices = vertices.iter().map(|&u| self.internal_vertex(u)).collect();
             pins.push(KinematicPins { vertices, motion });
         }
         self.inner.set_kinematic_pins(pins).map_err(value_error)
@@ -735,7 +767,7 @@ impl Simulation {
     /// The drag spring `(vertex, target (3,) m, stiffness N/m)`, or None to release it.
     fn set_drag(&mut self, drag: Option<(usize, [f64; 3], f64)>) -> PyResult<()> {
         let d = drag.map(|(vertex, target, stiffness)| Drag {
-            vertex,
+            vertex: self.internal_vertex(vertex),
             target,
             stiffness,
         });
@@ -760,6 +792,17 @@ impl Simulation {
 }
 
 impl Simulation {
+    /// The internal index of user vertex `u` (an out-of-range index stays as it is: the core names it).
+    fn internal_vertex(&self, u: usize) -> usize {
+        if u < self.order.len() {
+            self.order.internal(u)
+        } else {
+            u
+        }
+    }
+
+    /// A user's (m, 3) per-vertex array, checked (shape, finite rows, named by the user's row), in the internal
+    /// numbering.
     fn checked_state_array(
         &self,
         a: &PyReadonlyArray2<'_, f64>,
@@ -779,7 +822,7 @@ impl Simulation {
                 v[i]
             )));
         }
-        Ok(v)
+        Ok(self.order.to_internal(&v))
     }
 }
 
