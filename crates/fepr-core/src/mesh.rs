@@ -129,6 +129,12 @@ impl TetMesh {
         Ok((Self { vertices, tets }, report))
     }
 
+    /// A mesh from parts already known to be valid (a valid mesh's vertices and tets renamed by a permutation:
+    /// [`crate::renumber::VertexOrder::mesh`]), without checking them again.
+    pub(crate) fn from_valid_parts(vertices: Vec<Vec3>, tets: Vec<[usize; 4]>) -> Self {
+        Self { vertices, tets }
+    }
+
     /// Rest positions, metres.
     pub fn vertices(&self) -> &[Vec3] {
         &self.vertices
