@@ -2,8 +2,9 @@
 
 use fepr_core::mesh::TetMesh;
 
-/// TetGen `.node`/`.ele` reader for the benchmark meshes (0- or 1-based indices; `#` comments). `None` when a
-/// file is missing or the mesh does not validate.
+/// TetGen `.node`/`.ele` reader for the benchmark meshes (0- or 1-based indices; `#` comments), renumbered in
+/// the locality order the Python bindings run every simulation on (`renumber::VertexOrder`), so that these
+/// benches time what `fepr bench` times. `None` when a file is missing or the mesh does not validate.
 pub fn load_tetgen(stem: &std::path::Path) -> Option<TetMesh> {
     let read = |ext: &str| std::fs::read_to_string(format!("{}.{ext}", stem.display())).ok();
     let numbers = |text: &str| -> Vec<Vec<f64>> {
@@ -25,7 +26,8 @@ pub fn load_tetgen(stem: &std::path::Path) -> Option<TetMesh> {
         .iter()
         .map(|r| [1, 2, 3, 4].map(|c| r[c] as i64 - base))
         .collect();
-    TetMesh::new(v, &t).ok().map(|(m, _)| m)
+    let (mesh, _) = TetMesh::new(v, &t).ok()?;
+    Some(fepr_core::renumber::VertexOrder::locality(mesh.vertices()).mesh(&mesh))
 }
 
 /// The vertex adjacency of a mesh as a lower pattern (the Projective Dynamics m x m matrix).
