@@ -67,6 +67,16 @@ impl VertexOrder {
         self.internal_of[user] as usize
     }
 
+    /// The internal index of user vertex `user`, or `user` itself when it is out of range (so that a later
+    /// range check names the index the user gave).
+    pub fn internal_or_same(&self, user: usize) -> usize {
+        if user < self.len() {
+            self.internal(user)
+        } else {
+            user
+        }
+    }
+
     /// The user index of internal vertex `internal` (`internal < len()`).
     pub fn user(&self, internal: usize) -> usize {
         self.user_of[internal] as usize
@@ -185,7 +195,9 @@ mod tests {
         assert_eq!(order.to_user(&order.to_internal(&rows)), rows);
         for u in 0..order.len() {
             assert_eq!(order.user(order.internal(u)), u);
+            assert_eq!(order.internal_or_same(u), order.internal(u));
         }
+        assert_eq!(order.internal_or_same(order.len() + 3), order.len() + 3);
         let inner = order.mesh(&mesh);
         for (e, (t, ti)) in mesh.tets().iter().zip(inner.tets()).enumerate() {
             assert_eq!(t.map(|v| order.internal(v)), *ti, "tet {e}");

@@ -402,8 +402,7 @@ impl Simulation {
             other => other.clone(),
         };
         // Out-of-range indices stay as they are (the build names them).
-        let to_internal = |u: usize| if u < m { order.internal(u) } else { u };
-        let internal_pinned = pinned.iter().map(|&u| to_internal(u)).collect();
+        let internal_pinned = pinned.iter().map(|&u| order.internal_or_same(u)).collect();
         let internal_mesh = order.mesh(&user_mesh);
         // Freed before the model is built (1M tets: 36 MB less at the peak).
         drop(user_mesh);
@@ -748,7 +747,10 @@ impl Simulation {
                     )))
                 }
             };
-            let vertices = vertices.iter().map(|&u| self.internal_vertex(u)).collect();
+            let vertices = vertices
+                .iter()
+                .map(|&u| self.order.internal_or_same(u))
+                .collect();
             pins.push(KinematicPins { vertices, motion });
         }
         self.inner.set_kinematic_pins(pins).map_err(value_error)
@@ -771,7 +773,7 @@ impl Simulation {
     /// The drag spring `(vertex, target (3,) m, stiffness N/m)`, or None to release it.
     fn set_drag(&mut self, drag: Option<(usize, [f64; 3], f64)>) -> PyResult<()> {
         let d = drag.map(|(vertex, target, stiffness)| Drag {
-            vertex: self.internal_vertex(vertex),
+            vertex: self.order.internal_or_same(vertex),
             target,
             stiffness,
         });
@@ -796,15 +798,6 @@ impl Simulation {
 }
 
 impl Simulation {
-    /// The internal index of user vertex `u` (an out-of-range index stays as it is: the core names it).
-    fn internal_vertex(&self, u: usize) -> usize {
-        if u < self.order.len() {
-            self.order.internal(u)
-        } else {
-            u
-        }
-    }
-
     /// A user's (m, 3) per-vertex array, checked (shape, finite rows, named by the user's row), in the internal
     /// numbering.
     fn checked_state_array(
