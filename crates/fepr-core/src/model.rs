@@ -324,8 +324,7 @@ impl KernelOrder {
         let m = verts.len();
         u32::try_from(m).expect("vertex indices fit in u32");
         u32::try_from(4 * tets.len()).expect("incidence slots fit in u32");
-        let order = crate::renumber::VertexOrder::locality(verts);
-        let rank: Vec<u32> = (0..m).map(|v| order.internal(v) as u32).collect();
+        let rank = crate::renumber::VertexOrder::locality(verts).into_internal_indices();
         let mut tet_at: Vec<u32> = (0..tets.len() as u32).collect();
         tet_at.sort_by_key(|&e| tets[e as usize].iter().map(|&v| rank[v]).min().unwrap_or(0));
         let mut tet_position = vec![0u32; tets.len()];

@@ -77,6 +77,11 @@ impl VertexOrder {
         }
     }
 
+    /// User index -> internal index, for every vertex (the order's own table, handed over).
+    pub(crate) fn into_internal_indices(self) -> Vec<u32> {
+        self.internal_of
+    }
+
     /// The user index of internal vertex `internal` (`internal < len()`).
     pub fn user(&self, internal: usize) -> usize {
         self.user_of[internal] as usize
