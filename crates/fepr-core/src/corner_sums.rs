@@ -15,10 +15,8 @@
 
 use std::cell::Cell;
 
-use rayon::prelude::*;
-
 use crate::linalg::Vec3;
-use crate::parallel::{tet_chunk_for, TET_CHUNK};
+use crate::parallel::{for_each_chunk_mut, for_each_chunk_mut2, tet_chunk_for, TET_CHUNK};
 
 // Local indices are u16: a chunk touches at most 4 TET_CHUNK vertices (the largest chunk).
 const _: () = assert!(4 * TET_CHUNK <= u16::MAX as usize + 1);
@@ -158,14 +156,11 @@ impl CornerSums {
         assert_eq!(parts.len(), num_chunks, "one result per chunk");
         acc.resize(num_chunks * self.stride, [0.0; 3]);
         let count = &self.count;
-        acc.par_chunks_mut(self.stride.max(1))
-            .zip(parts.par_iter_mut())
-            .enumerate()
-            .for_each(|(c, (acc, part))| {
-                let acc = &mut acc[..count[c] as usize];
-                acc.fill([0.0; 3]);
-                *part = self.with_positions(c, x, |xl| chunk_fn(c, xl, acc));
-            });
+        for_each_chunk_mut2(acc, self.stride.max(1), parts, 1, |c, acc, part| {
+            let acc = &mut acc[..count[c] as usize];
+            acc.fill([0.0; 3]);
+            part[0] = self.with_positions(c, x, |xl| chunk_fn(c, xl, acc));
+        });
     }
 
     /// User vertex `v`'s sum: its partial sums in `acc` (from [`CornerSums::chunks`]) added in chunk order
@@ -190,13 +185,11 @@ impl CornerSums {
             self.vertex_offsets.len(),
             "one sum per vertex"
         );
-        out.par_chunks_mut(VERTEX_TASK)
-            .enumerate()
-            .for_each(|(t, out)| {
-                for (k, sum) in out.iter_mut().enumerate() {
-                    *sum = self.vertex_sum(acc, t * VERTEX_TASK + k);
-                }
-            });
+        for_each_chunk_mut(out, VERTEX_TASK, |t, out| {
+            for (k, sum) in out.iter_mut().enumerate() {
+                *sum = self.vertex_sum(acc, t * VERTEX_TASK + k);
+            }
+        });
     }
 }
 

@@ -26,6 +26,13 @@ pub struct ElasticSummary {
     pub inverted: usize,
 }
 
+impl Default for ElasticSummary {
+    /// The summary of no tets (the identity of combining): energy 0, `min_j` infinite, none inverted.
+    fn default() -> Self {
+        Self::zero()
+    }
+}
+
 impl ElasticSummary {
     pub(crate) fn zero() -> Self {
         Self {

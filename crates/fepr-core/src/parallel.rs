@@ -2,8 +2,8 @@
 //! threads), each chunk is reduced sequentially, and the chunk results are combined in chunk order. The
 //! result is therefore bit-identical for any thread count.
 
-use rayon::prelude::*;
 use std::ops::Range;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Chunk length for per-tet loops: the largest, used on meshes of 32 chunks or more (a smaller mesh is cut
 /// finer: [`tet_chunk_for`]).
@@ -41,15 +41,136 @@ pub fn reduce_chunks<A, M, C>(
     combine: C,
 ) -> Option<A>
 where
-    A: Send,
+    A: Default + Send,
     M: Fn(Range<usize>) -> A + Sync,
     C: Fn(A, A) -> A,
 {
-    (0..n.div_ceil(chunk))
-        .into_par_iter()
-        .map(|c| map(c * chunk..((c + 1) * chunk).min(n)))
-        .collect_into_vec(parts);
+    parts.clear();
+    parts.resize_with(n.div_ceil(chunk), A::default);
+    for_each_chunk_mut(parts, 1, |c, part| {
+        part[0] = map(c * chunk..((c + 1) * chunk).min(n));
+    });
     parts.drain(..).reduce(combine)
+}
+
+/// Runs `task(i)` exactly once for every `i` in `0..n`, on up to all of the current pool's threads. `0..n`
+/// is cut into one contiguous home range per thread (by the thread's index in the pool, so the same thread
+/// gets the same part in every call); each thread runs its own range first, in order, then helps with the
+/// others' ranges, claiming their next tasks from the same counters. A thread that is late or busy elsewhere
+/// simply runs fewer tasks. The workers are started by nested `rayon::join` (no allocation), and the caller's
+/// thread is one of them: it never waits for a thread that has not started, only for tasks already running.
+///
+/// Why home ranges: the per-tet chunks and the per-vertex tasks follow space together (Z-curve orders), so
+/// a thread that keeps the same part of the mesh in every pass and every evaluation mostly reads what it
+/// wrote itself, from its own cache. With rayon's parallel iterators (split in halves, stolen at random)
+/// each pass read about half of its input from the other core's cache, and the splitting itself cost more
+/// than the work it balanced on small meshes (11 tet chunks on the 1k box).
+///
+/// Which thread runs a task changes nothing in its result: callers that keep per-task results and combine
+/// them in index order are bit-identical for any thread count. `task` may use rayon itself (a worker that
+/// waits there may pick up another worker of this call, which only claims more tasks).
+pub fn for_each_task(n: usize, task: impl Fn(usize) + Sync) {
+    let workers = rayon::current_num_threads().min(MAX_HOME_RANGES).min(n);
+    if workers <= 1 {
+        (0..n).for_each(task);
+        return;
+    }
+    // Range r is `start(r)..start(r + 1)`; `next[r]` is its next unclaimed task.
+    let start = |r: usize| r * n / workers;
+    let next: [Padded; MAX_HOME_RANGES] =
+        std::array::from_fn(|r| Padded(AtomicUsize::new(start(r))));
+    let worker = || {
+        let home = rayon::current_thread_index().unwrap_or(0) % workers;
+        for r in (home..workers).chain(0..home) {
+            let end = start(r + 1);
+            loop {
+                let i = next[r].0.fetch_add(1, Ordering::Relaxed);
+                if i >= end {
+                    break;
+                }
+                task(i);
+            }
+        }
+    };
+    start_workers(workers, &worker);
+}
+
+/// The most home ranges of [`for_each_task`] (threads beyond share them).
+const MAX_HOME_RANGES: usize = 16;
+
+/// A counter on a cache line of its own (two threads' counters on one line would make every claim a
+/// cross-core transfer).
+#[repr(align(64))]
+struct Padded(AtomicUsize);
+
+/// Runs `worker` on `k` threads of the pool (the caller's included) and returns when all have returned.
+fn start_workers(k: usize, worker: &(impl Fn() + Sync)) {
+    if k <= 1 {
+        worker();
+    } else {
+        rayon::join(worker, || start_workers(k - 1, worker));
+    }
+}
+
+/// `f(c, chunk)` for every chunk `c` of `data` cut into chunks of `len` (the last may be shorter), in
+/// parallel ([`for_each_task`]).
+pub fn for_each_chunk_mut<T: Send>(data: &mut [T], len: usize, f: impl Fn(usize, &mut [T]) + Sync) {
+    let chunks = DisjointChunks::new(data, len);
+    // SAFETY: for_each_task hands out every index once, and distinct indices are disjoint chunks.
+    for_each_task(chunks.count, |c| f(c, unsafe { chunks.get(c) }));
+}
+
+/// [`for_each_chunk_mut`] over two slices cut into the same number of chunks (`a` into chunks of `len_a`,
+/// `b` into chunks of `len_b`): `f(c, a_chunk, b_chunk)`.
+pub fn for_each_chunk_mut2<A: Send, B: Send>(
+    a: &mut [A],
+    len_a: usize,
+    b: &mut [B],
+    len_b: usize,
+    f: impl Fn(usize, &mut [A], &mut [B]) + Sync,
+) {
+    let (a, b) = (DisjointChunks::new(a, len_a), DisjointChunks::new(b, len_b));
+    assert_eq!(a.count, b.count, "the same number of chunks");
+    // SAFETY: as in for_each_chunk_mut, for each slice.
+    for_each_task(a.count, |c| f(c, unsafe { a.get(c) }, unsafe { b.get(c) }));
+}
+
+/// A mutable slice cut into chunks that tasks on different threads take one each, by index.
+struct DisjointChunks<'a, T> {
+    ptr: *mut T,
+    total: usize,
+    len: usize,
+    count: usize,
+    _data: std::marker::PhantomData<&'a mut [T]>,
+}
+
+// SAFETY: it hands out disjoint `&mut [T]` (see `get`), which may move between threads when `T: Send`.
+unsafe impl<T: Send> Sync for DisjointChunks<'_, T> {}
+
+impl<'a, T> DisjointChunks<'a, T> {
+    fn new(data: &'a mut [T], len: usize) -> Self {
+        assert!(len > 0, "chunks of at least one element");
+        Self {
+            ptr: data.as_mut_ptr(),
+            total: data.len(),
+            len,
+            count: data.len().div_ceil(len),
+            _data: std::marker::PhantomData,
+        }
+    }
+
+    /// Chunk `c` (`c < count`).
+    ///
+    /// # Safety
+    /// No two live results may come from the same `c`.
+    #[allow(clippy::mut_from_ref)] // disjoint by the contract above
+    unsafe fn get(&self, c: usize) -> &'a mut [T] {
+        assert!(c < self.count, "chunk {c} of {}", self.count);
+        let first = c * self.len;
+        let len = self.len.min(self.total - first);
+        // SAFETY: `first..first + len` lies inside the slice; the caller keeps chunks unaliased.
+        unsafe { std::slice::from_raw_parts_mut(self.ptr.add(first), len) }
+    }
 }
 
 /// While alive, keeps the thread pool's other threads polling for work (as OpenMP runtimes spin-wait between
@@ -105,6 +226,7 @@ impl Drop for KeepAwake {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rayon::prelude::*;
 
     /// Runs `f` on another thread and fails if it does not finish within a minute (a deadlock).
     fn finishes<T: Send + 'static>(f: impl FnOnce() -> T + Send + 'static) -> T {
@@ -195,6 +317,53 @@ mod tests {
             sum_of_sines(50_000).to_bits()
         });
         assert_eq!(outside, want);
+    }
+
+    #[test]
+    fn every_task_runs_exactly_once_on_any_pool() {
+        for threads in [1, 2, 3, 5] {
+            let runs = finishes(move || {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                [0, 1, 2, 3, 7, 11, 64, 1000].map(|n| {
+                    let runs: Vec<AtomicUsize> = (0..n).map(|_| AtomicUsize::new(0)).collect();
+                    pool.install(|| {
+                        for_each_task(n, |i| {
+                            runs[i].fetch_add(1, Ordering::Relaxed);
+                            // Parallel work inside a task (it may pick up another worker) must not deadlock.
+                            if i % 5 == 0 {
+                                assert_eq!(sum_of_sines(3000), sum_of_sines(3000));
+                            }
+                        })
+                    });
+                    runs.iter().all(|r| r.load(Ordering::Relaxed) == 1)
+                })
+            });
+            assert!(runs.iter().all(|&once| once), "{threads} threads: {runs:?}");
+        }
+    }
+
+    #[test]
+    fn chunks_cover_the_slices_once_in_order() {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(3)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let (mut a, mut b) = (vec![0usize; 103], vec![0usize; 21]);
+            // 103 elements in chunks of 5: 21 chunks, the last of 3.
+            for_each_chunk_mut2(&mut a, 5, &mut b, 1, |c, ca, cb| {
+                assert_eq!(ca.len(), if c == 20 { 3 } else { 5 });
+                ca.iter_mut().enumerate().for_each(|(k, e)| *e += c * 5 + k);
+                cb[0] += c;
+            });
+            assert_eq!(a, (0..103).collect::<Vec<_>>());
+            assert_eq!(b, (0..21).collect::<Vec<_>>());
+            let mut e: Vec<u8> = Vec::new();
+            for_each_chunk_mut(&mut e, 4, |_, _| panic!("no chunks in an empty slice"));
+        });
     }
 
     #[test]

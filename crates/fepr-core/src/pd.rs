@@ -12,7 +12,7 @@
 //! The energy this minimises is the ARAP energy `Psi = mu |F - R|^2` ([`crate::material::Arap`]); with FEPR,
 //! the model's material must be that energy so that H is the PD energy (fepr-spec section 5).
 
-use rayon::prelude::*;
+use crate::parallel::for_each_chunk_mut;
 use std::time::Instant;
 
 use crate::error::{invalid, FeprError, Result};
@@ -276,28 +276,25 @@ impl Integrator for ProjectiveDynamics {
             let terms = self.corner_terms.as_flattened();
             let g = model.gravity;
             self.rhs.resize(n, [0.0; 3]);
-            self.rhs
-                .par_chunks_mut(RHS_CHUNK)
-                .enumerate()
-                .for_each(|(ci, chunk)| {
-                    for (k, out) in chunk.iter_mut().enumerate() {
-                        let v = pre.free_vertices[ci * RHS_CHUNK + k];
-                        let mut acc = [0.0; 3];
-                        for a in 0..3 {
-                            acc[a] = model.masses[v] * (inv_h2 * y[v][a] + g[a]);
-                        }
-                        let r = model.kernel_rank[v] as usize;
-                        let slots = &model.incidence_slots
-                            [model.incidence_offsets[r]..model.incidence_offsets[r + 1]];
-                        for &slot in slots {
-                            let t = terms[slot as usize];
-                            for a in 0..3 {
-                                acc[a] += t[a];
-                            }
-                        }
-                        *out = acc;
+            for_each_chunk_mut(&mut self.rhs, RHS_CHUNK, |ci, chunk| {
+                for (k, out) in chunk.iter_mut().enumerate() {
+                    let v = pre.free_vertices[ci * RHS_CHUNK + k];
+                    let mut acc = [0.0; 3];
+                    for a in 0..3 {
+                        acc[a] = model.masses[v] * (inv_h2 * y[v][a] + g[a]);
                     }
-                });
+                    let r = model.kernel_rank[v] as usize;
+                    let slots = &model.incidence_slots
+                        [model.incidence_offsets[r]..model.incidence_offsets[r + 1]];
+                    for &slot in slots {
+                        let t = terms[slot as usize];
+                        for a in 0..3 {
+                            acc[a] += t[a];
+                        }
+                    }
+                    *out = acc;
+                }
+            });
             for &(row, p, coef) in &pre.pinned_coupling {
                 for a in 0..3 {
                     self.rhs[row][a] -= coef * x[p][a];

@@ -17,7 +17,7 @@
 //! residual. Non-convergence keeps the best iterate (or `q~`) and is reported; the result is never NaN and
 //! never has more inverted tets than the base step.
 
-use rayon::prelude::*;
+use crate::parallel::{for_each_chunk_mut, for_each_chunk_mut2};
 
 use crate::elasticity::{
     deformation_gradient, elastic_gradient_chunks, ElasticSummary, ElasticWorkspace,
@@ -1262,7 +1262,7 @@ fn d_norm(
     // Over fixed vertex tasks, added in task order (the same bits for any thread count).
     let chunk = vertex_chunk(x.len());
     parts.resize(x.len().div_ceil(chunk), 0.0);
-    parts.par_iter_mut().enumerate().for_each(|(c, part)| {
+    for_each_chunk_mut(parts, 1, |c, part| {
         let first = c * chunk;
         let mut sum = 0.0;
         for i in first..(first + chunk).min(x.len()) {
@@ -1272,7 +1272,7 @@ fn d_norm(
             let dx2 = if a > 0.0 { dot(dx, dx) / a } else { 0.0 };
             sum += pb.model.masses[i] * (dx2 + h2 * dot(dv, dv));
         }
-        *part = sum;
+        part[0] = sum;
     });
     (pb.eps * (s * s + t * t) + parts.iter().sum::<f64>()).sqrt()
 }
@@ -1307,17 +1307,14 @@ fn evaluate_sums<const S: bool>(
     let ws = &sc.ws;
     let chunk = vertex_chunk(grad.len());
     let parts = task_parts(&mut sc.parts, grad.len());
-    grad.par_chunks_mut(chunk)
-        .zip(parts.par_iter_mut())
-        .enumerate()
-        .for_each(|(c, (g, part))| {
-            let first = c * chunk;
-            for (k, gk) in g.iter_mut().enumerate() {
-                *gk = ws.gradient_at(pb.model, first + k);
-            }
-            let r = first..first + g.len();
-            *part = vertex_moments::<S>(pb, first, &x[r.clone()], &v[r], Some(g));
-        });
+    for_each_chunk_mut2(grad, chunk, parts, 1, |c, g, part| {
+        let first = c * chunk;
+        for (k, gk) in g.iter_mut().enumerate() {
+            *gk = ws.gradient_at(pb.model, first + k);
+        }
+        let r = first..first + g.len();
+        part[0] = vertex_moments::<S>(pb, first, &x[r.clone()], &v[r], Some(g));
+    });
     finish(pb, s, t, el, sum_parts(parts))
 }
 
@@ -1338,13 +1335,9 @@ fn evaluate_step(
     g_out: &mut [Vec3],
 ) -> Eval {
     let chunk = vertex_chunk(x_out.len());
-    x_out
-        .par_chunks_mut(chunk)
-        .zip(v_out.par_chunks_mut(chunk))
-        .enumerate()
-        .for_each(|(c, (xo, vo))| {
-            step.write_rows(c * chunk, xo, vo);
-        });
+    for_each_chunk_mut2(x_out, chunk, v_out, chunk, |c, xo, vo| {
+        step.write_rows(c * chunk, xo, vo);
+    });
     evaluate_sums::<false>(pb, x_out, v_out, s, t, sc, g_out)
 }
 
@@ -1378,11 +1371,11 @@ fn evaluate_with_elastic(
 ) -> Eval {
     let chunk = vertex_chunk(x.len());
     let parts = task_parts(parts, x.len());
-    parts.par_iter_mut().enumerate().for_each(|(c, part)| {
+    for_each_chunk_mut(parts, 1, |c, part| {
         let first = c * chunk;
         let r = first..(first + chunk).min(x.len());
         let g = grad.map(|g| &g[r.clone()]);
-        *part = vertex_moments::<true>(pb, first, &x[r.clone()], &v[r], g);
+        part[0] = vertex_moments::<true>(pb, first, &x[r.clone()], &v[r], g);
     });
     finish(pb, s, t, el, sum_parts(parts))
 }
@@ -1422,11 +1415,12 @@ fn finish(pb: &Problem, s: f64, t: f64, el: ElasticSummary, mut e: Eval) -> Eval
 /// Vertices per parallel task of the moment pass, the trial step and the D-norm, for a mesh of `m` vertices:
 /// about an eighth of the mesh (so that two threads get equal shares on the small and mid-sized meshes: with
 /// 2048-vertex tasks the armadillo's 1,446 vertices were one task and its projection ran slower on two
-/// threads than on one), at least 256 (task overhead), at most 2048 (the tasks' rows stay in L1/L2), a
-/// multiple of the moment lanes. It depends on `m` alone, never on the thread count: the sums keep their
+/// threads than on one), at least 64 (task overhead; 256 before `parallel::for_each_task` made a task
+/// cheap to hand out, which left the 1k box's 343 vertices in tasks of 256 and 87), at most 2048 (the tasks'
+/// rows stay in L1/L2), a multiple of the moment lanes. It depends on `m` alone, never on the thread count: the sums keep their
 /// bits for any number of threads.
 fn vertex_chunk(m: usize) -> usize {
-    m.div_ceil(8).next_multiple_of(VL).clamp(256, 2048)
+    m.div_ceil(8).next_multiple_of(VL).clamp(64, 2048)
 }
 
 /// The sums of [`Eval`] over the vertices `first..first + x.len()` (`x`, `v`, `grad`: their rows;

@@ -7,7 +7,7 @@
 //! `write_corners`), so the results are the same bits (gated by a test); only the scheduling differs. The PD
 //! local step stops the polar iteration at [`PD_LOCAL`] (rotations to about 1e-10).
 
-use rayon::prelude::*;
+use crate::parallel::for_each_chunk_mut;
 use std::ops::Range;
 
 use crate::batch_polar::{polar_lanes, Lanes, EXACT, LANES, PD_LOCAL};
@@ -71,16 +71,14 @@ pub(crate) fn pd_rotation_terms(mu: f64, model: &Model, x: &[Vec3], out: &mut [[
     let (blocks, k) = (&model.tet_blocks, model.num_tets());
     assert_eq!(out.len(), k, "one entry per tet");
     let tet_chunk = model.tet_chunk();
-    out.par_chunks_mut(tet_chunk)
-        .enumerate()
-        .for_each(|(c, chunk)| {
-            let first = c * (tet_chunk / BLOCK);
-            let range = first..first + chunk.len().div_ceil(BLOCK);
-            let len = chunk.len();
-            (model.corner_sums).with_positions(c, x, |xl| {
-                run(mu, blocks, range, xl, Sink::PdTerms(chunk), len);
-            });
+    for_each_chunk_mut(out, tet_chunk, |c, chunk| {
+        let first = c * (tet_chunk / BLOCK);
+        let range = first..first + chunk.len().div_ceil(BLOCK);
+        let len = chunk.len();
+        (model.corner_sums).with_positions(c, x, |xl| {
+            run(mu, blocks, range, xl, Sink::PdTerms(chunk), len);
         });
+    });
 }
 
 /// [`rotation_blocks`] compiled for AVX2 where the CPU has it (the batched polar decomposition measured
