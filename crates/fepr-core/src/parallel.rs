@@ -47,8 +47,8 @@ where
 {
     parts.clear();
     parts.resize_with(n.div_ceil(chunk), A::default);
-    for_each_chunk_mut(parts, 1, |c, part| {
-        part[0] = map(c * chunk..((c + 1) * chunk).min(n));
+    for_each_mut(parts, |c, part| {
+        *part = map(c * chunk..((c + 1) * chunk).min(n))
     });
     parts.drain(..).reduce(combine)
 }
@@ -118,6 +118,11 @@ pub fn for_each_chunk_mut<T: Send>(data: &mut [T], len: usize, f: impl Fn(usize,
     let chunks = DisjointChunks::new(data, len);
     // SAFETY: for_each_task hands out every index once, and distinct indices are disjoint chunks.
     for_each_task(chunks.count, |c| f(c, unsafe { chunks.get(c) }));
+}
+
+/// `f(i, &mut items[i])` for every item, in parallel ([`for_each_task`]): one result slot per task.
+pub fn for_each_mut<T: Send>(items: &mut [T], f: impl Fn(usize, &mut T) + Sync) {
+    for_each_chunk_mut(items, 1, |i, item| f(i, &mut item[0]));
 }
 
 /// [`for_each_chunk_mut`] over two slices cut into the same number of chunks (`a` into chunks of `len_a`,

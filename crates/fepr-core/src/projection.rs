@@ -17,7 +17,7 @@
 //! residual. Non-convergence keeps the best iterate (or `q~`) and is reported; the result is never NaN and
 //! never has more inverted tets than the base step.
 
-use crate::parallel::{for_each_chunk_mut, for_each_chunk_mut2};
+use crate::parallel::{for_each_chunk_mut2, for_each_mut};
 
 use crate::elasticity::{
     deformation_gradient, elastic_gradient_chunks, ElasticSummary, ElasticWorkspace,
@@ -1262,7 +1262,7 @@ fn d_norm(
     // Over fixed vertex tasks, added in task order (the same bits for any thread count).
     let chunk = vertex_chunk(x.len());
     parts.resize(x.len().div_ceil(chunk), 0.0);
-    for_each_chunk_mut(parts, 1, |c, part| {
+    for_each_mut(parts, |c, part| {
         let first = c * chunk;
         let mut sum = 0.0;
         for i in first..(first + chunk).min(x.len()) {
@@ -1272,7 +1272,7 @@ fn d_norm(
             let dx2 = if a > 0.0 { dot(dx, dx) / a } else { 0.0 };
             sum += pb.model.masses[i] * (dx2 + h2 * dot(dv, dv));
         }
-        part[0] = sum;
+        *part = sum;
     });
     (pb.eps * (s * s + t * t) + parts.iter().sum::<f64>()).sqrt()
 }
@@ -1371,11 +1371,11 @@ fn evaluate_with_elastic(
 ) -> Eval {
     let chunk = vertex_chunk(x.len());
     let parts = task_parts(parts, x.len());
-    for_each_chunk_mut(parts, 1, |c, part| {
+    for_each_mut(parts, |c, part| {
         let first = c * chunk;
         let r = first..(first + chunk).min(x.len());
         let g = grad.map(|g| &g[r.clone()]);
-        part[0] = vertex_moments::<true>(pb, first, &x[r.clone()], &v[r], g);
+        *part = vertex_moments::<true>(pb, first, &x[r.clone()], &v[r], g);
     });
     finish(pb, s, t, el, sum_parts(parts))
 }
