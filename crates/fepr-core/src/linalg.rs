@@ -181,12 +181,13 @@ fn cholesky_solve_in_place(l: &mut [f64], y: &mut [f64], n: usize) -> bool {
         }
         let d = d.sqrt();
         l[j * n + j] = d;
+        let inv_d = 1.0 / d;
         for i in (j + 1)..n {
             let mut s = l[i * n + j];
             for k in 0..j {
                 s -= l[i * n + k] * l[j * n + k];
             }
-            l[i * n + j] = s / d;
+            l[i * n + j] = s * inv_d;
         }
     }
     for i in 0..n {
