@@ -17,7 +17,9 @@
 //! thanks to the mass term in most iterations, converges quadratically near the solution.
 //! Backward Euler is unconditionally stable but numerically dissipative: FEPR on top restores the energy.
 
-use crate::elasticity::{elastic_energy, elastic_energy_gradient, ElasticWorkspace};
+use crate::elasticity::{
+    elastic_energy, elastic_energy_gradient, ElasticSummary, ElasticWorkspace,
+};
 use crate::error::{invalid, Result};
 use crate::hessian::HessianAssembler;
 use crate::integrators::{finish_positional_step, Integrator, StepReport};
@@ -79,7 +81,13 @@ pub struct ImplicitEuler {
     /// Newton decrements of the last step, one per iteration (for convergence studies).
     pub last_decrements: Vec<f64>,
     values: Vec<f64>,
+    /// The gradient of `Phi` at the current iterate.
     grad: Vec<Vec3>,
+    /// Its elastic part, and the elastic energy summary (for [`Integrator::result_elastic_gradient`]).
+    elastic_grad: Vec<Vec3>,
+    elastic: ElasticSummary,
+    /// The positions the last step ended on, when `elastic_grad` was evaluated there.
+    result_x: Option<Vec<Vec3>>,
     ws: ElasticWorkspace,
     y: Vec<Vec3>,
     x_trial: Vec<Vec3>,
@@ -111,7 +119,10 @@ impl ImplicitEuler {
     /// Evaluate `Phi` and its gradient (into `self.grad`). Also returns the magnitude scale of `Phi`
     /// (sum of the absolute values of its terms), which bounds its round-off.
     fn objective_gradient(&mut self, model: &Model, x: &[Vec3], h: f64) -> (f64, f64) {
-        let el = elastic_energy_gradient(model, x, &mut self.ws, &mut self.grad).energy;
+        self.elastic_grad.resize(x.len(), [0.0; 3]);
+        self.elastic = elastic_energy_gradient(model, x, &mut self.ws, &mut self.elastic_grad);
+        self.grad.clone_from(&self.elastic_grad);
+        let el = self.elastic.energy;
         let mut phi = el;
         let mut magnitude = el.abs();
         let inv_h2 = 1.0 / (h * h);
@@ -189,8 +200,11 @@ impl Integrator for ImplicitEuler {
         };
         self.last_decrements.clear();
         let mut dec0 = 0.0;
+        // `elastic_grad` was evaluated at `x` (for the projection: `result_elastic_gradient`).
+        let mut elastic_at_x = false;
         for it in 0..self.settings.max_iterations {
             let (phi, phi_magnitude) = self.objective_gradient(model, &x, h);
+            elastic_at_x = true;
             let asm = self.assembler.as_mut().expect("initialised above");
             let Some(chol) = self.cholesky.as_mut() else {
                 break;
@@ -283,8 +297,15 @@ impl Integrator for ImplicitEuler {
                 break;
             }
             std::mem::swap(&mut x, &mut self.x_trial);
+            elastic_at_x = false;
         }
         finish_positional_step(model, state, &x, &x_n, h);
+        self.result_x = elastic_at_x.then_some(x);
         report
+    }
+
+    fn result_elastic_gradient(&mut self) -> Option<(ElasticSummary, &[Vec3], &mut Vec<Vec3>)> {
+        let x = self.result_x.as_deref()?;
+        Some((self.elastic, x, &mut self.elastic_grad))
     }
 }

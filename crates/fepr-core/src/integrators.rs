@@ -2,7 +2,7 @@
 //! *supposed* to change physically (the energy budget and the external impulses of fepr-spec section 2),
 //! which the projection turns into targets.
 
-use crate::elasticity::{elastic_energy_gradient, ElasticWorkspace};
+use crate::elasticity::{elastic_energy_gradient, ElasticSummary, ElasticWorkspace};
 use crate::invariants::{angular_momentum, center_of_mass, kinetic_energy, linear_momentum};
 use crate::linalg::{scale, Vec3};
 use crate::model::{Model, ModelKey, State};
@@ -56,6 +56,14 @@ pub trait Integrator: Send + Sync {
     /// [`Model::elastic_key`] (mesh and material) is still the one of `model` (so the result is the same bits
     /// either way). Default: ignore the offer.
     fn offer_elastic_gradient(&mut self, _model: &Model, _x: &[Vec3], _grad: &mut Vec<Vec3>) {}
+    /// The elastic energy summary and gradient (J/m, shape (m, 3)) that the last [`Integrator::step`]
+    /// evaluated at the positions it ended on, with those positions, if it did (backward Euler's converged
+    /// Newton iterate): the projection that follows may take the buffer (swap it) and skip its first elastic
+    /// evaluation when the state's positions are still bit-identical to them (so the result is the same
+    /// bits either way). Valid until the next step. Default: none.
+    fn result_elastic_gradient(&mut self) -> Option<(ElasticSummary, &[Vec3], &mut Vec<Vec3>)> {
+        None
+    }
 }
 
 /// Symplectic (semi-implicit) Euler, the seed's integrator:

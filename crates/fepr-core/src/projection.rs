@@ -284,8 +284,9 @@ pub struct ProjectionReport {
     pub restarts: usize,
     /// Vertices whose positions were frozen by those restarts (their velocities stay free).
     pub frozen_vertices: usize,
-    /// Elastic evaluations (energy, or energy and gradient, over all tets), the first one included: an
-    /// iteration evaluates its trial point, and a second one where the full step overshoots.
+    /// Elastic evaluations (energy, or energy and gradient, over all tets), the first one included unless the
+    /// base step handed it over ([`Projector::offer_base_gradient`]: backward Euler): an iteration evaluates
+    /// its trial point, and a second one where the full step overshoots.
     pub evaluations: usize,
 }
 
@@ -423,6 +424,9 @@ pub struct Projector {
     grad_spare: Vec<Vec3>,
     /// `grad` holds the elastic gradient at the positions the last projection returned.
     grad_is_final: bool,
+    /// The base step's elastic summary at the positions the next projection starts from, its gradient in
+    /// `grad` ([`Projector::offer_base_gradient`]).
+    base_elastic: Option<ElasticSummary>,
     /// The current iterate is q~ itself, in `x_base`/`v_base` (`x`/`v` hold stale rows): see `current!`.
     at_base: bool,
 }
@@ -584,14 +588,20 @@ impl Projector {
         // the velocities alone and often leaves nothing to iterate (after PD, every step on the bunny), so the
         // gradient is computed only when an iteration needs it (`grad_at_x`).
         let lazy_gradient = self.settings.warm_start_threshold.is_finite();
-        let mut cur = if lazy_gradient {
+        let offered = self.base_elastic.take();
+        let mut cur = if let Some(el) = offered {
+            // The base step evaluated the elastic energy and gradient here (the same bits as evaluating).
+            let (x, v) = current!(self);
+            let grad = Some(&self.grad[..]);
+            evaluate_with_elastic(&pb, x, v, s, t, el, grad, &mut self.scratch.parts)
+        } else if lazy_gradient {
             let (x, v) = current!(self);
             evaluate_energy(&pb, x, v, s, t, &mut self.scratch.parts)
         } else {
             let (x, v) = current!(self);
             evaluate(&pb, x, v, s, t, &mut self.scratch, &mut self.grad)
         };
-        let mut grad_at_x = !lazy_gradient;
+        let mut grad_at_x = offered.is_some() || !lazy_gradient;
         if slack {
             // P* and L* (about C_target) of the base step's state, summed by that evaluation. Without slack the
             // s and t columns vanish (their gradients are -(P* - P_t) and -(L* - L_t)).
@@ -615,7 +625,7 @@ impl Projector {
             initial_residual: max_scaled(&pb, &cur.c),
             base_energy: cur.kinetic + cur.el.energy + cur.gravitational,
             stiffness_metric: self.uses_stiffness_metric(),
-            evaluations: 1,
+            evaluations: usize::from(offered.is_none()),
             ..Default::default()
         };
         let mut cur_norm = norm_scaled(&pb, &cur.c);
@@ -954,6 +964,17 @@ impl Projector {
         std::mem::take(&mut self.grad_is_final).then_some(&mut self.grad)
     }
 
+    /// Offer the elastic energy summary `summary` and gradient `grad` (J/m, shape (m, 3)) of the model at the
+    /// positions the next [`Projector::project`] starts from (the base step's result), as the base step
+    /// evaluated them there ([`crate::integrators::Integrator::result_elastic_gradient`]): that call skips
+    /// its first elastic evaluation. The caller guarantees the positions are bit-identical to the ones they
+    /// were evaluated at (then the projection's result has the same bits either way). The buffer is taken
+    /// by a swap.
+    pub fn offer_base_gradient(&mut self, summary: ElasticSummary, grad: &mut Vec<Vec3>) {
+        std::mem::swap(&mut self.grad, grad);
+        self.base_elastic = Some(summary);
+    }
+
     /// Give the current iterate buffers of its own (`x`/`v`, a copy of q~) if it is still q~ itself.
     fn leave_base(&mut self) {
         if std::mem::take(&mut self.at_base) {
@@ -1004,11 +1025,21 @@ impl Projector {
 /// Step length minimising the scaled residual norm of the model `c(alpha) = (1 - alpha) c0 + alpha^2 e`,
 /// `e = c(1)` (the residual after the full step), over `alpha` in [1/64, 1].
 fn model_step_length(pb: &Problem, c0: &[f64; ROWS], e: &[f64; ROWS]) -> f64 {
-    let norm2 = |a: f64| -> f64 {
-        (0..ROWS)
-            .filter(|&i| pb.active[i])
-            .map(|i| (((1.0 - a) * c0[i] + a * a * e[i]) / pb.row_scale[i]).powi(2))
-            .sum()
+    // The squared norm is a quartic in alpha: with a = c0 / scale and b = e / scale per row,
+    // sum ((1 - alpha) a + alpha^2 b)^2 = A (1 - alpha)^2 + 2 B (1 - alpha) alpha^2 + C alpha^4 with A = sum a^2,
+    // B = sum a b, C = sum b^2. Three sums once, instead of ten rows (and ten divisions) at each of the
+    // search's 125 points: about 2 us less per iteration, serial, on every mesh (the 1k box on two threads:
+    // 38 -> 34 us of trial evaluations per step).
+    let (mut aa, mut ab, mut bb) = (0.0, 0.0, 0.0);
+    for i in (0..ROWS).filter(|&i| pb.active[i]) {
+        let (a, b) = (c0[i] / pb.row_scale[i], e[i] / pb.row_scale[i]);
+        aa += a * a;
+        ab += a * b;
+        bb += b * b;
+    }
+    let norm2 = |alpha: f64| -> f64 {
+        let (u, a2) = (1.0 - alpha, alpha * alpha);
+        aa * u * u + 2.0 * ab * u * a2 + bb * a2 * a2
     };
     let mut best = (1.0, norm2(1.0));
     for k in 1..64 {
@@ -1747,18 +1778,20 @@ fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> ([f64; ROWS], bool) 
         n += 1;
     }
     let idx = &idx[..n];
+    // Scaled by reciprocals (ten divisions, not a hundred: the solve is serial, between parallel passes).
+    let inv_scale: [f64; ROWS] = std::array::from_fn(|i| 1.0 / pb.row_scale[i]);
     let (mut a, mut b) = ([0.0; ROWS * ROWS], [0.0; ROWS]);
     for (p, &i) in idx.iter().enumerate() {
-        b[p] = e.c[i] / pb.row_scale[i];
+        b[p] = e.c[i] * inv_scale[i];
         for (q, &j) in idx.iter().enumerate() {
-            a[p * n + q] = full[i][j] / (pb.row_scale[i] * pb.row_scale[j]);
+            a[p * n + q] = full[i][j] * inv_scale[i] * inv_scale[j];
         }
     }
     let (mut factor, mut y) = ([0.0; ROWS * ROWS], [0.0; ROWS]);
     let lstsq = solve_symmetric_psd_into(&a[..n * n], &b[..n], n, delta, &mut factor, &mut y);
     let mut lambda = [0.0; ROWS];
     for (p, &i) in idx.iter().enumerate() {
-        lambda[i] = y[p] / pb.row_scale[i];
+        lambda[i] = y[p] * inv_scale[i];
     }
     (lambda, lstsq)
 }

@@ -499,6 +499,16 @@ impl Simulation {
         let (projection, inv, base_total) = match self.projector.as_mut() {
             Some(p) => {
                 p.set_frozen_positions(&self.contact_vertices);
+                // Backward Euler ends on an iterate whose elastic gradient it evaluated: the projection's first
+                // evaluation is then that one, if pins, obstacles and forces left the positions untouched.
+                if let Some((summary, x, grad)) = self.integrator.result_elastic_gradient() {
+                    let same =
+                        |a: &Vec3, b: &Vec3| (0..3).all(|k| a[k].to_bits() == b[k].to_bits());
+                    let x_now = &self.state.x;
+                    if x.len() == x_now.len() && x.iter().zip(x_now).all(|(a, b)| same(a, b)) {
+                        p.offer_base_gradient(summary, grad);
+                    }
+                }
                 let (rep, inv) = p.project(&self.model, &mut self.state, self.dt, &targets);
                 if let Some(grad) = p.take_final_gradient() {
                     self.integrator

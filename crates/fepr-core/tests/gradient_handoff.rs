@@ -1,8 +1,11 @@
 //! The projection hands its final elastic gradient to the next symplectic Euler step (which then skips that
-//! evaluation). Guard: the trajectory is bit for bit the one computed without the hand-off.
+//! evaluation), and backward Euler hands the gradient at its last Newton iterate to the projection (which
+//! then skips its first evaluation). Guard: the trajectories are bit for bit the ones computed without the
+//! hand-offs.
 
 mod common;
 use common::*;
+use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
 use fepr_core::integrators::{Integrator, StepReport, SymplecticEuler};
 use fepr_core::model::{Model, State};
 use fepr_core::projection::{ProjectionSettings, Projector};
@@ -39,7 +42,28 @@ impl Integrator for Counting {
     }
 }
 
+/// Backward Euler that keeps its last gradient to itself (the trait's default), so the projection
+/// evaluates it again.
+struct BackwardWithoutHandoff(ImplicitEuler);
+
+impl Integrator for BackwardWithoutHandoff {
+    fn name(&self) -> &'static str {
+        self.0.name()
+    }
+    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport {
+        self.0.step(model, state, dt)
+    }
+    fn is_implicit(&self) -> bool {
+        true
+    }
+}
+
 fn run(integrator: Box<dyn Integrator>, steps: usize) -> Vec<State> {
+    run_with_evaluations(integrator, steps).0
+}
+
+/// The states after each step, and the projection's elastic evaluations in each.
+fn run_with_evaluations(integrator: Box<dyn Integrator>, steps: usize) -> (Vec<State>, Vec<usize>) {
     let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0, 0.0, -9.81]);
     let mut state = State::at_rest(&model);
     scaled(&mut state, 1.3, [0.0; 3]);
@@ -50,10 +74,20 @@ fn run(integrator: Box<dyn Integrator>, steps: usize) -> Vec<State> {
     let mut sim = Simulation::new(model, state, integrator, 1.0 / 60.0, Some(proj)).unwrap();
     (0..steps)
         .map(|_| {
-            sim.step().unwrap();
-            sim.state.clone()
+            let evaluations = sim.step().unwrap().projection.unwrap().evaluations;
+            (sim.state.clone(), evaluations)
         })
-        .collect()
+        .unzip()
+}
+
+fn assert_same_bits(a: &[State], b: &[State]) {
+    for (n, (a, b)) in a.iter().zip(b).enumerate() {
+        for (p, q) in a.x.iter().chain(&a.v).zip(b.x.iter().chain(&b.v)) {
+            for k in 0..3 {
+                assert_eq!(p[k].to_bits(), q[k].to_bits(), "step {}", n + 1);
+            }
+        }
+    }
 }
 
 #[test]
@@ -66,11 +100,26 @@ fn gradient_handoff_leaves_the_projected_trajectory_bit_identical() {
     // Every step after the first starts where the previous projection ended.
     assert_eq!(reused.load(Ordering::Relaxed), 39);
     let without = run(Box::new(WithoutHandoff(SymplecticEuler::new())), 40);
-    for (n, (a, b)) in with.iter().zip(&without).enumerate() {
-        for (p, q) in a.x.iter().chain(&a.v).zip(b.x.iter().chain(&b.v)) {
-            for k in 0..3 {
-                assert_eq!(p[k].to_bits(), q[k].to_bits(), "step {}", n + 1);
-            }
-        }
-    }
+    assert_same_bits(&with, &without);
+}
+
+#[test]
+fn backward_euler_gradient_handoff_leaves_the_projected_trajectory_bit_identical() {
+    let newton = || ImplicitEuler::new(NewtonSettings::default()).unwrap();
+    let (with, evals_with) = run_with_evaluations(Box::new(newton()), 25);
+    let (without, evals_without) =
+        run_with_evaluations(Box::new(BackwardWithoutHandoff(newton())), 25);
+    assert_same_bits(&with, &without);
+    // The same iterations, one elastic evaluation fewer wherever Newton converged (most steps here).
+    let handed = (evals_with.iter().zip(&evals_without))
+        .filter(|(w, wo)| **w + 1 == **wo)
+        .count();
+    assert!(
+        evals_with
+            .iter()
+            .zip(&evals_without)
+            .all(|(w, wo)| w == wo || w + 1 == *wo),
+        "{evals_with:?} vs {evals_without:?}"
+    );
+    assert!(handed >= 20, "hand-offs in {handed} of 25 steps");
 }
