@@ -75,48 +75,24 @@ pub fn for_each_task(n: usize, task: impl Fn(usize) + Sync) {
         (0..n).for_each(task);
         return;
     }
-    let tasks = HomeRanges::new(n, workers);
-    let worker = || tasks.run(home_range(workers), &task);
-    if !team::run(&worker) {
-        start_workers(workers, &worker);
-    }
-}
-
-/// The home range of the calling thread among `workers`: by its index in the pool.
-fn home_range(workers: usize) -> usize {
-    rayon::current_thread_index().unwrap_or(0) % workers
-}
-
-/// `0..n` cut into one contiguous range per worker, with a claim counter each.
-struct HomeRanges {
-    n: usize,
-    workers: usize,
-    /// `next[r]`: range `r`'s next unclaimed task (range r is `start(r)..start(r + 1)`).
-    next: [Padded; MAX_HOME_RANGES],
-}
-
-impl HomeRanges {
-    fn new(n: usize, workers: usize) -> Self {
-        Self {
-            n,
-            workers,
-            next: std::array::from_fn(|r| Padded(AtomicUsize::new(r * n / workers.max(1)))),
-        }
-    }
-
-    /// Claims and runs tasks, range `home` first, then what is left of the others.
-    fn run(&self, home: usize, task: &(impl Fn(usize) + ?Sized)) {
-        for r in (home..self.workers).chain(0..home) {
-            let end = (r + 1) * self.n / self.workers;
+    // Range r is `start(r)..start(r + 1)`; `next[r]` is its next unclaimed task.
+    let start = |r: usize| r * n / workers;
+    let next: [Padded; MAX_HOME_RANGES] =
+        std::array::from_fn(|r| Padded(AtomicUsize::new(start(r))));
+    let worker = || {
+        let home = rayon::current_thread_index().unwrap_or(0) % workers;
+        for r in (home..workers).chain(0..home) {
+            let end = start(r + 1);
             loop {
-                let i = self.next[r].0.fetch_add(1, Ordering::Relaxed);
+                let i = next[r].0.fetch_add(1, Ordering::Relaxed);
                 if i >= end {
                     break;
                 }
                 task(i);
             }
         }
-    }
+    };
+    start_workers(workers, &worker);
 }
 
 /// The most home ranges of [`for_each_task`] (threads beyond share them).
@@ -210,24 +186,11 @@ impl<'a, T> DisjointChunks<'a, T> {
 /// a symplectic Euler + FEPR step 6-8 (counted in the code). Measured on the
 /// bunny (2 threads, alternating runs): PD + FEPR 25.6-26.1 -> 17.5-25.6 ms per step, and bunny2 symplectic
 /// Euler + FEPR 2.29-3.13 -> 2.15-2.52 ms. The other threads run at full load while the guard lives, doing the
-/// pool's work as soon as there is any, and yield to the operating system now and then (other processes
-/// that want the CPU get it); nothing about the results changes (the work is cut into the same fixed chunks).
-///
-/// Held on a thread of the pool (as `Simulation::step` holds it), the guard also makes that thread the
-/// owner of a *team*: its [`for_each_task`] calls hand their workers to the polling threads through one
-/// shared slot ([`team`]) instead of through `rayon::join`, whose job a polling thread finds and starts
-/// late on this kind of virtual machine: six 0.3 us tasks took 1.25-1.44 us on two threads through rayon,
-/// no better than on one (1.30-1.45 us), and 1.07-1.14 us through the slot, where a helper starts within a
-/// cache-line transfer (the 1k box's projection: 59-62 -> 56-57 us per step, alternated). A guard is used
-/// on the thread that created it (not `Send`).
+/// pool's work as soon as there is any, and yield to the operating system whenever there is none (other
+/// processes that want the CPU get it); nothing about the results changes (the work is cut into the same
+/// fixed chunks).
 pub struct KeepAwake {
     stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
-    /// The team this guard registered on its thread, and the one it replaced there (restored on drop).
-    team: Option<(
-        std::sync::Arc<team::Team>,
-        Option<std::sync::Arc<team::Team>>,
-    )>,
-    _not_send: std::marker::PhantomData<*const ()>,
 }
 
 impl KeepAwake {
@@ -238,191 +201,30 @@ impl KeepAwake {
         let stop = std::sync::Arc::new(AtomicBool::new(false));
         let own = rayon::current_thread_index();
         let others = rayon::current_num_threads().saturating_sub(own.is_some() as usize);
-        let team = own.map(|_| std::sync::Arc::new(team::Team::default()));
         for _ in 0..others {
             let stop = std::sync::Arc::clone(&stop);
-            let team = team.clone();
             rayon::spawn(move || {
                 // The thread that holds the guard may pick this job up while it waits for other work: it
                 // must not poll for its own guard's end (it would wait for itself).
                 if rayon::current_thread_index() == own {
                     return;
                 }
-                // Epoch 0 is never opened: a job already open when this thread starts is joined too.
-                let mut seen = 0;
-                let mut idle = 0u32;
                 while !stop.load(Ordering::Acquire) {
-                    if team.as_ref().is_some_and(|t| t.help(&mut seen)) {
-                        idle = 0;
-                        continue;
-                    }
-                    // Without a team, rayon's queues are the only source of work: look at every turn.
-                    if (team.is_none() || idle.is_multiple_of(RAYON_EVERY))
-                        && rayon::yield_now() == Some(rayon::Yield::Executed)
-                    {
-                        idle = 0;
-                        continue;
-                    }
-                    idle = idle.wrapping_add(1);
-                    if team.is_none() || idle.is_multiple_of(YIELD_EVERY) {
+                    if rayon::yield_now() != Some(rayon::Yield::Executed) {
                         // Nothing to do: let any other runnable thread of the machine (a viewer, a browser)
                         // go first; with none, this returns at once and the thread stays awake.
                         std::thread::yield_now();
-                    } else {
-                        std::hint::spin_loop();
                     }
                 }
             });
         }
-        let team = team.map(|t| (std::sync::Arc::clone(&t), team::register(Some(t))));
-        Self {
-            stop,
-            team,
-            _not_send: std::marker::PhantomData,
-        }
+        Self { stop }
     }
 }
-
-/// A team helper with nothing to do looks at rayon's queues every this many polls of the team's slot, and
-/// yields to the operating system every this many (about 10 us apart): each costs far more than a poll.
-const RAYON_EVERY: u32 = 16;
-const YIELD_EVERY: u32 = 256;
 
 impl Drop for KeepAwake {
     fn drop(&mut self) {
-        if let Some((_, previous)) = self.team.take() {
-            team::register(previous);
-        }
         self.stop.store(true, std::sync::atomic::Ordering::Release);
-    }
-}
-
-/// The slot through which a [`KeepAwake`] owner's [`for_each_task`] calls reach the polling threads.
-///
-/// Protocol (one writer of the job, any number of helpers): the owner writes the job, then opens a new
-/// epoch (`state`: epoch in the high 32 bits, an open flag, the count of helpers that joined it). A helper
-/// joins by incrementing the count while the epoch is open (one compare-and-swap on the state it read, so
-/// it never joins a closed or newer epoch by mistake), runs the job, and counts itself in `finished`. The
-/// owner runs the job itself too, closes the epoch, and waits for exactly the helpers that joined: the job
-/// (which borrows the owner's stack) is never run after `run` returns. Every job claims its tasks from
-/// shared counters, so whoever joins, every task runs once.
-pub(crate) mod team {
-    use std::cell::{Cell, RefCell, UnsafeCell};
-    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-    use std::sync::Arc;
-
-    const OPEN: u64 = 1 << 31;
-    const JOINED: u64 = OPEN - 1;
-
-    #[repr(align(64))]
-    #[derive(Default)]
-    struct Line(AtomicU64);
-
-    /// A type-erased `&F` and the function that calls it.
-    type Job = (*const (), unsafe fn(*const ()));
-
-    #[derive(Default)]
-    pub(crate) struct Team {
-        state: Line,
-        finished: Line,
-        /// The open epoch's job.
-        job: UnsafeCell<Option<Job>>,
-        /// A job panicked on a helper (reported by the owner).
-        panicked: AtomicBool,
-    }
-
-    // SAFETY: `job` is written by the owner only while no epoch is open and no helper runs a job, and read by
-    // a helper only after it joined an open epoch (the state's release/acquire orders the two); the job it
-    // points to is `Sync`.
-    unsafe impl Sync for Team {}
-    unsafe impl Send for Team {}
-
-    thread_local! {
-        /// The team this thread owns (registered by its innermost live `KeepAwake`).
-        static OWNED: RefCell<Option<Arc<Team>>> = const { RefCell::new(None) };
-        /// This thread's team is running a job (a task that starts parallel work of its own uses rayon).
-        static BUSY: Cell<bool> = const { Cell::new(false) };
-    }
-
-    /// Make `team` this thread's team; returns the one it replaces.
-    pub(crate) fn register(team: Option<Arc<Team>>) -> Option<Arc<Team>> {
-        OWNED.with(|t| std::mem::replace(&mut *t.borrow_mut(), team))
-    }
-
-    unsafe fn call<F: Fn() + Sync>(job: *const ()) {
-        // SAFETY: `job` is the `&F` that `run` published, alive until every helper that joined has finished.
-        unsafe { (*job.cast::<F>())() }
-    }
-
-    /// Runs `job` on this thread and on the team's helpers that join in time, if this thread owns an idle
-    /// team; returns false (having run nothing) otherwise.
-    pub(crate) fn run<F: Fn() + Sync>(job: &F) -> bool {
-        let Some(team) = OWNED.with(|t| t.borrow().clone()) else {
-            return false;
-        };
-        if BUSY.with(|b| b.replace(true)) {
-            return false;
-        }
-        team.finished.0.store(0, Ordering::Relaxed);
-        // SAFETY: no epoch is open and no helper runs a job (the last `run` waited for all that joined).
-        unsafe {
-            *team.job.get() = Some(((job as *const F).cast(), call::<F> as unsafe fn(*const ())))
-        };
-        let epoch = team.state.0.load(Ordering::Relaxed) >> 32;
-        team.state
-            .0
-            .store(((epoch + 1) << 32) | OPEN, Ordering::Release);
-        // Closes the epoch and waits for its helpers even if `job` panics here (they borrow this stack).
-        struct Close<'a>(&'a Team, &'a Cell<bool>);
-        impl Drop for Close<'_> {
-            fn drop(&mut self) {
-                let joined = self.0.state.0.fetch_and(!OPEN, Ordering::AcqRel) & JOINED;
-                while self.0.finished.0.load(Ordering::Acquire) < joined {
-                    std::hint::spin_loop();
-                }
-                self.1.set(self.0.panicked.swap(false, Ordering::Acquire));
-                BUSY.with(|b| b.set(false));
-            }
-        }
-        let helper_panicked = Cell::new(false);
-        let close = Close(&team, &helper_panicked);
-        job();
-        drop(close);
-        if helper_panicked.get() {
-            panic!("a parallel task panicked on another thread");
-        }
-        true
-    }
-
-    impl Team {
-        /// Join and run the open epoch's job if it is newer than `seen`; returns whether it did.
-        pub(crate) fn help(&self, seen: &mut u64) -> bool {
-            let mut s = self.state.0.load(Ordering::Acquire);
-            loop {
-                if s >> 32 == *seen || s & OPEN == 0 {
-                    *seen = s >> 32;
-                    return false;
-                }
-                match self.state.0.compare_exchange_weak(
-                    s,
-                    s + 1,
-                    Ordering::Acquire,
-                    Ordering::Acquire,
-                ) {
-                    Ok(_) => break,
-                    Err(now) => s = now,
-                }
-            }
-            *seen = s >> 32;
-            // SAFETY: joined an open epoch: its job is published and lives until this helper has finished.
-            let (data, f) = unsafe { (*self.job.get()).expect("an open epoch has a job") };
-            let ok = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| unsafe { f(data) }));
-            if ok.is_err() {
-                self.panicked.store(true, Ordering::Release);
-            }
-            self.finished.0.fetch_add(1, Ordering::Release);
-            true
-        }
     }
 }
 
@@ -548,10 +350,10 @@ mod tests {
         }
     }
 
-    /// The same under a `KeepAwake` guard held on a pool thread (the team path), with `for_each_task` nested
-    /// inside tasks (the owner's team is busy then: rayon runs the inner call) and several calls in a row.
+    /// The same under a `KeepAwake` guard held on a pool thread (its polling threads take the workers), with
+    /// `for_each_task` nested inside tasks and several calls in a row.
     #[test]
-    fn every_task_runs_exactly_once_on_a_team() {
+    fn every_task_runs_exactly_once_under_keep_awake() {
         for threads in [1, 2, 3, 5] {
             let runs = finishes(move || {
                 let pool = rayon::ThreadPoolBuilder::new()
@@ -585,42 +387,6 @@ mod tests {
             });
             assert!(runs.iter().all(|&once| once), "{threads} threads: {runs:?}");
         }
-    }
-
-    /// A task that panics on a team helper reaches the owner as a panic (not a hang), and the team still
-    /// works afterwards.
-    #[test]
-    fn a_panicking_task_panics_the_caller_on_a_team() {
-        let outcome = finishes(|| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(2)
-                .build()
-                .unwrap();
-            pool.install(|| {
-                let _awake = KeepAwake::new();
-                let panicked = (0..20)
-                    .filter(|_| {
-                        std::panic::catch_unwind(|| {
-                            for_each_task(64, |i| {
-                                if i % 16 == 15 {
-                                    panic!("task {i}");
-                                }
-                            })
-                        })
-                        .is_err()
-                    })
-                    .count();
-                let runs: Vec<AtomicUsize> = (0..100).map(|_| AtomicUsize::new(0)).collect();
-                for_each_task(100, |i| {
-                    runs[i].fetch_add(1, Ordering::Relaxed);
-                });
-                (
-                    panicked,
-                    runs.iter().all(|r| r.load(Ordering::Relaxed) == 1),
-                )
-            })
-        });
-        assert_eq!(outcome, (20, true));
     }
 
     #[test]
