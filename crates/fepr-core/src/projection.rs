@@ -17,7 +17,7 @@
 //! residual. Non-convergence keeps the best iterate (or `q~`) and is reported; the result is never NaN and
 //! never has more inverted tets than the base step.
 
-use crate::parallel::{for_each_chunk_mut2, for_each_mut};
+use crate::parallel::{for_each_chunk_mut, for_each_chunk_mut2, for_each_mut};
 
 use crate::elasticity::{
     deformation_gradient, elastic_gradient_chunks, ElasticSummary, ElasticWorkspace,
@@ -389,6 +389,8 @@ struct EvalScratch {
     parts: Vec<Eval>,
     /// The D-norm's per-task sums.
     norms: Vec<f64>,
+    /// The warm start's per-task kinetic energies.
+    kinetic: Vec<[f64; 3]>,
 }
 
 /// The projection with its scratch memory (reused across steps).
@@ -656,7 +658,8 @@ impl Projector {
                 && {
                     // The warm start changes the velocities in place: the iterate gets buffers of its own.
                     self.leave_base();
-                    warm_start_velocities(&pb, &self.x, &mut self.v, cur.c[0])
+                    let parts = &mut self.scratch.kinetic;
+                    warm_start_velocities(&pb, &cur, &self.x, &mut self.v, parts)
                 }
             {
                 // Only the velocities changed: the elastic energy (and gradient, if computed) at x still hold.
@@ -1098,18 +1101,14 @@ impl RigidPart {
 }
 
 /// The [`RigidPart`] of the free vertices' velocities `v` at positions `x`.
-fn rigid_velocity(pb: &Problem, x: &[Vec3], v: &[Vec3]) -> RigidPart {
-    let (mut mf, mut mv, mut mx) = (0.0, [0.0; 3], [0.0; 3]);
-    for i in 0..v.len() {
-        if !pb.model.pinned[i] {
-            let m = pb.model.masses[i];
-            mf += m;
-            for a in 0..3 {
-                mv[a] += m * v[i][a];
-                mx[a] += m * x[i][a];
-            }
-        }
-    }
+fn rigid_velocity(pb: &Problem, e: &Eval) -> RigidPart {
+    // From the free vertices' moments about the target centre of mass C_t that the evaluation summed for S
+    // (no passes of its own: on the 1k box these were two serial passes of the warm start's four). With
+    // r = x - C_t, the centre of mass is c = C_t + d, d = sum m r / M; about c, the inertia is
+    // [tr(R) I - R] - M (|d|^2 I - d d^T) (R = sum m r r^T), and the angular momentum of v - V is
+    // sum m r x v - d x P.
+    debug_assert!(e.s_moments, "the moments for S");
+    let mf = e.free_mass;
     if mf <= 0.0 {
         return RigidPart {
             velocity: [0.0; 3],
@@ -1119,32 +1118,23 @@ fn rigid_velocity(pb: &Problem, x: &[Vec3], v: &[Vec3]) -> RigidPart {
             inertia_inv: None,
         };
     }
-    let vc = [mv[0] / mf, mv[1] / mf, mv[2] / mf];
-    let c = [mx[0] / mf, mx[1] / mf, mx[2] / mf];
-    let mut inertia = [[0.0; 3]; 3];
-    let mut l = [0.0; 3];
-    for i in 0..v.len() {
-        if !pb.model.pinned[i] {
-            let m = pb.model.masses[i];
-            let r = sub(x[i], c);
-            let rr = dot(r, r);
-            for a in 0..3 {
-                for b in 0..3 {
-                    inertia[a][b] += m * ((if a == b { rr } else { 0.0 }) - r[a] * r[b]);
-                }
-            }
-            let lv = cross(r, sub(v[i], vc));
-            for a in 0..3 {
-                l[a] += m * lv[a];
-            }
-        }
-    }
+    let d: Vec3 = std::array::from_fn(|a| e.free_r[a] / mf);
+    let vc: Vec3 = std::array::from_fn(|a| e.free_p[a] / mf);
+    let (tr, dd) = (e.rr[0][0] + e.rr[1][1] + e.rr[2][2], dot(d, d));
+    let inertia: Mat3 = std::array::from_fn(|a| {
+        std::array::from_fn(|b| {
+            let delta = if a == b { 1.0 } else { 0.0 };
+            (tr * delta - e.rr[a][b]) - mf * (dd * delta - d[a] * d[b])
+        })
+    });
+    let l = sub(e.free_l, cross(d, e.free_p));
     let inertia_inv = crate::linalg::inverse(&inertia);
     let omega = inertia_inv.map_or([0.0; 3], |inv| mat_vec(&inv, l));
+    let ct = pb.targets.center_of_mass;
     RigidPart {
         velocity: vc,
         omega,
-        center: c,
+        center: [ct[0] + d[0], ct[1] + d[1], ct[2] + d[2]],
         mass: mf,
         inertia_inv,
     }
@@ -1190,33 +1180,55 @@ fn rigid_part_on_target(pb: &Problem, now: &RigidPart) -> Option<RigidPart> {
 /// were. The iteration starts from there and only fixes what is left (the centre of mass, round-off): a
 /// dissipative base step that lost most of H is then 0-2 iterations from the manifold instead of a stiff
 /// position correction away. False if that energy cannot be reached.
-fn warm_start_velocities(pb: &Problem, x: &[Vec3], v: &mut [Vec3], c_h: f64) -> bool {
-    let now = rigid_velocity(pb, x, v);
+fn warm_start_velocities(
+    pb: &Problem,
+    e: &Eval,
+    x: &[Vec3],
+    v: &mut [Vec3],
+    parts: &mut Vec<[f64; 3]>,
+) -> bool {
+    let c_h = e.c[0];
+    let now = rigid_velocity(pb, e);
     let target = rigid_part_on_target(pb, &now);
     let next = target.as_ref().unwrap_or(&now);
-    let (mut k_u, mut k_now, mut k_next) = (0.0, 0.0, 0.0);
-    for i in 0..v.len() {
-        if !pb.model.pinned[i] {
-            let m = pb.model.masses[i];
-            let (r_now, r_next) = (now.at(x[i]), next.at(x[i]));
-            let u = sub(v[i], r_now);
-            k_u += 0.5 * m * dot(u, u);
-            k_now += 0.5 * m * dot(r_now, r_now);
-            k_next += 0.5 * m * dot(r_next, r_next);
+    // The kinetic energies of u, of the rigid part now and of the next one, over fixed vertex tasks added in
+    // task order (the same bits for any thread count).
+    let (model, chunk) = (pb.model, vertex_chunk(v.len()));
+    parts.clear();
+    parts.resize(v.len().div_ceil(chunk), [0.0; 3]);
+    let vr: &[Vec3] = v;
+    for_each_mut(parts, |c, part| {
+        let mut k = [0.0; 3];
+        for i in c * chunk..((c + 1) * chunk).min(vr.len()) {
+            if !model.pinned[i] {
+                let m = model.masses[i];
+                let (r_now, r_next) = (now.at(x[i]), next.at(x[i]));
+                let u = sub(vr[i], r_now);
+                k[0] += 0.5 * m * dot(u, u);
+                k[1] += 0.5 * m * dot(r_now, r_now);
+                k[2] += 0.5 * m * dot(r_next, r_next);
+            }
         }
-    }
+        *part = k;
+    });
+    let [k_u, k_now, k_next] = parts
+        .iter()
+        .fold([0.0; 3], |s, k| [s[0] + k[0], s[1] + k[1], s[2] + k[2]]);
     let k_target = k_u - c_h - (k_next - k_now);
     // A (nearly) rigid motion has no deformational energy to scale: a huge factor would only amplify round-off.
     if !(k_target > 0.0 && k_target.is_finite() && k_u > 1e-6 * k_target) {
         return false;
     }
     let beta = (k_target / k_u).sqrt();
-    for i in 0..v.len() {
-        if !pb.model.pinned[i] {
-            let (r_now, r_next) = (now.at(x[i]), next.at(x[i]));
-            v[i] = [0, 1, 2].map(|a| r_next[a] + beta * (v[i][a] - r_now[a]));
+    for_each_chunk_mut(v, chunk, |c, vs| {
+        for (k, vi) in vs.iter_mut().enumerate() {
+            let i = c * chunk + k;
+            if !model.pinned[i] {
+                let (r_now, r_next) = (now.at(x[i]), next.at(x[i]));
+                *vi = [0, 1, 2].map(|a| r_next[a] + beta * (vi[a] - r_now[a]));
+            }
         }
-    }
+    });
     true
 }
 
