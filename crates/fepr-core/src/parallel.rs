@@ -209,8 +209,19 @@ impl KeepAwake {
                 if rayon::current_thread_index() == own {
                     return;
                 }
+                // A thread may pick this job up while it waits inside a nested `rayon::join` (for work that
+                // is already done, or that only it will finish): polling until the guard drops would then hold
+                // that join, and whatever waits for it, as long as the guard lives, which can be for ever
+                // (`a_polling_job_picked_up_inside_a_wait_gives_the_thread_back`). So the job gives the thread
+                // back after `POLL_IDLE_LIMIT` without work: a gap that long between a step's parallel regions
+                // is rare, and costs only a wake-up after it.
+                let mut idle_since = std::time::Instant::now();
                 while !stop.load(Ordering::Acquire) {
-                    if rayon::yield_now() != Some(rayon::Yield::Executed) {
+                    if rayon::yield_now() == Some(rayon::Yield::Executed) {
+                        idle_since = std::time::Instant::now();
+                    } else if idle_since.elapsed() > POLL_IDLE_LIMIT {
+                        return;
+                    } else {
                         // Nothing to do: let any other runnable thread of the machine (a viewer, a browser)
                         // go first; with none, this returns at once and the thread stays awake.
                         std::thread::yield_now();
@@ -221,6 +232,9 @@ impl KeepAwake {
         Self { stop }
     }
 }
+
+/// How long a [`KeepAwake`] polling job goes on without finding work before it gives its thread back.
+const POLL_IDLE_LIMIT: std::time::Duration = std::time::Duration::from_millis(2);
 
 impl Drop for KeepAwake {
     fn drop(&mut self) {
@@ -281,6 +295,67 @@ mod tests {
         assert_eq!(tet_chunk_for(19_379), 512);
         assert_eq!(tet_chunk_for(29_548), 512);
         assert_eq!(tet_chunk_for(32_768), TET_CHUNK);
+    }
+
+    /// A thread that waits inside a nested `rayon::join` may pick up a `KeepAwake` polling job; the job must
+    /// give the thread back when there is nothing to do, or the join it waits in never returns while the
+    /// guard lives (a step that needs that join would hang). Staged on two threads: thread b waits in a join
+    /// whose second half runs on thread a, which creates the guard there and keeps it until b is done.
+    #[test]
+    fn a_polling_job_picked_up_inside_a_wait_gives_the_thread_back() {
+        use std::sync::atomic::AtomicBool;
+        use std::sync::Mutex;
+        use std::time::{Duration, Instant};
+        let finished_in_time = finishes(|| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(2)
+                .build()
+                .unwrap();
+            let (inner_b_taken, b_done) = (AtomicBool::new(false), AtomicBool::new(false));
+            let guard: Mutex<Option<KeepAwake>> = Mutex::new(None);
+            pool.install(|| {
+                rayon::join(
+                    || {
+                        // Thread a: take the inner join's second half from b, then wait for b.
+                        let t0 = Instant::now();
+                        while !b_done.load(Ordering::Acquire)
+                            && t0.elapsed() < Duration::from_secs(3)
+                        {
+                            let _ = rayon::yield_now();
+                        }
+                        let in_time = b_done.load(Ordering::Acquire);
+                        drop(guard.lock().unwrap().take()); // ends the polling either way
+                        in_time
+                    },
+                    || {
+                        // Thread b (stolen): a nested join whose second half thread a takes; b then waits.
+                        rayon::join(
+                            || {
+                                let t0 = Instant::now();
+                                while !inner_b_taken.load(Ordering::Acquire)
+                                    && t0.elapsed() < Duration::from_secs(3)
+                                {
+                                    std::hint::spin_loop();
+                                }
+                            },
+                            || {
+                                // On thread a: the guard's polling job goes to a's queue, where b, waiting
+                                // for this half, finds it.
+                                inner_b_taken.store(true, Ordering::Release);
+                                *guard.lock().unwrap() = Some(KeepAwake::new());
+                                std::thread::sleep(Duration::from_millis(20));
+                            },
+                        );
+                        b_done.store(true, Ordering::Release);
+                    },
+                )
+                .0
+            })
+        });
+        assert!(
+            finished_in_time,
+            "the waiting thread was kept polling until the guard dropped"
+        );
     }
 
     #[test]
