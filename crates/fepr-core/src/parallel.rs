@@ -399,24 +399,29 @@ mod tests {
         assert_eq!(outside, want);
     }
 
+    /// `f` inside a fresh pool of `threads` threads, on another thread, failing on a deadlock.
+    fn on_pool<T: Send + 'static>(threads: usize, f: impl FnOnce() -> T + Send + 'static) -> T {
+        finishes(move || {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(f)
+        })
+    }
+
     #[test]
     fn every_task_runs_exactly_once_on_any_pool() {
         for threads in [1, 2, 3, 5] {
-            let runs = finishes(move || {
-                let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(threads)
-                    .build()
-                    .unwrap();
+            let runs = on_pool(threads, || {
                 [0, 1, 2, 3, 7, 11, 64, 1000].map(|n| {
                     let runs: Vec<AtomicUsize> = (0..n).map(|_| AtomicUsize::new(0)).collect();
-                    pool.install(|| {
-                        for_each_task(n, |i| {
-                            runs[i].fetch_add(1, Ordering::Relaxed);
-                            // Parallel work inside a task (it may pick up another worker) must not deadlock.
-                            if i % 5 == 0 {
-                                assert_eq!(sum_of_sines(3000), sum_of_sines(3000));
-                            }
-                        })
+                    for_each_task(n, |i| {
+                        runs[i].fetch_add(1, Ordering::Relaxed);
+                        // Parallel work inside a task (it may pick up another worker) must not deadlock.
+                        if i % 5 == 0 {
+                            assert_eq!(sum_of_sines(3000), sum_of_sines(3000));
+                        }
                     });
                     runs.iter().all(|r| r.load(Ordering::Relaxed) == 1)
                 })
@@ -430,13 +435,9 @@ mod tests {
     #[test]
     fn every_task_runs_exactly_once_under_keep_awake() {
         for threads in [1, 2, 3, 5] {
-            let runs = finishes(move || {
-                let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(threads)
-                    .build()
-                    .unwrap();
-                pool.install(|| {
-                    let _awake = KeepAwake::new();
+            let runs = on_pool(threads, || {
+                let _awake = KeepAwake::new();
+                {
                     [0, 1, 2, 3, 7, 11, 64, 1000].map(|n| {
                         let runs: Vec<AtomicUsize> = (0..n).map(|_| AtomicUsize::new(0)).collect();
                         let inner: Vec<AtomicUsize> =
@@ -458,7 +459,7 @@ mod tests {
                         });
                         outer_ok && inner_ok
                     })
-                })
+                }
             });
             assert!(runs.iter().all(|&once| once), "{threads} threads: {runs:?}");
         }
