@@ -121,7 +121,7 @@ impl ImplicitEuler {
     fn objective_gradient(&mut self, model: &Model, x: &[Vec3], h: f64) -> (f64, f64) {
         self.elastic_grad.resize(x.len(), [0.0; 3]);
         self.elastic = elastic_energy_gradient(model, x, &mut self.ws, &mut self.elastic_grad);
-        self.grad.clone_from(&self.elastic_grad);
+        self.grad.resize(x.len(), [0.0; 3]);
         let el = self.elastic.energy;
         let mut phi = el;
         let mut magnitude = el.abs();
@@ -137,7 +137,7 @@ impl ImplicitEuler {
             phi += inertia - grav;
             magnitude += inertia + grav.abs();
             for a in 0..3 {
-                self.grad[i][a] += mi * (inv_h2 * d[a] - model.gravity[a]);
+                self.grad[i][a] = self.elastic_grad[i][a] + mi * (inv_h2 * d[a] - model.gravity[a]);
             }
         }
         (phi, magnitude)

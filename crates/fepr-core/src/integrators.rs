@@ -173,7 +173,7 @@ impl Integrator for SymplecticEuler {
 }
 
 /// True when the two position arrays agree bit for bit (so a cached evaluation is exactly the fresh one).
-fn same_bits(a: &[Vec3], b: &[Vec3]) -> bool {
+pub(crate) fn same_bits(a: &[Vec3], b: &[Vec3]) -> bool {
     a.len() == b.len()
         && a.iter()
             .zip(b)

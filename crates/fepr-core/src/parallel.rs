@@ -437,29 +437,26 @@ mod tests {
         for threads in [1, 2, 3, 5] {
             let runs = on_pool(threads, || {
                 let _awake = KeepAwake::new();
-                {
-                    [0, 1, 2, 3, 7, 11, 64, 1000].map(|n| {
-                        let runs: Vec<AtomicUsize> = (0..n).map(|_| AtomicUsize::new(0)).collect();
-                        let inner: Vec<AtomicUsize> =
-                            (0..n * 7).map(|_| AtomicUsize::new(0)).collect();
-                        for _ in 0..3 {
-                            for_each_task(n, |i| {
-                                runs[i].fetch_add(1, Ordering::Relaxed);
-                                if i % 5 == 0 {
-                                    for_each_task(7, |k| {
-                                        inner[7 * i + k].fetch_add(1, Ordering::Relaxed);
-                                    });
-                                    assert_eq!(sum_of_sines(3000), sum_of_sines(3000));
-                                }
-                            });
-                        }
-                        let outer_ok = runs.iter().all(|r| r.load(Ordering::Relaxed) == 3);
-                        let inner_ok = (0..n * 7).all(|j| {
-                            inner[j].load(Ordering::Relaxed) == if (j / 7) % 5 == 0 { 3 } else { 0 }
+                [0, 1, 2, 3, 7, 11, 64, 1000].map(|n| {
+                    let runs: Vec<AtomicUsize> = (0..n).map(|_| AtomicUsize::new(0)).collect();
+                    let inner: Vec<AtomicUsize> = (0..n * 7).map(|_| AtomicUsize::new(0)).collect();
+                    for _ in 0..3 {
+                        for_each_task(n, |i| {
+                            runs[i].fetch_add(1, Ordering::Relaxed);
+                            if i % 5 == 0 {
+                                for_each_task(7, |k| {
+                                    inner[7 * i + k].fetch_add(1, Ordering::Relaxed);
+                                });
+                                assert_eq!(sum_of_sines(3000), sum_of_sines(3000));
+                            }
                         });
-                        outer_ok && inner_ok
-                    })
-                }
+                    }
+                    let outer_ok = runs.iter().all(|r| r.load(Ordering::Relaxed) == 3);
+                    let inner_ok = (0..n * 7).all(|j| {
+                        inner[j].load(Ordering::Relaxed) == if (j / 7) % 5 == 0 { 3 } else { 0 }
+                    });
+                    outer_ok && inner_ok
+                })
             });
             assert!(runs.iter().all(|&once| once), "{threads} threads: {runs:?}");
         }

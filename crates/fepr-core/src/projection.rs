@@ -17,7 +17,7 @@
 //! residual. Non-convergence keeps the best iterate (or `q~`) and is reported; the result is never NaN and
 //! never has more inverted tets than the base step.
 
-use crate::parallel::{for_each_chunk_mut, for_each_chunk_mut2, for_each_mut};
+use crate::parallel::{for_each_chunk_mut, for_each_chunk_mut2, for_each_mut, reduce_chunks};
 
 use crate::elasticity::{
     deformation_gradient, elastic_gradient_chunks, ElasticSummary, ElasticWorkspace,
@@ -1100,7 +1100,7 @@ impl RigidPart {
     }
 }
 
-/// The [`RigidPart`] of the free vertices' velocities `v` at positions `x`.
+/// The [`RigidPart`] of the free vertices' velocities, from the moments an evaluation `e` summed for `S`.
 fn rigid_velocity(pb: &Problem, e: &Eval) -> RigidPart {
     // From the free vertices' moments about the target centre of mass C_t that the evaluation summed for S
     // (no passes of its own: on the 1k box these were two serial passes of the warm start's four). With
@@ -1194,26 +1194,21 @@ fn warm_start_velocities(
     // The kinetic energies of u, of the rigid part now and of the next one, over fixed vertex tasks added in
     // task order (the same bits for any thread count).
     let (model, chunk) = (pb.model, vertex_chunk(v.len()));
-    parts.clear();
-    parts.resize(v.len().div_ceil(chunk), [0.0; 3]);
     let vr: &[Vec3] = v;
-    for_each_mut(parts, |c, part| {
+    let map = |r: std::ops::Range<usize>| {
         let mut k = [0.0; 3];
-        for i in c * chunk..((c + 1) * chunk).min(vr.len()) {
-            if !model.pinned[i] {
-                let m = model.masses[i];
-                let (r_now, r_next) = (now.at(x[i]), next.at(x[i]));
-                let u = sub(vr[i], r_now);
-                k[0] += 0.5 * m * dot(u, u);
-                k[1] += 0.5 * m * dot(r_now, r_now);
-                k[2] += 0.5 * m * dot(r_next, r_next);
-            }
+        for i in r.filter(|&i| !model.pinned[i]) {
+            let m = model.masses[i];
+            let (r_now, r_next) = (now.at(x[i]), next.at(x[i]));
+            let u = sub(vr[i], r_now);
+            k[0] += 0.5 * m * dot(u, u);
+            k[1] += 0.5 * m * dot(r_now, r_now);
+            k[2] += 0.5 * m * dot(r_next, r_next);
         }
-        *part = k;
-    });
-    let [k_u, k_now, k_next] = parts
-        .iter()
-        .fold([0.0; 3], |s, k| [s[0] + k[0], s[1] + k[1], s[2] + k[2]]);
+        k
+    };
+    let add3 = |a: [f64; 3], b: [f64; 3]| [a[0] + b[0], a[1] + b[1], a[2] + b[2]];
+    let [k_u, k_now, k_next] = reduce_chunks(vr.len(), chunk, parts, map, add3).unwrap_or([0.0; 3]);
     let k_target = k_u - c_h - (k_next - k_now);
     // A (nearly) rigid motion has no deformational energy to scale: a huge factor would only amplify round-off.
     if !(k_target > 0.0 && k_target.is_finite() && k_u > 1e-6 * k_target) {
@@ -1303,21 +1298,16 @@ fn d_norm(
 ) -> f64 {
     let h2 = pb.h * pb.h;
     // Over fixed vertex tasks, added in task order (the same bits for any thread count).
-    let chunk = vertex_chunk(x.len());
-    parts.resize(x.len().div_ceil(chunk), 0.0);
-    for_each_mut(parts, |c, part| {
-        let first = c * chunk;
-        let mut sum = 0.0;
-        for i in first..(first + chunk).min(x.len()) {
-            let (dx, dv) = (sub(x[i], xb[i]), sub(v[i], vb[i]));
-            // A frozen position (a_i = 0) is held: its term is 0, not 0/0.
-            let a = pb.metric_factor[i];
-            let dx2 = if a > 0.0 { dot(dx, dx) / a } else { 0.0 };
-            sum += pb.model.masses[i] * (dx2 + h2 * dot(dv, dv));
-        }
-        *part = sum;
-    });
-    (pb.eps * (s * s + t * t) + parts.iter().sum::<f64>()).sqrt()
+    let term = |i: usize| {
+        let (dx, dv) = (sub(x[i], xb[i]), sub(v[i], vb[i]));
+        // A frozen position (a_i = 0) is held: its term is 0, not 0/0.
+        let a = pb.metric_factor[i];
+        let dx2 = if a > 0.0 { dot(dx, dx) / a } else { 0.0 };
+        pb.model.masses[i] * (dx2 + h2 * dot(dv, dv))
+    };
+    let map = |r: std::ops::Range<usize>| r.map(term).sum::<f64>();
+    let sum = reduce_chunks(x.len(), vertex_chunk(x.len()), parts, map, |a, b| a + b);
+    (pb.eps * (s * s + t * t) + sum.unwrap_or(0.0)).sqrt()
 }
 
 /// Evaluate the constraints, the elastic gradient (into `grad`; the potential's is `grad E_el - m g`, formed

@@ -4,7 +4,7 @@
 use std::time::Instant;
 
 use crate::error::{FeprError, Result};
-use crate::integrators::{Integrator, StepReport};
+use crate::integrators::{same_bits, Integrator, StepReport};
 use crate::invariants::{center_of_mass, measure, Invariants};
 use crate::linalg::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, State};
@@ -502,10 +502,7 @@ impl Simulation {
                 // Backward Euler ends on an iterate whose elastic gradient it evaluated: the projection's first
                 // evaluation is then that one, if pins, obstacles and forces left the positions untouched.
                 if let Some((summary, x, grad)) = self.integrator.result_elastic_gradient() {
-                    let same =
-                        |a: &Vec3, b: &Vec3| (0..3).all(|k| a[k].to_bits() == b[k].to_bits());
-                    let x_now = &self.state.x;
-                    if x.len() == x_now.len() && x.iter().zip(x_now).all(|(a, b)| same(a, b)) {
+                    if same_bits(x, &self.state.x) {
                         p.offer_base_gradient(summary, grad);
                     }
                 }
