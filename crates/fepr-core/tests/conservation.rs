@@ -539,3 +539,64 @@ fn correction_is_finite_with_frozen_positions() {
     );
     assert_eq!((state.x[0], state.x[1]), (x0, x1), "held positions moved");
 }
+
+/// The simplified Newton steps (`ProjectionSettings::reuse_matrix`: S of the previous iterate once the
+/// residual has fallen far enough) end every projection in the same number of iterations as Newton with S
+/// summed at every iterate, on the spinning, thrown L at two stiffnesses, and are taken in most steps.
+#[test]
+fn simplified_newton_steps_end_projections_in_the_same_iterations_as_newton() {
+    use fepr_core::projection::{ProjectionSettings, Projector};
+    use fepr_core::simulation::Simulation;
+    for youngs in [1e3, 1e4] {
+        let run = |reuse_matrix: bool| {
+            let model = model(ell_mesh(), neo_hookean(youngs, 0.3), 5.0, [0.0, -9.81, 0.0]);
+            let mut state = State::at_rest(&model);
+            let c =
+                fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
+            scaled(&mut state, 1.1, c);
+            for (x, v) in state.x.iter().zip(state.v.iter_mut()) {
+                let r = [0, 1, 2].map(|a| x[a] - c[a]);
+                *v = [1.0 - r[1] + 0.2 * r[2], 0.5 + r[0], 0.3 * r[1] - 0.2 * r[0]];
+            }
+            let settings = ProjectionSettings {
+                reuse_matrix,
+                ..Default::default()
+            };
+            let proj = Projector::new(settings).unwrap();
+            let integrator = Box::new(fepr_core::integrators::SymplecticEuler::new());
+            let mut sim = Simulation::new(model, state, integrator, 0.004, Some(proj)).unwrap();
+            (0..300)
+                .map(|_| {
+                    let d = *sim.step().unwrap();
+                    (d.projection.unwrap(), d.invariants.total)
+                })
+                .collect::<Vec<_>>()
+        };
+        let (chord, newton) = (run(true), run(false));
+        let mut reused_steps = 0;
+        for (k, ((a, ha), (b, hb))) in chord.iter().zip(&newton).enumerate() {
+            assert!(
+                a.converged && b.converged,
+                "E = {youngs}, step {k}: {a:?} {b:?}"
+            );
+            assert!(a.final_residual <= 1e-10, "E = {youngs}, step {k}: {a:?}");
+            assert_eq!(
+                a.iterations, b.iterations,
+                "E = {youngs}, step {k}: {a:?} {b:?}"
+            );
+            assert_eq!(b.matrix_reuses, 0);
+            assert!(a.matrix_reuses < a.iterations.max(1));
+            let h0 = newton[0].1;
+            assert!(
+                rel(*ha, h0) <= 1e-8 && rel(*hb, h0) <= 1e-8,
+                "E = {youngs}, step {k}: {ha} {hb} {h0}"
+            );
+            reused_steps += usize::from(a.matrix_reuses > 0);
+        }
+        eprintln!("E = {youngs}: S reused in {reused_steps} of 300 steps");
+        assert!(
+            reused_steps >= 150,
+            "E = {youngs}: S reused in {reused_steps} steps"
+        );
+    }
+}
