@@ -102,10 +102,6 @@ pub struct ProjectionSettings {
     pub warm_start_threshold: f64,
     /// The position block of the metric D (default `Auto`, see [`Metric`]).
     pub metric: Metric,
-    /// Solve with the previous iterate's small matrix `S` once the residual has fallen far enough that
-    /// Newton's next step is expected to end the projection (simplified Newton; default true): it saves a
-    /// pass over the vertices and ends in the same iterations. `false`: `S` is summed at every iterate.
-    pub reuse_matrix: bool,
 }
 
 /// The position block of the projection's metric `D = diag(W, h^2 M, eps, eps)`.
@@ -180,7 +176,6 @@ impl Default for ProjectionSettings {
             slack: Slack::Auto,
             warm_start_threshold: f64::INFINITY,
             metric: Metric::Auto,
-            reuse_matrix: true,
         }
     }
 }
@@ -289,9 +284,6 @@ pub struct ProjectionReport {
     pub restarts: usize,
     /// Vertices whose positions were frozen by those restarts (their velocities stay free).
     pub frozen_vertices: usize,
-    /// Iterations that solved with the previous iterate's small matrix `S` instead of summing it again
-    /// (simplified Newton, once the residual has fallen far enough: see `chord_holds`).
-    pub matrix_reuses: usize,
     /// Elastic evaluations (energy, or energy and gradient, over all tets), the first one included unless the
     /// base step handed it over ([`Projector::offer_base_gradient`]: backward Euler): an iteration evaluates
     /// its trial point, and a second one where the full step overshoots.
@@ -364,23 +356,6 @@ impl Default for Eval {
 }
 
 impl Eval {
-    /// The moments for `S` of `b` (another iterate), with these constraint values.
-    fn take_s_moments(&mut self, b: &Eval) {
-        self.s_moments = true;
-        self.grad_sq_over_w = b.grad_sq_over_w;
-        self.a_grad_sum = b.a_grad_sum;
-        self.a_grad_cross_v = b.a_grad_cross_v;
-        self.free_mass = b.free_mass;
-        self.a_free_mass = b.a_free_mass;
-        self.free_p = b.free_p;
-        self.a_free_p = b.a_free_p;
-        self.free_l = b.free_l;
-        self.free_r = b.free_r;
-        self.tr_vv = b.tr_vv;
-        self.a_vv = b.a_vv;
-        self.rr = b.rr;
-    }
-
     /// Add the vertex sums of `b` (a later chunk) to these.
     fn add(&mut self, b: &Eval) {
         self.s_moments &= b.s_moments;
@@ -672,11 +647,7 @@ impl Projector {
         // velocities stay free) and restart from q~. fepr-spec section 6, pitfall 5: the projection must not
         // create inverted elements.
         let mut attempt = 0;
-        // The iterate of the last solve and its residual norm (for `chord_holds`); none after a restart, whose
-        // frozen vertices change S.
-        let mut chord: Option<(Eval, f64)>;
         loop {
-            chord = None;
             // Opt-in warm start for large energy errors (a dissipative base step at a large dt can lose most of H
             // in one step): scale the deformational velocities, which meets the energy row and keeps P and L; the
             // iterations then fix the rest from nearby instead of linearising a stiff position correction far
@@ -728,23 +699,13 @@ impl Projector {
                         cur = evaluate(&pb, x, v, s, t, &mut self.scratch, &mut self.grad);
                         grad_at_x = true;
                     } else if !cur.s_moments {
-                        if let Some(prev) = chord.filter(|prev| {
-                            self.settings.reuse_matrix && chord_holds(cur_norm, prev.1, tol)
-                        }) {
-                            // Simplified Newton: S of the previous iterate (see `chord_holds`).
-                            cur.take_s_moments(&prev.0);
-                            report.matrix_reuses += 1;
-                        } else {
-                            // An accepted trial point (summed without S's moments, which most trial points,
-                            // ending the projection, never need): sum them now; the constraint values keep
-                            // their bits.
-                            let grad = Some(&self.grad[..]);
-                            let parts = &mut self.scratch.parts;
-                            let (x, v) = current!(self);
-                            cur = evaluate_with_elastic(&pb, x, v, s, t, cur.el, grad, parts);
-                        }
+                        // An accepted trial point (summed without S's moments, which most trial points, ending
+                        // the projection, never need): sum them now; the constraint values keep their bits.
+                        let grad = Some(&self.grad[..]);
+                        let parts = &mut self.scratch.parts;
+                        let (x, v) = current!(self);
+                        cur = evaluate_with_elastic(&pb, x, v, s, t, cur.el, grad, parts);
                     }
-                    chord = Some((cur, cur_norm));
                     let (lambda, used_lstsq) =
                         solve_multipliers(&pb, &cur, self.settings.regularization);
                     report.least_squares_solves += used_lstsq as usize;
@@ -1062,19 +1023,6 @@ impl Projector {
         let n = norm_scaled(pb, &e.c);
         (e, n, s_new, t_new)
     }
-}
-
-/// Whether an iteration at residual norm `now` may solve with `S` of the previous iterate, whose residual norm
-/// was `before` (simplified Newton: the step follows the current gradients, only the small matrix is the
-/// previous one). Newton's quadratic convergence (`r_next = K r^2`) predicts the next residual
-/// `now^2 / before`; the chord step's own error, from S having moved by the last correction (whose size
-/// was set by `before`), is of that order too. When that prediction is below a tenth of the tolerance, the
-/// next iteration ends the projection either way, and summing S's moments again (a pass over the vertices)
-/// buys nothing. Most projections after symplectic Euler take this path in their second iteration (1k box,
-/// two threads: 59-60 -> 56-57 us per projection, the same iterations); where the residual falls slower (a
-/// line-searched step), S is summed again.
-fn chord_holds(now: f64, before: f64, tol: f64) -> bool {
-    now * now <= 0.1 * tol * before
 }
 
 /// Step length minimising the scaled residual norm of the model `c(alpha) = (1 - alpha) c0 + alpha^2 e`,

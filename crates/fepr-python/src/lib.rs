@@ -471,7 +471,6 @@ impl Simulation {
                         "slack: unknown '{slack}' (known: auto, on, off)"
                     ))
                 })?,
-                reuse_matrix: true,
             };
             Some(Projector::new(settings).map_err(value_error)?)
         } else {
