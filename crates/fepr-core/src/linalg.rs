@@ -190,6 +190,14 @@ fn cholesky_solve_in_place(l: &mut [f64], y: &mut [f64], n: usize) -> bool {
             l[i * n + j] = s * inv_d;
         }
     }
+    cholesky_substitute(l, y, n);
+    true
+}
+
+/// Solve `L L^T y = b` in `y` (holding `b` on entry) with the lower Cholesky factor `L` that a successful
+/// [`solve_symmetric_psd_into`] (one that returned false) left in its scratch `l`: another right-hand side
+/// of the same (shifted) matrix, without factoring it again.
+pub fn cholesky_substitute(l: &[f64], y: &mut [f64], n: usize) {
     for i in 0..n {
         for k in 0..i {
             y[i] -= l[i * n + k] * y[k];
@@ -202,7 +210,6 @@ fn cholesky_solve_in_place(l: &mut [f64], y: &mut [f64], n: usize) -> bool {
         }
         y[i] /= l[i * n + i];
     }
-    true
 }
 
 /// Cyclic Jacobi eigen-decomposition of a symmetric matrix: returns (eigenvalues, eigenvectors as columns

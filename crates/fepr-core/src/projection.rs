@@ -24,7 +24,7 @@ use crate::elasticity::{
 };
 use crate::error::{invalid, Result};
 use crate::invariants::Invariants;
-use crate::linalg::{cross, dot, solve_symmetric_psd_into, sub, Mat3, Vec3};
+use crate::linalg::{cholesky_substitute, cross, dot, solve_symmetric_psd_into, sub, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
 
 /// Which constraint rows the projection enforces.
@@ -318,6 +318,11 @@ struct Eval {
     tr_vv: f64,
     a_vv: [[f64; 3]; 3],
     rr: [[f64; 3]; 3],
+    // For the angular momentum's second-order term along a step (`angular_second_order`), with
+    // `r_i = x_i - C_target`: `sum a_i g_i r_i^T`, `sum a_i m_i r_i x v_i`, `sum a_i m_i r_i`.
+    a_grad_r: [[f64; 3]; 3],
+    a_r_cross_v: Vec3,
+    a_mass_r: Vec3,
     /// `sum m_i x_i` (for the centre of mass).
     mass_x: Vec3,
 }
@@ -350,6 +355,9 @@ impl Default for Eval {
             tr_vv: 0.0,
             a_vv: [z; 3],
             rr: [z; 3],
+            a_grad_r: [z; 3],
+            a_r_cross_v: z,
+            a_mass_r: z,
             mass_x: z,
         }
     }
@@ -375,9 +383,12 @@ impl Eval {
         add3(&mut self.free_l, &b.free_l);
         add3(&mut self.free_r, &b.free_r);
         add3(&mut self.mass_x, &b.mass_x);
+        add3(&mut self.a_r_cross_v, &b.a_r_cross_v);
+        add3(&mut self.a_mass_r, &b.a_mass_r);
         for a in 0..3 {
             add3(&mut self.a_vv[a], &b.a_vv[a]);
             add3(&mut self.rr[a], &b.rr[a]);
+            add3(&mut self.a_grad_r[a], &b.a_grad_r[a]);
         }
     }
 }
@@ -706,18 +717,22 @@ impl Projector {
                         let (x, v) = current!(self);
                         cur = evaluate_with_elastic(&pb, x, v, s, t, cur.el, grad, parts);
                     }
-                    let (lambda, used_lstsq) =
-                        solve_multipliers(&pb, &cur, self.settings.regularization);
-                    report.least_squares_solves += used_lstsq as usize;
+                    let Multipliers {
+                        lambda,
+                        least_squares,
+                        offset,
+                    } = solve_multipliers(&pb, &cur, self.settings.regularization);
+                    report.least_squares_solves += least_squares as usize;
                     let mut alpha = 1.0;
                     let mut accepted = None;
                     report.evaluations += 1;
                     let mut cand = self.trial(&pb, s, t, &lambda, 1.0);
                     // Curvature-aware step length: along the step, P and C are linear in alpha, L is quadratic,
                     // so c(alpha) = (1 - alpha) c(0) + alpha^2 e with e = c(1) holds for them exactly and models H's
-                    // curvature. Where the full step overshoots (stiff materials), take the model's best alpha.
+                    // curvature (its row with the second-order offset, see `model_step_length`). Where the full
+                    // step overshoots (stiff materials), take the model's best alpha.
                     if cand.0.c.iter().all(|c| c.is_finite()) {
-                        let a_star = model_step_length(&pb, &cur.c, &cand.0.c);
+                        let a_star = model_step_length(&pb, &cur.c, &offset, &cand.0.c);
                         if a_star < 0.95 {
                             // Keep the full step's buffers aside, so that falling back to it needs no
                             // second evaluation.
@@ -1025,24 +1040,33 @@ impl Projector {
     }
 }
 
-/// Step length minimising the scaled residual norm of the model `c(alpha) = (1 - alpha) c0 + alpha^2 e`,
-/// `e = c(1)` (the residual after the full step), over `alpha` in [1/64, 1].
-fn model_step_length(pb: &Problem, c0: &[f64; ROWS], e: &[f64; ROWS]) -> f64 {
-    // The squared norm is a quartic in alpha: with a = c0 / scale and b = e / scale per row,
-    // sum ((1 - alpha) a + alpha^2 b)^2 = A (1 - alpha)^2 + 2 B (1 - alpha) alpha^2 + C alpha^4 with A = sum a^2,
-    // B = sum a b, C = sum b^2. Three sums once, instead of ten rows (and ten divisions) at each of the
-    // search's 125 points: about 2 us less per iteration, serial, on every mesh (the 1k box on two threads:
-    // 38 -> 34 us of trial evaluations per step).
-    let (mut aa, mut ab, mut bb) = (0.0, 0.0, 0.0);
+/// Step length minimising the scaled residual norm of the model `c(alpha) = (1 - alpha) (c0 - alpha d) +
+/// alpha^2 e`, `e = c(1)` (the residual after the full step), over `alpha` in [1/64, 1]. `d` is the
+/// second-order offset of [`solve_multipliers`] (zero but in the H and L rows): the multipliers solve
+/// `S lambda = c0 + d`, so the linear prediction is `c0 - alpha (c0 + d)` and the known quadratic part
+/// `alpha^2 d` (with `d = 0`, the model of the plain linearisation).
+fn model_step_length(pb: &Problem, c0: &[f64; ROWS], d: &[f64; ROWS], e: &[f64; ROWS]) -> f64 {
+    // Per row, c(alpha) = k0 + k1 alpha + k2 alpha^2 with k0 = c0, k1 = -(c0 + d), k2 = d + e (scaled), so the
+    // squared norm is a quartic in alpha with the six sums of products of k0, k1, k2: computed once, not
+    // ten rows (and ten divisions) at each of the search's 125 points (about 2 us less per iteration, serial,
+    // on every mesh).
+    let mut k = [[0.0; 3]; 3];
     for i in (0..ROWS).filter(|&i| pb.active[i]) {
-        let (a, b) = (c0[i] / pb.row_scale[i], e[i] / pb.row_scale[i]);
-        aa += a * a;
-        ab += a * b;
-        bb += b * b;
+        let inv = 1.0 / pb.row_scale[i];
+        let row = [c0[i] * inv, -(c0[i] + d[i]) * inv, (d[i] + e[i]) * inv];
+        for p in 0..3 {
+            for q in p..3 {
+                k[p][q] += row[p] * row[q];
+            }
+        }
     }
     let norm2 = |alpha: f64| -> f64 {
-        let (u, a2) = (1.0 - alpha, alpha * alpha);
-        aa * u * u + 2.0 * ab * u * a2 + bb * a2 * a2
+        let a2 = alpha * alpha;
+        k[0][0]
+            + 2.0 * k[0][1] * alpha
+            + (k[1][1] + 2.0 * k[0][2]) * a2
+            + 2.0 * k[1][2] * a2 * alpha
+            + k[2][2] * a2 * a2
     };
     let mut best = (1.0, norm2(1.0));
     for k in 1..64 {
@@ -1512,7 +1536,10 @@ mod q {
     pub const FREE_R: usize = 30; // 3
     pub const A_VV: usize = 33; // 6: the upper triangle, row by row
     pub const RR: usize = 39; // 6
-    pub const COUNT: usize = 45;
+    pub const A_GRAD_R: usize = 45; // 9, row by row
+    pub const A_R_CROSS_V: usize = 54; // 3
+    pub const A_MASS_R: usize = 57; // 3
+    pub const COUNT: usize = 60;
 }
 
 /// A lane group from its per-lane values.
@@ -1597,6 +1624,14 @@ fn vertex_moments_lanes<const S: bool>(
             add(q::A_FREE_P + a, lanes(|l| am[l] * vs[a][l]));
             add(q::FREE_L + a, lanes(|l| mf[l] * rxv[a][l]));
             add(q::FREE_R + a, lanes(|l| mf[l] * r[a][l]));
+            add(q::A_R_CROSS_V + a, lanes(|l| am[l] * rxv[a][l]));
+            add(q::A_MASS_R + a, lanes(|l| am[l] * r[a][l]));
+            for b in 0..3 {
+                add(
+                    q::A_GRAD_R + 3 * a + b,
+                    lanes(|l| af[l] * gs[a][l] * r[b][l]),
+                );
+            }
         }
         for (k, &(a, b)) in UPPER.iter().enumerate() {
             add(q::A_VV + k, lanes(|l| am[l] * vs[a][l] * vs[b][l]));
@@ -1632,6 +1667,9 @@ fn vertex_moments_lanes<const S: bool>(
         free_r: vec3(q::FREE_R),
         a_vv: sym(q::A_VV),
         rr: sym(q::RR),
+        a_grad_r: std::array::from_fn(|a| vec3(q::A_GRAD_R + 3 * a)),
+        a_r_cross_v: vec3(q::A_R_CROSS_V),
+        a_mass_r: vec3(q::A_MASS_R),
         ..Eval::default()
     }
 }
@@ -1732,9 +1770,8 @@ fn total_gradient(elastic: Vec3, mass: f64, gravity: Vec3) -> Vec3 {
 
 /// The full 10x10 `S = G^T D^-1 G` from the moments (fepr-spec section 3; derivation in docs/fepr.md).
 fn small_matrix(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
-    let h2 = pb.h * pb.h;
     let mt = pb.model.total_mass;
-    let mut s = [[0.0; ROWS]; ROWS];
+    let mut s = velocity_block(pb, e);
     let unit = |a: usize| {
         let mut u = [0.0; 3];
         u[a] = 1.0;
@@ -1742,20 +1779,16 @@ fn small_matrix(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
     };
     // Position-block terms carry the metric factor a_i (the `a_` moments); velocity-block terms do not.
     let tr_avv = e.a_vv[0][0] + e.a_vv[1][1] + e.a_vv[2][2];
-    let tr_rr = e.rr[0][0] + e.rr[1][1] + e.rr[2][2];
-    s[0][0] = e.grad_sq_over_w + e.tr_vv / h2;
+    s[0][0] += e.grad_sq_over_w;
     for a in 0..3 {
-        s[0][1 + a] = e.free_p[a] / h2;
-        s[0][4 + a] = e.a_grad_cross_v[a] + e.free_l[a] / h2;
+        s[0][4 + a] += e.a_grad_cross_v[a];
         s[0][7 + a] = e.a_grad_sum[a] / mt;
         let pxa = cross(e.a_free_p, unit(a));
         for b in 0..3 {
             let delta = if a == b { 1.0 } else { 0.0 };
-            s[1 + a][1 + b] = e.free_mass * delta / h2 + pb.dp_star[a] * pb.dp_star[b] / pb.eps;
-            // e_a . (e_b x R) = eps_abc R_c
-            s[1 + a][4 + b] = dot(unit(a), cross(unit(b), e.free_r)) / h2;
+            s[1 + a][1 + b] += pb.dp_star[a] * pb.dp_star[b] / pb.eps;
             s[4 + a][4 + b] = (tr_avv * delta - e.a_vv[a][b])
-                + (tr_rr * delta - e.rr[a][b]) / h2
+                + s[4 + a][4 + b]
                 + pb.dl_star[a] * pb.dl_star[b] / pb.eps;
             s[4 + a][7 + b] = pxa[b] / mt;
             s[7 + a][7 + b] = e.a_free_mass / (mt * mt) * delta;
@@ -1769,8 +1802,117 @@ fn small_matrix(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
     s
 }
 
-/// Solve the scaled, regularised small system for the multipliers (zero for inactive rows).
-fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> ([f64; ROWS], bool) {
+/// The velocity block's part of `S`: the sum over the free vertices of `dc/dv_i (h^2 m_i)^-1 dc/dv_i^T`
+/// (H, P and L depend on the velocities; C does not), upper triangle. With it the kinetic energy's change
+/// along a step is known exactly: `K(v + dv) = K(v) + (linear part) + lambda^T S_v lambda / (2 h^2)`.
+fn velocity_block(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
+    let h2 = pb.h * pb.h;
+    let mut s = [[0.0; ROWS]; ROWS];
+    let unit = |a: usize| {
+        let mut u = [0.0; 3];
+        u[a] = 1.0;
+        u
+    };
+    let tr_rr = e.rr[0][0] + e.rr[1][1] + e.rr[2][2];
+    s[0][0] = e.tr_vv / h2;
+    for a in 0..3 {
+        s[0][1 + a] = e.free_p[a] / h2;
+        s[0][4 + a] = e.free_l[a] / h2;
+        for b in 0..3 {
+            let delta = if a == b { 1.0 } else { 0.0 };
+            s[1 + a][1 + b] = e.free_mass * delta / h2;
+            // e_a . (e_b x R) = eps_abc R_c
+            s[1 + a][4 + b] = dot(unit(a), cross(unit(b), e.free_r)) / h2;
+            s[4 + a][4 + b] = (tr_rr * delta - e.rr[a][b]) / h2;
+        }
+    }
+    s
+}
+
+/// The multipliers of one iteration.
+struct Multipliers {
+    lambda: [f64; ROWS],
+    /// The small system needed the least-squares fallback.
+    least_squares: bool,
+    /// The second-order offsets `d` (zero but in the H and L rows): the multipliers solve `S lambda = c + d`,
+    /// with `d` the constraints' second-order terms along the full step (see [`solve_multipliers`]).
+    offset: [f64; ROWS],
+}
+
+/// The kinetic energy's second-order term along the step of multipliers `u` (J): with the step's velocity
+/// change `dv_i = -(h^2 m_i)^-1 dc/dv_i^T u`, `sum m_i |dv_i|^2 / 2 = u^T S_v u / (2 h^2)` (`sv`: the velocity
+/// block of `S`, [`velocity_block`], upper triangle; rows H, P and L). Bilinear in `u` and `w` (`form(u, u)`
+/// is the term).
+fn kinetic_second_order(sv: &[[f64; ROWS]; ROWS], h: f64, u: &[f64; ROWS], w: &[f64; ROWS]) -> f64 {
+    let mut sum = 0.0;
+    for i in 0..7 {
+        sum += sv[i][i] * u[i] * w[i];
+        for j in i + 1..7 {
+            sum += sv[i][j] * (u[i] * w[j] + u[j] * w[i]);
+        }
+    }
+    sum / (2.0 * h * h)
+}
+
+/// The angular momentum's second-order term along the step of multipliers `lambda` (kg m^2/s): L is
+/// quadratic along a step, `L(q + dq) = L + (linear part) + sum m_i dx_i x dv_i`, and with
+/// `dx_i = -a_i (lambda_H g_i / m_i + v_i x lambda_L + lambda_C / m_t)` and
+/// `dv_i = -(lambda_H v_i + lambda_P + lambda_L x r_i) / h^2` (`g_i` the potential's gradient, `r_i = x_i - C_t`)
+/// the sum expands into moments of the free vertices (`e`'s, summed with S's).
+fn angular_second_order(pb: &Problem, e: &Eval, lambda: &[f64; ROWS]) -> Vec3 {
+    let (lh, lp, ll) = (
+        lambda[0],
+        [lambda[1], lambda[2], lambda[3]],
+        [lambda[4], lambda[5], lambda[6]],
+    );
+    let lc_over_mt = [7, 8, 9].map(|k| lambda[k] / pb.model.total_mass);
+    let tr_agr = e.a_grad_r[0][0] + e.a_grad_r[1][1] + e.a_grad_r[2][2];
+    let tr_avv = e.a_vv[0][0] + e.a_vv[1][1] + e.a_vv[2][2];
+    // sum a g x (l x r) = l tr(AGR) - AGR^T l;  sum m a (v x l) x v = (tr AVV) l - AVV l.
+    let agr_t_l: Vec3 = std::array::from_fn(|k| (0..3).map(|j| e.a_grad_r[j][k] * ll[j]).sum());
+    let avv_l: Vec3 = std::array::from_fn(|k| (0..3).map(|j| e.a_vv[k][j] * ll[j]).sum());
+    // sum m a (v x l) x (l x r) = l (l . sum m a r x v).
+    let l_dot_arxv = dot(ll, e.a_r_cross_v);
+    // sum m a (lh v + lp + l x r) = lh AFP + AFM lp + l x AR.
+    let l_x_ar = cross(ll, e.a_mass_r);
+    let afp_x_l = cross(e.a_free_p, ll);
+    let gs_x_lp = cross(e.a_grad_sum, lp);
+    let afp_x_l_x_lp = cross(afp_x_l, lp);
+    let sum_mae: Vec3 =
+        std::array::from_fn(|k| lh * e.a_free_p[k] + e.a_free_mass * lp[k] + l_x_ar[k]);
+    let lc_x = cross(lc_over_mt, sum_mae);
+    let inv_h2 = 1.0 / (pb.h * pb.h);
+    std::array::from_fn(|k| {
+        (lh * lh * e.a_grad_cross_v[k]
+            + lh * gs_x_lp[k]
+            + lh * (ll[k] * tr_agr - agr_t_l[k])
+            + lh * (tr_avv * ll[k] - avv_l[k])
+            + afp_x_l_x_lp[k]
+            + ll[k] * l_dot_arxv
+            + lc_x[k])
+            * inv_h2
+    })
+}
+
+/// Solve the scaled, regularised small system for the multipliers (zero for inactive rows), with the
+/// constraints' known second-order terms.
+///
+/// Along the step `q - D^-1 G^T lambda`, P and C are linear; L is quadratic with a second-order term that
+/// the moments give exactly (`angular_second_order`), and H's has the kinetic energy's exact part
+/// (`kinetic_second_order`) and the elastic energy's curvature, small after either kind of base step
+/// (the stiffness metric moves stiff modes little after implicit steps; explicit steps are small): measured,
+/// the full step's H residual equalled the kinetic term to two or three digits on the 1k box and bunny2
+/// (symplectic Euler) and the bunny (backward Euler). So the multipliers solve `S lambda = c + d(lambda)`
+/// with `d` those terms (H: kinetic; L: all), and the step lands on the manifold up to the elastic
+/// curvature: one iteration where the plain linearisation (fepr-spec section 3) took two after symplectic
+/// Euler, and two where it took four or five, with overshoots, after backward Euler.
+///
+/// How: `lambda = lambda_1 + tau z` with `S lambda_1 = c + d_L`, `S z = e_H`; `tau` is the root of the scalar
+/// quadratic `tau = Q(lambda_1 + tau z)` (`Q` the kinetic term) that goes to `Q(lambda_1)` as the curvature
+/// vanishes; `d_L` by fixed-point rounds (small: a product of two multipliers over `h^2`). Without a real
+/// root (an energy excess beyond what the kinetic curvature gives back), rounds that do not settle, or after
+/// the least-squares fallback, `d = 0`: the plain linearisation.
+fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> Multipliers {
     let full = small_matrix(pb, e);
     // On the stack (no allocation per iteration): at most ROWS active rows.
     let mut idx = [0usize; ROWS];
@@ -1790,13 +1932,117 @@ fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> ([f64; ROWS], bool) 
         }
     }
     let (mut factor, mut y) = ([0.0; ROWS * ROWS], [0.0; ROWS]);
-    let lstsq = solve_symmetric_psd_into(&a[..n * n], &b[..n], n, delta, &mut factor, &mut y);
-    let mut lambda = [0.0; ROWS];
-    for (p, &i) in idx.iter().enumerate() {
-        lambda[i] = y[p] * inv_scale[i];
+    let least_squares =
+        solve_symmetric_psd_into(&a[..n * n], &b[..n], n, delta, &mut factor, &mut y);
+    // One step of iterative refinement against the unshifted matrix, kept where it lowers the residual: the
+    // regularisation's shift (for singular S, fepr-spec section 6, pitfall 2) otherwise leaves an error of
+    // about delta times S's condition number in the multipliers, which a step meant to end the projection
+    // cannot afford (a spinning cube's L rows missed their tolerance by 3x after one step without it).
+    let refine = |y: &mut [f64; ROWS], rhs: &[f64; ROWS]| {
+        let residual = |y: &[f64; ROWS]| -> ([f64; ROWS], f64) {
+            let mut r = [0.0; ROWS];
+            for p in 0..n {
+                r[p] = rhs[p] - (0..n).map(|q| a[p * n + q] * y[q]).sum::<f64>();
+            }
+            let size = r.iter().map(|v| v * v).sum::<f64>();
+            (r, size)
+        };
+        let (mut dy, before) = residual(y);
+        cholesky_substitute(&factor[..n * n], &mut dy[..n], n);
+        let candidate: [f64; ROWS] = std::array::from_fn(|p| y[p] + dy[p]);
+        if residual(&candidate).1 < before {
+            *y = candidate;
+        }
+    };
+    if !least_squares {
+        refine(&mut y, &b);
     }
-    (lambda, lstsq)
+    let unscale = |y: &[f64; ROWS]| -> [f64; ROWS] {
+        let mut out = [0.0; ROWS];
+        for (p, &i) in idx.iter().enumerate() {
+            out[i] = y[p] * inv_scale[i];
+        }
+        out
+    };
+    let plain = unscale(&y);
+    let mut result = Multipliers {
+        lambda: plain,
+        least_squares,
+        offset: [0.0; ROWS],
+    };
+    if least_squares || !pb.active[0] || e.c[0].abs() > SECOND_ORDER_REACH * pb.row_scale[0] {
+        return result;
+    }
+    // S^-1 of a right-hand side with the factor above (unscaled in, unscaled out).
+    let solve = |rhs: &[f64; ROWS]| -> [f64; ROWS] {
+        let mut y = [0.0; ROWS];
+        for (p, &i) in idx.iter().enumerate() {
+            y[p] = rhs[i] * inv_scale[i];
+        }
+        let rhs = y;
+        cholesky_substitute(&factor[..n * n], &mut y[..n], n);
+        refine(&mut y, &rhs);
+        unscale(&y)
+    };
+    let mut unit_h = [0.0; ROWS];
+    unit_h[0] = 1.0;
+    let z = solve(&unit_h);
+    let sv = velocity_block(pb, e);
+    let h = pb.h;
+    let l_rows = (4..7).all(|i| pb.active[i]);
+    let mut d_l = [0.0; 3];
+    for round in 0..SECOND_ORDER_ROUNDS {
+        let mut lambda_1 = plain;
+        if l_rows && round > 0 {
+            let mut rhs = [0.0; ROWS];
+            rhs[4..7].copy_from_slice(&d_l);
+            let shift = solve(&rhs);
+            for i in 0..ROWS {
+                lambda_1[i] += shift[i];
+            }
+        }
+        // tau = A + 2 B tau + C tau^2, the root near A: tau = 2 A / (p + sqrt(p^2 - 4 A C)), p = 1 - 2 B.
+        let qa = kinetic_second_order(&sv, h, &lambda_1, &lambda_1);
+        let qb = kinetic_second_order(&sv, h, &lambda_1, &z);
+        let qc = kinetic_second_order(&sv, h, &z, &z);
+        let p = 1.0 - 2.0 * qb;
+        let disc = p * p - 4.0 * qa * qc;
+        if !(p > 0.0 && disc >= 0.0) {
+            return result;
+        }
+        let tau = 2.0 * qa / (p + disc.sqrt());
+        let lambda: [f64; ROWS] = std::array::from_fn(|i| lambda_1[i] + tau * z[i]);
+        if !(tau.is_finite() && lambda.iter().all(|l| l.is_finite())) {
+            return result;
+        }
+        let next = if l_rows {
+            angular_second_order(pb, e, &lambda)
+        } else {
+            [0.0; 3]
+        };
+        let change = (0..3).map(|k| (next[k] - d_l[k]).abs()).fold(0.0, f64::max);
+        let size = (0..3).map(|k| next[k].abs()).fold(0.0, f64::max);
+        if change <= 1e-9 * size
+            || change * inv_scale[4].max(inv_scale[5]).max(inv_scale[6]) <= 1e-17
+        {
+            result.lambda = lambda;
+            result.offset[0] = tau;
+            if l_rows {
+                result.offset[4..7].copy_from_slice(&d_l);
+            }
+            return result;
+        }
+        d_l = next;
+    }
+    result
 }
+
+/// Fixed-point rounds of [`solve_multipliers`] for the angular momentum's second-order term (it settles in
+/// two or three: the term is a product of two multipliers, small against S).
+const SECOND_ORDER_ROUNDS: usize = 8;
+
+/// The largest scaled energy residual at which [`solve_multipliers`] adds the second-order terms.
+const SECOND_ORDER_REACH: f64 = 1.0;
 
 /// The trial point `q_trial = q - alpha D^-1 G lambda` of one iteration, vertex by vertex (every vertex's
 /// update is its own: no sums), so that it can be computed wherever it is needed ([`evaluate_step`]).
@@ -2083,6 +2329,166 @@ mod tests {
                     "pinned {pinned}: dof {k}: {got} vs {dq}"
                 );
             }
+            // The velocity block of S from the explicit gradients of the velocity degrees of freedom.
+            let sv = velocity_block(&pb, &e);
+            for a in 0..7 {
+                for b in a..7 {
+                    let explicit: f64 = (3 * m..6 * m).map(|k| g[k][a] * dinv(k) * g[k][b]).sum();
+                    assert!(
+                        (explicit - sv[a][b]).abs() <= 1e-5 * (1.0 + explicit.abs()),
+                        "pinned {pinned}: S_v[{a}][{b}] {} vs explicit {explicit}",
+                        sv[a][b]
+                    );
+                }
+            }
+            // The second-order terms of K and L along the step: both are exactly quadratic in alpha, so
+            // (f(1) + f(-1)) / 2 - f(0) is their alpha^2 coefficient.
+            let at = |alpha: f64| {
+                let step = Step::new(&pb, &x, &v, &grad, &lambda, alpha);
+                let (mut xo, mut vo) = (vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
+                step.write_rows(0, &mut xo, &mut vo);
+                let mut g = vec![[0.0; 3]; m];
+                evaluate(&pb, &xo, &vo, s0, t0, &mut EvalScratch::default(), &mut g)
+            };
+            let (ep, em) = (at(1.0), at(-1.0));
+            let k2 = 0.5 * (ep.kinetic + em.kinetic) - e.kinetic;
+            let k2_closed = kinetic_second_order(&sv, h, &lambda, &lambda);
+            assert!(
+                (k2 - k2_closed).abs() <= 1e-9 * k2.abs().max(e.kinetic),
+                "pinned {pinned}: kinetic second order {k2_closed} vs {k2}"
+            );
+            let l2_closed = angular_second_order(&pb, &e, &lambda);
+            for a in 0..3 {
+                let l2 =
+                    0.5 * (ep.angular_momentum[a] + em.angular_momentum[a]) - e.angular_momentum[a];
+                let size = l2.abs().max(e.angular_momentum[a].abs()).max(1.0);
+                assert!(
+                    (l2 - l2_closed[a]).abs() <= 1e-9 * size,
+                    "pinned {pinned}: angular second order [{a}] {} vs {l2}",
+                    l2_closed[a]
+                );
+            }
         }
+    }
+
+    /// The multipliers solve `S lambda = c + d(lambda)`, `d` the second-order terms of H (kinetic) and L along
+    /// the step; on a body whose elastic energy barely curves (a very soft one, at its rest shape) the full
+    /// step then lands on every row at once: one iteration for a 20% energy deficit and momenta 5% off,
+    /// which the plain linearisation meets in six (ten evaluations).
+    #[test]
+    fn second_order_multipliers_solve_their_equations_and_land_on_the_targets_in_one_step() {
+        let (v, t) = cube();
+        let (mesh, _) = TetMesh::new(v, &t).unwrap();
+        let m = mesh.num_vertices();
+        let masses: Vec<f64> = (0..m).map(|i| 1.0 + 0.1 * i as f64).collect();
+        let model = ModelBuilder::new(
+            mesh,
+            Material::NeoHookean(NeoHookean::new(1e-9, 0.3).unwrap()),
+        )
+        .mass(MassSpec::PerVertex(masses))
+        .build()
+        .unwrap();
+        // At its rest shape, spinning about an axis off its centre and drifting.
+        let x: Vec<Vec3> = model.mesh.vertices().to_vec();
+        let v: Vec<Vec3> = x
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let wr = cross([0.3, -0.5, 1.2], sub(*p, [0.4, 0.5, 0.6]));
+                [0.2 + wr[0], -0.1 + wr[1], wr[2] + 0.05 * (i as f64).sin()]
+            })
+            .collect();
+        let state = crate::model::State { x, v, time: 0.0 };
+        let inv = crate::invariants::measure(&model, &state);
+        let c = inv.center_of_mass;
+        let targets = Targets {
+            energy: 1.2 * inv.total,
+            momentum: inv.momentum.map(|p| 1.05 * p + 0.01),
+            // About the target centre of mass (the centre itself), 5% off and turned.
+            angular_momentum: [
+                1.05 * inv.angular_momentum[0],
+                0.95 * inv.angular_momentum[1] + 0.02,
+                inv.angular_momentum[2],
+            ],
+            center_of_mass: c,
+            energy_scale: inv.total,
+            uncertain_impulses: false,
+        };
+        let h = 0.01;
+        let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
+        let mut out = state.clone();
+        let (report, got) = proj.project(&model, &mut out, h, &targets);
+        assert!(report.converged, "{report:?}");
+        assert_eq!(report.iterations, 1, "{report:?}");
+        assert!((got.total / targets.energy - 1.0).abs() <= 1e-10, "{got:?}");
+        for a in 0..3 {
+            assert!(
+                (got.momentum[a] - targets.momentum[a]).abs() <= 1e-10 * norm3(targets.momentum)
+            );
+            assert!(
+                (got.angular_momentum[a] - targets.angular_momentum[a]).abs()
+                    <= 1e-10 * norm3(targets.angular_momentum)
+            );
+        }
+        // The equations themselves, at the start: S lambda = c + d with d_H and d_L the terms at lambda.
+        let mut pb = Problem {
+            metric_factor: vec![1.0; m],
+            a_over_m: Vec::new(),
+            model: &model,
+            h,
+            targets: &targets,
+            dp_star: [0.0; 3],
+            dl_star: [0.0; 3],
+            active: [true; ROWS],
+            row_scale: [1.0; ROWS],
+            eps: 1.0,
+        };
+        pb.refresh_a_over_m();
+        pb.row_scale[0] = targets.energy;
+        for a in 0..3 {
+            pb.row_scale[1 + a] = model.total_mass * model.length_scale / h;
+            pb.row_scale[4 + a] = model.total_mass * model.length_scale.powi(2) / h;
+            pb.row_scale[7 + a] = model.length_scale;
+        }
+        let mut grad = vec![[0.0; 3]; m];
+        let e = evaluate(
+            &pb,
+            &state.x,
+            &state.v,
+            0.0,
+            0.0,
+            &mut EvalScratch::default(),
+            &mut grad,
+        );
+        let mult = solve_multipliers(&pb, &e, 0.0);
+        assert!(!mult.least_squares);
+        let (lambda, d) = (mult.lambda, mult.offset);
+        let sv = velocity_block(&pb, &e);
+        let dh = kinetic_second_order(&sv, h, &lambda, &lambda);
+        assert!(
+            dh > 0.0 && (d[0] - dh).abs() <= 1e-9 * dh,
+            "{} vs {dh}",
+            d[0]
+        );
+        let dl = angular_second_order(&pb, &e, &lambda);
+        for a in 0..3 {
+            assert!(
+                (d[4 + a] - dl[a]).abs() <= 1e-8 * norm3(dl),
+                "{d:?} vs {dl:?}"
+            );
+        }
+        let full = small_matrix(&pb, &e);
+        for i in 0..ROWS {
+            let s_lambda: f64 = (0..ROWS).map(|j| full[i][j] * lambda[j]).sum();
+            let want = e.c[i] + d[i];
+            assert!(
+                (s_lambda - want).abs() <= 1e-9 * pb.row_scale[i],
+                "row {i}: {s_lambda} vs {want}"
+            );
+        }
+    }
+
+    fn norm3(a: Vec3) -> f64 {
+        dot(a, a).sqrt()
     }
 }
