@@ -2095,7 +2095,7 @@ const SECOND_ORDER_ROUNDS: usize = 8;
 /// base step has blown up (symplectic Euler past its stable step: the seed's demo 3 at dt = 1/30 s has steps
 /// with 10^4 times the energy), the elastic energy's curvature, which the terms leave out, dominates, and the
 /// plain linearisation proved the more robust: over 41 starts of that demo, with the terms at any residual 4
-/// runs ran away and 19 steps ended unconverged, with this limit 3 and 12, without the terms 10 and 42.
+/// runs ran away and 30 steps ended unconverged, with this limit 3 and 12, without the terms at all 10 and 42.
 const SECOND_ORDER_REACH: f64 = 1.0;
 
 /// The trial point `q_trial = q - alpha D^-1 G lambda` of one iteration, vertex by vertex (every vertex's
