@@ -2208,22 +2208,30 @@ mod tests {
     use crate::mesh::{tests::cube, MassSpec, TetMesh};
     use crate::model::ModelBuilder;
 
+    /// The test cube with unequal vertex masses (1 + 0.1 i kg), Neo-Hookean with Young's modulus `youngs` (Pa)
+    /// and Poisson ratio 0.3, under `gravity` (m/s^2).
+    fn cube_model(youngs: f64, gravity: Vec3) -> Model {
+        let (v, t) = cube();
+        let (mesh, _) = TetMesh::new(v, &t).unwrap();
+        let masses: Vec<f64> = (0..mesh.num_vertices())
+            .map(|i| 1.0 + 0.1 * i as f64)
+            .collect();
+        ModelBuilder::new(
+            mesh,
+            Material::NeoHookean(NeoHookean::new(youngs, 0.3).unwrap()),
+        )
+        .mass(MassSpec::PerVertex(masses))
+        .gravity(gravity)
+        .build()
+        .unwrap()
+    }
+
     /// The closed-form `S` must equal `G^T D^-1 G` assembled from explicit constraint gradients, and the
     /// explicit gradients must match finite differences of `c(q)`.
     #[test]
     fn small_matrix_matches_explicit_gradients_and_finite_differences() {
-        let (v, t) = cube();
-        let (mesh, _) = TetMesh::new(v, &t).unwrap();
-        let m = mesh.num_vertices();
-        let masses: Vec<f64> = (0..m).map(|i| 1.0 + 0.1 * i as f64).collect();
-        let mut model = ModelBuilder::new(
-            mesh,
-            Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap()),
-        )
-        .mass(MassSpec::PerVertex(masses))
-        .gravity([0.3, -0.2, -9.81])
-        .build()
-        .unwrap();
+        let mut model = cube_model(1e3, [0.3, -0.2, -9.81]);
+        let m = model.num_vertices();
         let x: Vec<Vec3> = model
             .mesh
             .vertices()
@@ -2431,17 +2439,8 @@ mod tests {
     /// which the plain linearisation meets in six (ten evaluations).
     #[test]
     fn second_order_multipliers_solve_their_equations_and_land_on_the_targets_in_one_step() {
-        let (v, t) = cube();
-        let (mesh, _) = TetMesh::new(v, &t).unwrap();
-        let m = mesh.num_vertices();
-        let masses: Vec<f64> = (0..m).map(|i| 1.0 + 0.1 * i as f64).collect();
-        let model = ModelBuilder::new(
-            mesh,
-            Material::NeoHookean(NeoHookean::new(1e-9, 0.3).unwrap()),
-        )
-        .mass(MassSpec::PerVertex(masses))
-        .build()
-        .unwrap();
+        let model = cube_model(1e-9, [0.0; 3]);
+        let m = model.num_vertices();
         // At its rest shape, spinning about an axis off its centre and drifting.
         let x: Vec<Vec3> = model.mesh.vertices().to_vec();
         let v: Vec<Vec3> = x
