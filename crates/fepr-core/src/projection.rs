@@ -1818,10 +1818,11 @@ fn total_gradient(elastic: Vec3, mass: f64, gravity: Vec3) -> Vec3 {
     ]
 }
 
-/// The full 10x10 `S = G^T D^-1 G` from the moments (fepr-spec section 3; derivation in docs/fepr.md).
-fn small_matrix(pb: &Problem, e: &Eval) -> [[f64; ROWS]; ROWS] {
+/// The full 10x10 `S = G^T D^-1 G` from the moments (fepr-spec section 3; derivation in docs/fepr.md) and its
+/// velocity block `sv` ([`velocity_block`], which the solve also needs for the second-order terms).
+fn small_matrix(pb: &Problem, e: &Eval, sv: [[f64; ROWS]; ROWS]) -> [[f64; ROWS]; ROWS] {
     let mt = pb.model.total_mass;
-    let mut s = velocity_block(pb, e);
+    let mut s = sv;
     let unit = |a: usize| {
         let mut u = [0.0; 3];
         u[a] = 1.0;
@@ -1891,8 +1892,8 @@ struct Multipliers {
 
 /// The kinetic energy's second-order term along the step of multipliers `u` (J): with the step's velocity
 /// change `dv_i = -(h^2 m_i)^-1 dc/dv_i^T u`, `sum m_i |dv_i|^2 / 2 = u^T S_v u / (2 h^2)` (`sv`: the velocity
-/// block of `S`, [`velocity_block`], upper triangle; rows H, P and L). Bilinear in `u` and `w` (`form(u, u)`
-/// is the term).
+/// block of `S`, [`velocity_block`], upper triangle; rows H, P and L). Bilinear in `u` and `w`: the term is
+/// `kinetic_second_order(sv, h, u, u)`.
 fn kinetic_second_order(sv: &[[f64; ROWS]; ROWS], h: f64, u: &[f64; ROWS], w: &[f64; ROWS]) -> f64 {
     let mut sum = 0.0;
     for i in 0..7 {
@@ -1963,7 +1964,8 @@ fn angular_second_order(pb: &Problem, e: &Eval, lambda: &[f64; ROWS]) -> Vec3 {
 /// root (an energy excess beyond what the kinetic curvature gives back), rounds that do not settle, or after
 /// the least-squares fallback, `d = 0`: the plain linearisation.
 fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> Multipliers {
-    let full = small_matrix(pb, e);
+    let sv = velocity_block(pb, e);
+    let full = small_matrix(pb, e, sv);
     // On the stack (no allocation per iteration): at most ROWS active rows.
     let mut idx = [0usize; ROWS];
     let mut n = 0;
@@ -2037,7 +2039,6 @@ fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> Multipliers {
     let mut unit_h = [0.0; ROWS];
     unit_h[0] = 1.0;
     let z = solve(&unit_h);
-    let sv = velocity_block(pb, e);
     let h = pb.h;
     let l_rows = (4..7).all(|i| pb.active[i]);
     let mut d_l = [0.0; 3];
@@ -2291,7 +2292,7 @@ mod tests {
             let mut grad = vec![[0.0; 3]; m];
             let mut sc = EvalScratch::default();
             let e = evaluate(&pb, &x, &v, s0, t0, &mut sc, &mut grad);
-            let s_closed = small_matrix(&pb, &e);
+            let s_closed = small_matrix(&pb, &e, velocity_block(&pb, &e));
             // Explicit gradients by finite differences of c(q), q = (x, v, s, t).
             let n = 6 * m + 2;
             let eval_c = |q: &[f64]| {
@@ -2373,7 +2374,9 @@ mod tests {
             let later =
                 evaluate_with_elastic(&pb, &xo, &vo, s1, t1, trial.el, Some(&go), &mut sc.parts);
             assert_eq!(bits(&later), bits(&plain));
-            let s_bits = |e: &Eval| small_matrix(&pb, e).map(|row| row.map(f64::to_bits));
+            let s_bits = |e: &Eval| {
+                small_matrix(&pb, e, velocity_block(&pb, e)).map(|row| row.map(f64::to_bits))
+            };
             assert_eq!(s_bits(&later), s_bits(&plain));
             for k in 0..n {
                 let dq: f64 = dinv(k) * (0..ROWS).map(|r| g[k][r] * lambda[r]).sum::<f64>();
@@ -2530,7 +2533,7 @@ mod tests {
                 "{d:?} vs {dl:?}"
             );
         }
-        let full = small_matrix(&pb, &e);
+        let full = small_matrix(&pb, &e, velocity_block(&pb, &e));
         for i in 0..ROWS {
             let s_lambda: f64 = (0..ROWS).map(|j| full[i][j] * lambda[j]).sum();
             let want = e.c[i] + d[i];
