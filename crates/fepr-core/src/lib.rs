@@ -36,6 +36,7 @@ pub mod linalg;
 pub mod material;
 pub mod mesh;
 pub mod model;
+pub(crate) mod moment_lanes;
 pub mod obstacles;
 pub mod ordering;
 pub mod parallel;

@@ -26,6 +26,7 @@ use crate::error::{invalid, Result};
 use crate::invariants::Invariants;
 use crate::linalg::{cholesky_substitute, cross, dot, solve_symmetric_psd_into, sub, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
+use crate::moment_lanes::{self as ml, q, UPPER, VL};
 
 /// Which constraint rows the projection enforces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -427,8 +428,8 @@ pub struct Projector {
     stiffness_key: Option<ModelKey>,
     /// `a_i = m_i / w_i` of this step's metric.
     metric_factor: Vec<f64>,
-    /// `a_i / m_i` (`Problem::a_over_m`).
-    a_over_m: Vec<f64>,
+    /// The per-vertex arrays kept with the metric (`Problem::rows`).
+    metric_rows: MetricRows,
     /// Vertices whose positions this step's projection must not move (in contact with an obstacle).
     frozen_positions: Vec<u32>,
     /// The full step's trial point while the model step length is tried.
@@ -468,16 +469,40 @@ struct Problem<'a> {
     eps: f64,
     /// `a_i = m_i / w_i`: the position block of D is `diag(m_i / a_i)`; 0 freezes a vertex's position.
     metric_factor: Vec<f64>,
-    /// `a_i / m_i` (the position block of D^-1), kept with `metric_factor` ([`Problem::refresh_a_over_m`]).
+    /// Per-vertex arrays of the metric and the pins, kept with `metric_factor` ([`Problem::refresh_rows`]).
+    rows: MetricRows,
+}
+
+/// Per-vertex arrays derived from the metric factors, the masses and the pins, each of length m: read by
+/// the vertex passes as contiguous rows (the moment kernels load four at a time).
+#[derive(Clone, Debug, Default)]
+struct MetricRows {
+    /// `a_i / m_i` (the position block of D^-1).
     a_over_m: Vec<f64>,
+    /// `m_i` of a free vertex, 0 of a pinned one (kg).
+    free_mass: Vec<f64>,
+    /// `a_i` of a free vertex, 0 of a pinned one.
+    free_factor: Vec<f64>,
 }
 
 impl Problem<'_> {
-    /// `a_over_m` from `metric_factor` and the masses.
-    fn refresh_a_over_m(&mut self) {
-        let masses = &self.model.masses;
-        self.a_over_m.clear();
-        (self.a_over_m).extend(self.metric_factor.iter().zip(masses).map(|(a, m)| a / m));
+    /// `rows` from `metric_factor`, the masses and the pins.
+    fn refresh_rows(&mut self) {
+        let model = self.model;
+        let rows = &mut self.rows;
+        let per_vertex = self
+            .metric_factor
+            .iter()
+            .zip(&model.masses)
+            .zip(&model.pinned);
+        rows.a_over_m.clear();
+        rows.free_mass.clear();
+        rows.free_factor.clear();
+        for ((&a, &m), &pinned) in per_vertex {
+            rows.a_over_m.push(a / m);
+            rows.free_mass.push(if pinned { 0.0 } else { m });
+            rows.free_factor.push(if pinned { 0.0 } else { a });
+        }
     }
 }
 
@@ -584,7 +609,7 @@ impl Projector {
         self.prepare_metric(model, h);
         let mut pb = Problem {
             metric_factor: std::mem::take(&mut self.metric_factor),
-            a_over_m: std::mem::take(&mut self.a_over_m),
+            rows: std::mem::take(&mut self.metric_rows),
             model,
             h,
             targets,
@@ -595,7 +620,7 @@ impl Projector {
             row_scale: [1.0; ROWS],
             eps: self.settings.c_eps * mt * r * r,
         };
-        pb.refresh_a_over_m();
+        pb.refresh_rows();
         let (mut s, mut t) = (0.0, 0.0);
         // With a warm start possible, the first evaluation skips the elastic gradient: the warm start changes
         // the velocities alone and often leaves nothing to iterate (after PD, every step on the bunny), so the
@@ -811,7 +836,7 @@ impl Projector {
             }
             let (x, _) = current!(self);
             let frozen = freeze_newly_inverted(model, &self.x_base, x, &mut pb.metric_factor);
-            pb.refresh_a_over_m();
+            pb.refresh_rows();
             if frozen == 0 {
                 break;
             }
@@ -969,7 +994,7 @@ impl Projector {
             inverted: fin.el.inverted,
         };
         self.metric_factor = std::mem::take(&mut pb.metric_factor);
-        self.a_over_m = std::mem::take(&mut pb.a_over_m);
+        self.metric_rows = std::mem::take(&mut pb.rows);
         (report, inv)
     }
 }
@@ -1480,11 +1505,12 @@ fn vertex_chunk(m: usize) -> usize {
     m.div_ceil(8).next_multiple_of(VL).clamp(64, 2048)
 }
 
-/// The sums of [`Eval`] over the vertices `first..first + x.len()` (`x`, `v`, `grad`: their rows;
-/// `c`, `el` and `com` are left at zero): [`VL`] vertices
-/// at a time in structure-of-arrays lanes, each lane summed on its own in vertex order, the lanes added in
-/// lane order at the end (a fixed order: the same bits for any thread count). Summed one vertex at a time
-/// into one set of 45 sums, this pass took a third as long as the elastic energy + gradient it follows.
+/// The sums of [`Eval`] over the vertices `first..first + x.len()` (`x`, `v`, `grad`: their rows; `c`, `el`
+/// and `com` are left at zero), in the fixed lane order of [`crate::moment_lanes`] (the same bits for any
+/// thread count). With `S`, the constraints' sums and the moments for `S`; the second-order ones only with
+/// a gradient. Without a gradient the moments take the elastic gradient as zero: the velocity moments (the
+/// warm start's) are exact, the others are not to be solved with (an iteration evaluates the gradient first).
+/// Without `S`, the constraints' sums alone.
 fn vertex_moments<const S: bool>(
     pb: &Problem,
     first: usize,
@@ -1492,146 +1518,40 @@ fn vertex_moments<const S: bool>(
     v: &[Vec3],
     grad: Option<&[Vec3]>,
 ) -> Eval {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
-        return unsafe { vertex_moments_avx2::<S>(pb, first, x, v, grad) };
-    }
-    vertex_moments_lanes::<S>(pb, first, x, v, grad)
-}
-
-/// [`vertex_moments_lanes`] compiled for AVX2 (no fused multiply-adds: the same bits).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn vertex_moments_avx2<const S: bool>(
-    pb: &Problem,
-    first: usize,
-    x: &[Vec3],
-    v: &[Vec3],
-    grad: Option<&[Vec3]>,
-) -> Eval {
-    vertex_moments_lanes::<S>(pb, first, x, v, grad)
-}
-
-/// Vertices per lane group of [`vertex_moments`].
-const VL: usize = 4;
-type Lane = [f64; VL];
-
-/// The per-vertex sums of [`Eval`], as indices into the lane accumulators.
-mod q {
-    pub const KINETIC: usize = 0;
-    pub const GRAVITATIONAL: usize = 1;
-    pub const MOMENTUM: usize = 2; // 3
-    pub const ANGULAR: usize = 5; // 3
-    pub const MASS_X: usize = 8; // 3
-    pub const FREE_MASS: usize = 11;
-    pub const A_FREE_MASS: usize = 12;
-    pub const GRAD_SQ_OVER_W: usize = 13;
-    pub const TR_VV: usize = 14;
-    pub const A_GRAD_SUM: usize = 15; // 3
-    pub const A_GRAD_CROSS_V: usize = 18; // 3
-    pub const FREE_P: usize = 21; // 3
-    pub const A_FREE_P: usize = 24; // 3
-    pub const FREE_L: usize = 27; // 3
-    pub const FREE_R: usize = 30; // 3
-    pub const A_VV: usize = 33; // 6: the upper triangle, row by row
-    pub const RR: usize = 39; // 6
-    pub const COUNT: usize = 45;
-}
-
-/// A lane group from its per-lane values.
-#[inline(always)]
-fn lanes(f: impl Fn(usize) -> f64) -> Lane {
-    std::array::from_fn(f)
-}
-
-/// The upper triangle of a symmetric 3x3 matrix, row by row (`a <= b`).
-const UPPER: [(usize, usize); 6] = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
-
-#[inline(always)]
-fn vertex_moments_lanes<const S: bool>(
-    pb: &Problem,
-    first: usize,
-    x: &[Vec3],
-    v: &[Vec3],
-    grad: Option<&[Vec3]>,
-) -> Eval {
-    if !S {
-        // The constraints' sums alone need neither the gradient nor the metric: a loop of their own.
-        return constraint_sums_lanes(pb, first, x, v);
-    }
     let model = pb.model;
     let (g, ct) = (model.gravity, pb.targets.center_of_mass);
-    let n = x.len();
-    assert!(
-        v.len() == n && grad.is_none_or(|g| g.len() == n),
-        "one row per vertex"
-    );
-    let mut acc = [[0.0; VL]; q::COUNT];
-    for start in (0..n).step_by(VL) {
-        // Padding lanes: unit mass (no division by zero), zero state, neither free nor weighted, so every
-        // sum gets +0 or -0 from them.
-        let (mut xs, mut vs, mut gs) = ([[0.0; VL]; 3], [[0.0; VL]; 3], [[0.0; VL]; 3]);
-        let (mut m, mut mf, mut af) = ([1.0; VL], [0.0; VL], [0.0; VL]);
-        for l in 0..VL.min(n - start) {
-            // Row k of the slices is vertex i.
-            let (k, i) = (start + l, first + start + l);
-            let mi = model.masses[i];
-            // Gradient of the potential (elastic + gravity); `grad` keeps the elastic part alone, so that it
-            // can be handed to the next base step (Integrator::offer_elastic_gradient).
-            let gi = total_gradient(grad.map_or([0.0; 3], |grad| grad[k]), mi, g);
-            let free = !model.pinned[i];
-            m[l] = mi;
-            mf[l] = if free { mi } else { 0.0 };
-            af[l] = if free { pb.metric_factor[i] } else { 0.0 };
-            for a in 0..3 {
-                xs[a][l] = x[k][a];
-                vs[a][l] = v[k][a];
-                gs[a][l] = gi[a];
-            }
-        }
-        let mut add = |k: usize, value: Lane| {
-            for l in 0..VL {
-                acc[k][l] += value[l];
-            }
+    let r = first..first + x.len();
+    let mass = &model.masses[r.clone()];
+    if !S {
+        let acc = ml::constraint_lanes(x, v, mass, g, ct);
+        let sum = |k: usize| ml::lane_sum(&acc[k]);
+        let vec3 = |k: usize| [sum(k), sum(k + 1), sum(k + 2)];
+        return Eval {
+            s_moments: false,
+            kinetic: sum(q::KINETIC),
+            gravitational: sum(q::GRAVITATIONAL),
+            momentum: vec3(q::MOMENTUM),
+            angular_momentum: vec3(q::ANGULAR),
+            mass_x: vec3(q::MASS_X),
+            ..Eval::default()
         };
-        let gxv: [Lane; 3] = std::array::from_fn(|a| {
-            let (b, c) = ((a + 1) % 3, (a + 2) % 3);
-            lanes(|l| gs[b][l] * vs[c][l] - gs[c][l] * vs[b][l])
-        });
-        // The constraints' sums (the same operations as without S: the same bits), then the moments for S.
-        let (terms, vv, r, rxv) = constraint_terms(xs, vs, m, g, ct);
-        for (k, t) in terms.into_iter().enumerate() {
-            add(k, t);
-        }
-        let am = lanes(|l| af[l] * m[l]);
-        add(q::FREE_MASS, mf);
-        add(q::A_FREE_MASS, am);
-        add(
-            q::GRAD_SQ_OVER_W,
-            lanes(|l| {
-                af[l] * (gs[0][l] * gs[0][l] + gs[1][l] * gs[1][l] + gs[2][l] * gs[2][l]) / m[l]
-            }),
-        );
-        add(q::TR_VV, lanes(|l| mf[l] * vv[l]));
-        for a in 0..3 {
-            add(q::A_GRAD_SUM + a, lanes(|l| af[l] * gs[a][l]));
-            add(q::A_GRAD_CROSS_V + a, lanes(|l| af[l] * gxv[a][l]));
-            add(q::FREE_P + a, lanes(|l| mf[l] * vs[a][l]));
-            add(q::A_FREE_P + a, lanes(|l| am[l] * vs[a][l]));
-            add(q::FREE_L + a, lanes(|l| mf[l] * rxv[a][l]));
-            add(q::FREE_R + a, lanes(|l| mf[l] * r[a][l]));
-        }
-        for (k, &(a, b)) in UPPER.iter().enumerate() {
-            add(q::A_VV + k, lanes(|l| am[l] * vs[a][l] * vs[b][l]));
-            add(q::RR + k, lanes(|l| mf[l] * r[a][l] * r[b][l]));
-        }
     }
-    let (a_grad_r, a_r_cross_v, a_mass_r) = match grad {
-        Some(grad) => second_order_moments_lanes(pb, first, x, v, grad),
-        None => ([[0.0; 3]; 3], [0.0; 3], [0.0; 3]),
+    let rows = ml::Rows {
+        x,
+        v,
+        grad,
+        mass,
+        free_mass: &pb.rows.free_mass[r.clone()],
+        free_factor: &pb.rows.free_factor[r],
     };
-    let sum = |k: usize| acc[k].iter().fold(0.0, |s, a| s + a);
+    let acc = ml::moment_lanes(&rows, g, ct);
+    // The second-order moments only with a gradient (a solve needs them; the energy-only first evaluation
+    // and the warm start, which mostly end the projection after Projective Dynamics, do not).
+    let second = match grad {
+        Some(_) => ml::second_order_lanes(&rows, g, ct),
+        None => [[0.0; VL]; ml::SECOND_ORDER_SUMS],
+    };
+    let sum = |k: usize| ml::lane_sum(&acc[k]);
     let vec3 = |k: usize| [sum(k), sum(k + 1), sum(k + 2)];
     let sym = |k: usize| {
         let mut s = [[0.0; 3]; 3];
@@ -1641,8 +1561,9 @@ fn vertex_moments_lanes<const S: bool>(
         }
         s
     };
+    let sum2 = |k: usize| ml::lane_sum(&second[k]);
     Eval {
-        s_moments: S,
+        s_moments: true,
         kinetic: sum(q::KINETIC),
         gravitational: sum(q::GRAVITATIONAL),
         momentum: vec3(q::MOMENTUM),
@@ -1660,162 +1581,11 @@ fn vertex_moments_lanes<const S: bool>(
         free_r: vec3(q::FREE_R),
         a_vv: sym(q::A_VV),
         rr: sym(q::RR),
-        a_grad_r,
-        a_r_cross_v,
-        a_mass_r,
+        a_grad_r: std::array::from_fn(|c| [sum2(3 * c), sum2(3 * c + 1), sum2(3 * c + 2)]),
+        a_r_cross_v: [sum2(9), sum2(10), sum2(11)],
+        a_mass_r: [sum2(12), sum2(13), sum2(14)],
         ..Eval::default()
     }
-}
-
-/// The angular momentum's second-order moments over the vertices `first..first + x.len()`, with
-/// `r_i = x_i - C_target` and `g_i` the potential's gradient: `(sum a_i g_i r_i^T, sum a_i m_i r_i x v_i,
-/// sum a_i m_i r_i)` (see `angular_second_order`), in lanes like [`vertex_moments_lanes`] (a fixed order).
-/// A loop of its own, run only with a gradient (a solve needs them; the energy-only first evaluation and
-/// the warm start, which mostly end the projection after Projective Dynamics, do not): inside the moments'
-/// loop their 15 sums slowed a PD projection by about 4% even when skipped.
-#[inline(always)]
-fn second_order_moments_lanes(
-    pb: &Problem,
-    first: usize,
-    x: &[Vec3],
-    v: &[Vec3],
-    grad: &[Vec3],
-) -> ([[f64; 3]; 3], Vec3, Vec3) {
-    let model = pb.model;
-    let (g, ct) = (model.gravity, pb.targets.center_of_mass);
-    // 0..9: a g r^T row by row; 9..12: a m r x v; 12..15: a m r.
-    let mut acc = [[0.0; VL]; 15];
-    for start in (0..x.len()).step_by(VL) {
-        let (mut rs, mut vs, mut gs) = ([[0.0; VL]; 3], [[0.0; VL]; 3], [[0.0; VL]; 3]);
-        let (mut af, mut am) = ([0.0; VL], [0.0; VL]);
-        for l in 0..VL.min(x.len() - start) {
-            let (k, i) = (start + l, first + start + l);
-            let mi = model.masses[i];
-            let gi = total_gradient(grad[k], mi, g);
-            let a = if model.pinned[i] {
-                0.0
-            } else {
-                pb.metric_factor[i]
-            };
-            af[l] = a;
-            am[l] = a * mi;
-            for c in 0..3 {
-                rs[c][l] = x[k][c] - ct[c];
-                vs[c][l] = v[k][c];
-                gs[c][l] = gi[c];
-            }
-        }
-        for c in 0..3 {
-            let (b, d) = ((c + 1) % 3, (c + 2) % 3);
-            for l in 0..VL {
-                for e in 0..3 {
-                    acc[3 * c + e][l] += af[l] * gs[c][l] * rs[e][l];
-                }
-                acc[9 + c][l] += am[l] * (rs[b][l] * vs[d][l] - rs[d][l] * vs[b][l]);
-                acc[12 + c][l] += am[l] * rs[c][l];
-            }
-        }
-    }
-    let sum = |k: usize| acc[k].iter().fold(0.0, |s, a| s + a);
-    (
-        std::array::from_fn(|c| [sum(3 * c), sum(3 * c + 1), sum(3 * c + 2)]),
-        [sum(9), sum(10), sum(11)],
-        [sum(12), sum(13), sum(14)],
-    )
-}
-
-/// The constraints' sums of [`vertex_moments_lanes`] (kinetic and gravitational energy, momentum, angular
-/// momentum about the target centre of mass, `sum m x`) without the moments for `S`: the same lanes, padding
-/// and operations, so the same bits, from a loop over fixed groups of `VL` rows of `x`, `v` and the masses
-/// (no per-lane bounds checks, no gradient, pins or metric read). Measured on bunny2 (one thread, best of
-/// 300): an evaluation without the moments 585-604 -> 575-577 us, against 506 us for its elastic pass.
-#[inline(always)]
-fn constraint_sums_lanes(pb: &Problem, first: usize, x: &[Vec3], v: &[Vec3]) -> Eval {
-    let (g, ct) = (pb.model.gravity, pb.targets.center_of_mass);
-    let n = x.len();
-    assert_eq!(v.len(), n, "one row per vertex");
-    let masses = &pb.model.masses[first..first + n];
-    let mut acc = [[0.0; VL]; q::MASS_X + 3];
-    let mut group = |xs: [Lane; 3], vs: [Lane; 3], m: Lane| {
-        let (terms, ..) = constraint_terms(xs, vs, m, g, ct);
-        for (a, t) in acc.iter_mut().zip(terms) {
-            for l in 0..VL {
-                a[l] += t[l];
-            }
-        }
-    };
-    let rows = x
-        .chunks_exact(VL)
-        .zip(v.chunks_exact(VL))
-        .zip(masses.chunks_exact(VL));
-    for ((xg, vg), mg) in rows {
-        let xs = std::array::from_fn(|a| lanes(|l| xg[l][a]));
-        let vs = std::array::from_fn(|a| lanes(|l| vg[l][a]));
-        group(xs, vs, lanes(|l| mg[l]));
-    }
-    let tail = n - n % VL;
-    if tail < n {
-        // Padding lanes as in vertex_moments_lanes: unit mass, zero state (+0 or -0 to every sum).
-        let (mut xs, mut vs, mut m) = ([[0.0; VL]; 3], [[0.0; VL]; 3], [1.0; VL]);
-        for l in 0..n - tail {
-            m[l] = masses[tail + l];
-            for a in 0..3 {
-                xs[a][l] = x[tail + l][a];
-                vs[a][l] = v[tail + l][a];
-            }
-        }
-        group(xs, vs, m);
-    }
-    let sum = |k: usize| acc[k].iter().fold(0.0, |s, a| s + a);
-    let vec3 = |k: usize| [sum(k), sum(k + 1), sum(k + 2)];
-    Eval {
-        s_moments: false,
-        kinetic: sum(q::KINETIC),
-        gravitational: sum(q::GRAVITATIONAL),
-        momentum: vec3(q::MOMENTUM),
-        angular_momentum: vec3(q::ANGULAR),
-        mass_x: vec3(q::MASS_X),
-        ..Eval::default()
-    }
-}
-
-/// One lane group's terms of the constraints' sums, indexed as [`q`] (`KINETIC` .. `MASS_X + 2`), and the
-/// `|v|^2`, `r = x - C_target` and `r x v` they are made of (the moments for `S` reuse them).
-#[inline(always)]
-fn constraint_terms(
-    xs: [Lane; 3],
-    vs: [Lane; 3],
-    m: Lane,
-    g: Vec3,
-    ct: Vec3,
-) -> ([Lane; q::MASS_X + 3], Lane, [Lane; 3], [Lane; 3]) {
-    let vv = lanes(|l| vs[0][l] * vs[0][l] + vs[1][l] * vs[1][l] + vs[2][l] * vs[2][l]);
-    let r: [Lane; 3] = std::array::from_fn(|a| lanes(|l| xs[a][l] - ct[a]));
-    let rxv: [Lane; 3] = std::array::from_fn(|a| {
-        let (b, c) = ((a + 1) % 3, (a + 2) % 3);
-        lanes(|l| r[b][l] * vs[c][l] - r[c][l] * vs[b][l])
-    });
-    let mut t = [[0.0; VL]; q::MASS_X + 3];
-    t[q::KINETIC] = lanes(|l| 0.5 * m[l] * vv[l]);
-    t[q::GRAVITATIONAL] =
-        lanes(|l| -(m[l] * (g[0] * xs[0][l] + g[1] * xs[1][l] + g[2] * xs[2][l])));
-    for a in 0..3 {
-        t[q::MOMENTUM + a] = lanes(|l| m[l] * vs[a][l]);
-        t[q::ANGULAR + a] = lanes(|l| m[l] * rxv[a][l]);
-        t[q::MASS_X + a] = lanes(|l| m[l] * xs[a][l]);
-    }
-    (t, vv, r, rxv)
-}
-
-/// Gradient of the potential energy at one vertex: the elastic gradient minus the gravity force `m g`.
-#[inline(always)]
-fn total_gradient(elastic: Vec3, mass: f64, gravity: Vec3) -> Vec3 {
-    // Written out: `array::map` closures are not reliably inlined in hot loops.
-    [
-        elastic[0] - mass * gravity[0],
-        elastic[1] - mass * gravity[1],
-        elastic[2] - mass * gravity[2],
-    ]
 }
 
 /// The full 10x10 `S = G^T D^-1 G` from the moments (fepr-spec section 3; derivation in docs/fepr.md) and its
@@ -2134,7 +1904,7 @@ impl<'a> Step<'a> {
         Step {
             model: pb.model,
             metric_factor: &pb.metric_factor,
-            a_over_m: &pb.a_over_m,
+            a_over_m: &pb.rows.a_over_m,
             x,
             v,
             grad,
@@ -2277,7 +2047,7 @@ mod tests {
             let h = 0.02;
             let mut pb = Problem {
                 metric_factor: factors.clone(),
-                a_over_m: Vec::new(),
+                rows: MetricRows::default(),
                 model: &model,
                 h,
                 targets: &targets,
@@ -2287,7 +2057,7 @@ mod tests {
                 row_scale: [1.0; ROWS],
                 eps: 0.7,
             };
-            pb.refresh_a_over_m();
+            pb.refresh_rows();
             let (s0, t0) = (0.1, -0.2);
             let mut grad = vec![[0.0; 3]; m];
             let mut sc = EvalScratch::default();
@@ -2489,7 +2259,7 @@ mod tests {
         // The equations themselves, at the start: S lambda = c + d with d_H and d_L the terms at lambda.
         let mut pb = Problem {
             metric_factor: vec![1.0; m],
-            a_over_m: Vec::new(),
+            rows: MetricRows::default(),
             model: &model,
             h,
             targets: &targets,
@@ -2499,7 +2269,7 @@ mod tests {
             row_scale: [1.0; ROWS],
             eps: 1.0,
         };
-        pb.refresh_a_over_m();
+        pb.refresh_rows();
         pb.row_scale[0] = targets.energy;
         for a in 0..3 {
             pb.row_scale[1 + a] = model.total_mass * model.length_scale / h;

@@ -1,0 +1,841 @@
+//! The projection's per-vertex sums (fepr-spec section 3: the constraint values and the mass moments that
+//! form `S`) over one task's rows, in structure-of-arrays lanes: [`VL`] vertices at a time, each lane summed
+//! on its own in vertex order. The caller adds the lanes in lane order, so the order of every sum is fixed
+//! and the results keep their bits for any thread count.
+//!
+//! Two implementations of the same operations: a portable one, and explicit AVX2 kernels picked at run
+//! time. Both run every lane's multiplications, additions and subtractions in the same order (no fused
+//! multiply-adds), so they give the same bits (gated by `avx2_kernels_match_the_portable_sums_bit_for_bit`).
+//! Why explicit kernels: the portable loops compile to shuffles of scalars and spilled accumulators (the 45
+//! sums for `S` do not fit 16 vector registers), and a closure inside them was compiled without the caller's
+//! target features. Measured on the 1k box (343 vertices, one thread, best of 30 batches, in the tasks of
+//! an evaluation): the constraint sums 2.5-2.7 -> 0.80-0.88 us, the moments for `S` with the second-order
+//! ones 7.0-7.4 -> 4.0-4.7 us (against 22 us for the elastic energy + gradient).
+//!
+//! Padding: the last group of a task with fewer than [`VL`] rows gets lanes of unit mass, zero state and
+//! zero gradient, neither free nor weighted, so every sum gets `+0` or `-0` from them.
+
+use crate::linalg::Vec3;
+
+/// Vertices per lane group.
+pub(crate) const VL: usize = 4;
+/// One value per lane.
+pub(crate) type Lane = [f64; VL];
+
+/// The per-vertex sums, as indices into the lane accumulators of [`moment_lanes`] (the first
+/// [`CONSTRAINT_SUMS`] are those of [`constraint_lanes`]).
+pub(crate) mod q {
+    pub const KINETIC: usize = 0;
+    pub const GRAVITATIONAL: usize = 1;
+    pub const MOMENTUM: usize = 2; // 3
+    pub const ANGULAR: usize = 5; // 3
+    pub const MASS_X: usize = 8; // 3
+    pub const FREE_MASS: usize = 11;
+    pub const A_FREE_MASS: usize = 12;
+    pub const GRAD_SQ_OVER_W: usize = 13;
+    pub const TR_VV: usize = 14;
+    pub const A_GRAD_SUM: usize = 15; // 3
+    pub const A_GRAD_CROSS_V: usize = 18; // 3
+    pub const FREE_P: usize = 21; // 3
+    pub const A_FREE_P: usize = 24; // 3
+    pub const FREE_L: usize = 27; // 3
+    pub const FREE_R: usize = 30; // 3
+    pub const A_VV: usize = 33; // 6: the upper triangle, row by row
+    pub const RR: usize = 39; // 6
+    pub const COUNT: usize = 45;
+}
+
+/// The sums of [`constraint_lanes`]: kinetic and gravitational energy, momentum, angular momentum about
+/// the target centre of mass, `sum m x`.
+pub(crate) const CONSTRAINT_SUMS: usize = q::MASS_X + 3;
+
+/// The sums of [`second_order_lanes`]: `sum a g r^T` (9, row by row), `sum a m r x v` (3), `sum a m r` (3).
+pub(crate) const SECOND_ORDER_SUMS: usize = 15;
+
+/// The upper triangle of a symmetric 3x3 matrix, row by row (`a <= b`).
+pub(crate) const UPPER: [(usize, usize); 6] = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
+
+/// One task's rows: vertex `k` of the task is `x[k]`, `v[k]`, ... (all the same length).
+#[derive(Clone, Copy)]
+pub(crate) struct Rows<'a> {
+    /// Positions (m).
+    pub x: &'a [Vec3],
+    /// Velocities (m/s).
+    pub v: &'a [Vec3],
+    /// The elastic gradient (J/m); the potential's is this minus `m g`. Without it, zero: the moments that
+    /// do not involve the gradient (the warm start's) are exact, the others are not to be solved with.
+    pub grad: Option<&'a [Vec3]>,
+    /// Masses (kg).
+    pub mass: &'a [f64],
+    /// The mass of a free vertex, 0 for a pinned one.
+    pub free_mass: &'a [f64],
+    /// The metric factor `a` of a free vertex, 0 for a pinned one.
+    pub free_factor: &'a [f64],
+}
+
+impl Rows<'_> {
+    fn len(&self) -> usize {
+        let n = self.x.len();
+        assert!(
+            [
+                self.v.len(),
+                self.grad.map_or(n, |g| g.len()),
+                self.mass.len(),
+                self.free_mass.len(),
+                self.free_factor.len()
+            ]
+            .iter()
+            .all(|&k| k == n),
+            "one row per vertex"
+        );
+        n
+    }
+}
+
+/// The constraints' sums of the rows `x`, `v`, `mass` (indexed as [`q`], `KINETIC .. MASS_X + 2`), with
+/// gravity `g` (m/s^2) and the angular momentum about `center` (m).
+pub(crate) fn constraint_lanes(
+    x: &[Vec3],
+    v: &[Vec3],
+    mass: &[f64],
+    g: Vec3,
+    center: Vec3,
+) -> [Lane; CONSTRAINT_SUMS] {
+    assert!(
+        v.len() == x.len() && mass.len() == x.len(),
+        "one row per vertex"
+    );
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked above); the lengths agree (asserted above).
+        return unsafe { avx2::constraint_lanes(x, v, mass, g, center) };
+    }
+    portable::constraint_lanes(x, v, mass, g, center)
+}
+
+/// All the sums of [`q`] over `rows`: the constraints' and the moments for `S`.
+pub(crate) fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
+    rows.len();
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: as in constraint_lanes.
+        return unsafe { avx2::moment_lanes(rows, g, center) };
+    }
+    portable::moment_lanes(rows, g, center)
+}
+
+/// The angular momentum's second-order moments over `rows`, with `r = x - center` and `g_i` the potential's
+/// gradient (see [`SECOND_ORDER_SUMS`]).
+pub(crate) fn second_order_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; SECOND_ORDER_SUMS] {
+    rows.len();
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: as in constraint_lanes.
+        return unsafe { avx2::second_order_lanes(rows, g, center) };
+    }
+    portable::second_order_lanes(rows, g, center)
+}
+
+/// Lane `l`'s sum added in lane order (the fixed order that makes the result independent of the tasks'
+/// threads).
+#[inline]
+pub(crate) fn lane_sum(lane: &Lane) -> f64 {
+    lane.iter().fold(0.0, |s, a| s + a)
+}
+
+/// The reference implementation, for any CPU.
+pub(crate) mod portable {
+    use super::*;
+
+    /// A lane group from its per-lane values.
+    #[inline(always)]
+    fn lanes(f: impl Fn(usize) -> f64) -> Lane {
+        std::array::from_fn(f)
+    }
+
+    /// The potential's gradient at one vertex: the elastic gradient minus the gravity force `m g`.
+    #[inline(always)]
+    fn total_gradient(elastic: Vec3, mass: f64, gravity: Vec3) -> Vec3 {
+        [
+            elastic[0] - mass * gravity[0],
+            elastic[1] - mass * gravity[1],
+            elastic[2] - mass * gravity[2],
+        ]
+    }
+
+    /// One lane group's terms of the constraints' sums, and the `|v|^2`, `r = x - center` and `r x v` they
+    /// are made of (the moments for `S` reuse them).
+    #[inline(always)]
+    fn constraint_terms(
+        xs: [Lane; 3],
+        vs: [Lane; 3],
+        m: Lane,
+        g: Vec3,
+        center: Vec3,
+    ) -> ([Lane; CONSTRAINT_SUMS], Lane, [Lane; 3], [Lane; 3]) {
+        let vv = lanes(|l| vs[0][l] * vs[0][l] + vs[1][l] * vs[1][l] + vs[2][l] * vs[2][l]);
+        let r: [Lane; 3] = std::array::from_fn(|a| lanes(|l| xs[a][l] - center[a]));
+        let rxv: [Lane; 3] = std::array::from_fn(|a| {
+            let (b, c) = ((a + 1) % 3, (a + 2) % 3);
+            lanes(|l| r[b][l] * vs[c][l] - r[c][l] * vs[b][l])
+        });
+        let mut t = [[0.0; VL]; CONSTRAINT_SUMS];
+        t[q::KINETIC] = lanes(|l| 0.5 * m[l] * vv[l]);
+        t[q::GRAVITATIONAL] =
+            lanes(|l| -(m[l] * (g[0] * xs[0][l] + g[1] * xs[1][l] + g[2] * xs[2][l])));
+        for a in 0..3 {
+            t[q::MOMENTUM + a] = lanes(|l| m[l] * vs[a][l]);
+            t[q::ANGULAR + a] = lanes(|l| m[l] * rxv[a][l]);
+            t[q::MASS_X + a] = lanes(|l| m[l] * xs[a][l]);
+        }
+        (t, vv, r, rxv)
+    }
+
+    /// One group's lanes: rows `start ..` (padded past `n`).
+    struct Group {
+        x: [Lane; 3],
+        v: [Lane; 3],
+        /// The potential's gradient.
+        g: [Lane; 3],
+        m: Lane,
+        mf: Lane,
+        af: Lane,
+        /// Which lanes hold a row.
+        real: [bool; VL],
+    }
+
+    fn group(rows: &Rows, start: usize, gravity: Vec3) -> Group {
+        let mut gr = Group {
+            x: [[0.0; VL]; 3],
+            v: [[0.0; VL]; 3],
+            g: [[0.0; VL]; 3],
+            m: [1.0; VL],
+            mf: [0.0; VL],
+            af: [0.0; VL],
+            real: [false; VL],
+        };
+        for l in 0..VL.min(rows.x.len() - start) {
+            let k = start + l;
+            let elastic = rows.grad.map_or([0.0; 3], |g| g[k]);
+            let gi = total_gradient(elastic, rows.mass[k], gravity);
+            gr.m[l] = rows.mass[k];
+            gr.mf[l] = rows.free_mass[k];
+            gr.af[l] = rows.free_factor[k];
+            gr.real[l] = true;
+            for a in 0..3 {
+                gr.x[a][l] = rows.x[k][a];
+                gr.v[a][l] = rows.v[k][a];
+                gr.g[a][l] = gi[a];
+            }
+        }
+        gr
+    }
+
+    #[inline(always)]
+    fn add(acc: &mut Lane, value: Lane) {
+        for l in 0..VL {
+            acc[l] += value[l];
+        }
+    }
+
+    pub(crate) fn constraint_lanes(
+        x: &[Vec3],
+        v: &[Vec3],
+        mass: &[f64],
+        g: Vec3,
+        center: Vec3,
+    ) -> [Lane; CONSTRAINT_SUMS] {
+        let n = x.len();
+        let mut acc = [[0.0; VL]; CONSTRAINT_SUMS];
+        for start in (0..n).step_by(VL) {
+            let (mut xs, mut vs, mut m) = ([[0.0; VL]; 3], [[0.0; VL]; 3], [1.0; VL]);
+            for l in 0..VL.min(n - start) {
+                m[l] = mass[start + l];
+                for a in 0..3 {
+                    xs[a][l] = x[start + l][a];
+                    vs[a][l] = v[start + l][a];
+                }
+            }
+            let (terms, ..) = constraint_terms(xs, vs, m, g, center);
+            for (a, t) in acc.iter_mut().zip(terms) {
+                add(a, t);
+            }
+        }
+        acc
+    }
+
+    pub(crate) fn moment_lanes(rows: &Rows, gravity: Vec3, center: Vec3) -> [Lane; q::COUNT] {
+        let mut acc = [[0.0; VL]; q::COUNT];
+        for start in (0..rows.x.len()).step_by(VL) {
+            let Group {
+                x: xs,
+                v: vs,
+                g: gs,
+                m,
+                mf,
+                af,
+                ..
+            } = group(rows, start, gravity);
+            let gxv: [Lane; 3] = std::array::from_fn(|a| {
+                let (b, c) = ((a + 1) % 3, (a + 2) % 3);
+                lanes(|l| gs[b][l] * vs[c][l] - gs[c][l] * vs[b][l])
+            });
+            let (terms, vv, r, rxv) = constraint_terms(xs, vs, m, gravity, center);
+            for (k, t) in terms.into_iter().enumerate() {
+                add(&mut acc[k], t);
+            }
+            let am = lanes(|l| af[l] * m[l]);
+            add(&mut acc[q::FREE_MASS], mf);
+            add(&mut acc[q::A_FREE_MASS], am);
+            add(
+                &mut acc[q::GRAD_SQ_OVER_W],
+                lanes(|l| {
+                    af[l] * (gs[0][l] * gs[0][l] + gs[1][l] * gs[1][l] + gs[2][l] * gs[2][l]) / m[l]
+                }),
+            );
+            add(&mut acc[q::TR_VV], lanes(|l| mf[l] * vv[l]));
+            for a in 0..3 {
+                add(&mut acc[q::A_GRAD_SUM + a], lanes(|l| af[l] * gs[a][l]));
+                add(
+                    &mut acc[q::A_GRAD_CROSS_V + a],
+                    lanes(|l| af[l] * gxv[a][l]),
+                );
+                add(&mut acc[q::FREE_P + a], lanes(|l| mf[l] * vs[a][l]));
+                add(&mut acc[q::A_FREE_P + a], lanes(|l| am[l] * vs[a][l]));
+                add(&mut acc[q::FREE_L + a], lanes(|l| mf[l] * rxv[a][l]));
+                add(&mut acc[q::FREE_R + a], lanes(|l| mf[l] * r[a][l]));
+            }
+            for (k, &(a, b)) in UPPER.iter().enumerate() {
+                add(
+                    &mut acc[q::A_VV + k],
+                    lanes(|l| am[l] * vs[a][l] * vs[b][l]),
+                );
+                add(&mut acc[q::RR + k], lanes(|l| mf[l] * r[a][l] * r[b][l]));
+            }
+        }
+        acc
+    }
+
+    pub(crate) fn second_order_lanes(
+        rows: &Rows,
+        gravity: Vec3,
+        center: Vec3,
+    ) -> [Lane; SECOND_ORDER_SUMS] {
+        let mut acc = [[0.0; VL]; SECOND_ORDER_SUMS];
+        for start in (0..rows.x.len()).step_by(VL) {
+            let gr = group(rows, start, gravity);
+            let (gs, vs, af) = (gr.g, gr.v, gr.af);
+            let am = lanes(|l| af[l] * gr.m[l]);
+            // r = x - center on a row, 0 on a padding lane.
+            let rs: [Lane; 3] = std::array::from_fn(|a| {
+                lanes(|l| {
+                    if gr.real[l] {
+                        gr.x[a][l] - center[a]
+                    } else {
+                        0.0
+                    }
+                })
+            });
+            for c in 0..3 {
+                let (b, d) = ((c + 1) % 3, (c + 2) % 3);
+                for e in 0..3 {
+                    add(&mut acc[3 * c + e], lanes(|l| af[l] * gs[c][l] * rs[e][l]));
+                }
+                add(
+                    &mut acc[9 + c],
+                    lanes(|l| am[l] * (rs[b][l] * vs[d][l] - rs[d][l] * vs[b][l])),
+                );
+                add(&mut acc[12 + c], lanes(|l| am[l] * rs[c][l]));
+            }
+        }
+        acc
+    }
+}
+
+/// The same sums in explicit AVX2 kernels: every lane runs the portable version's operations in its order.
+/// The 45 sums for `S` run as four passes over the task's rows (10-12 accumulators each, about what 16
+/// vector registers hold), the second-order ones as two more; the task's rows stay in L1/L2 between
+/// passes. (Compiled for AVX-512VL's 32 registers, the same passes measured no faster.)
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::*;
+    use std::arch::x86_64::*;
+
+    /// Four rows of three `f64` (12 consecutive values from `p`) as three lane vectors (x, y, z).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn load_rows(p: *const f64) -> [__m256d; 3] {
+        // SAFETY (caller): p..p + 12 is readable.
+        let (a, b, c) = unsafe {
+            (
+                _mm256_loadu_pd(p),        // x0 y0 z0 x1
+                _mm256_loadu_pd(p.add(4)), // y1 z1 x2 y2
+                _mm256_loadu_pd(p.add(8)), // z2 x3 y3 z3
+            )
+        };
+        let lo_a_hi_c = _mm256_permute2f128_pd::<0x30>(a, c); // x0 y0 y3 z3
+        let hi_a_lo_c = _mm256_permute2f128_pd::<0x21>(a, c); // z0 x1 z2 x3
+        let x = _mm256_shuffle_pd::<0b1010>(_mm256_blend_pd::<0b0100>(lo_a_hi_c, b), hi_a_lo_c);
+        let y = _mm256_permute_pd::<0b0101>(_mm256_blend_pd::<0b1001>(lo_a_hi_c, b));
+        let z = _mm256_blend_pd::<0b1000>(_mm256_blend_pd::<0b0010>(hi_a_lo_c, b), lo_a_hi_c);
+        [x, y, z]
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn splat3(v: Vec3) -> [__m256d; 3] {
+        v.map(|c| _mm256_set1_pd(c))
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn add(a: __m256d, b: __m256d) -> __m256d {
+        _mm256_add_pd(a, b)
+    }
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn sub(a: __m256d, b: __m256d) -> __m256d {
+        _mm256_sub_pd(a, b)
+    }
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn mul(a: __m256d, b: __m256d) -> __m256d {
+        _mm256_mul_pd(a, b)
+    }
+
+    /// `|v|^2` as the portable version sums it.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn norm2(v: &[__m256d; 3]) -> __m256d {
+        add(add(mul(v[0], v[0]), mul(v[1], v[1])), mul(v[2], v[2]))
+    }
+
+    /// Component `a` of `p x q` (`p_b q_c - p_c q_b`).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn cross_at(p: &[__m256d; 3], q: &[__m256d; 3], a: usize) -> __m256d {
+        let (b, c) = ((a + 1) % 3, (a + 2) % 3);
+        sub(mul(p[b], q[c]), mul(p[c], q[b]))
+    }
+
+    /// One group's rows in lanes (padded as the portable version pads).
+    #[derive(Clone, Copy)]
+    struct Group {
+        x: [__m256d; 3],
+        v: [__m256d; 3],
+        /// The elastic gradient (the potential's is formed by [`potential_gradient`]).
+        grad: [__m256d; 3],
+        m: __m256d,
+        mf: __m256d,
+        af: __m256d,
+        /// All bits set on a lane that holds a row, clear on a padding lane.
+        real: __m256d,
+    }
+
+    /// The group of rows `start .. start + VL` (all present), or the padded last group.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn group(rows: &Rows, start: usize) -> Group {
+        if start + VL > rows.x.len() {
+            return padded_group(rows, start);
+        }
+        // SAFETY (caller): start + VL <= n rows of every slice (Rows::len).
+        unsafe {
+            Group {
+                x: load_rows(rows.x.as_ptr().add(start).cast()),
+                v: load_rows(rows.v.as_ptr().add(start).cast()),
+                grad: match rows.grad {
+                    Some(g) => load_rows(g.as_ptr().add(start).cast()),
+                    None => [_mm256_setzero_pd(); 3],
+                },
+                m: _mm256_loadu_pd(rows.mass.as_ptr().add(start)),
+                mf: _mm256_loadu_pd(rows.free_mass.as_ptr().add(start)),
+                af: _mm256_loadu_pd(rows.free_factor.as_ptr().add(start)),
+                real: _mm256_castsi256_pd(_mm256_set1_epi64x(-1)),
+            }
+        }
+    }
+
+    /// The last group of rows `start ..` (fewer than [`VL`]), padded. Out of line: the loop over the full
+    /// groups stays small enough to be inlined whole.
+    #[cold]
+    #[inline(never)]
+    #[target_feature(enable = "avx2")]
+    fn padded_group(rows: &Rows, start: usize) -> Group {
+        let mut pad = Padded::new();
+        for l in 0..rows.x.len() - start {
+            let k = start + l;
+            pad.x[3 * l..3 * l + 3].copy_from_slice(&rows.x[k]);
+            pad.v[3 * l..3 * l + 3].copy_from_slice(&rows.v[k]);
+            if let Some(g) = rows.grad {
+                pad.grad[3 * l..3 * l + 3].copy_from_slice(&g[k]);
+            }
+            pad.m[l] = rows.mass[k];
+            pad.mf[l] = rows.free_mass[k];
+            pad.af[l] = rows.free_factor[k];
+            pad.real[l] = -1;
+        }
+        // SAFETY: the padded arrays hold 12 and 4 values.
+        unsafe {
+            Group {
+                x: load_rows(pad.x.as_ptr()),
+                v: load_rows(pad.v.as_ptr()),
+                grad: load_rows(pad.grad.as_ptr()),
+                m: _mm256_loadu_pd(pad.m.as_ptr()),
+                mf: _mm256_loadu_pd(pad.mf.as_ptr()),
+                af: _mm256_loadu_pd(pad.af.as_ptr()),
+                real: _mm256_castsi256_pd(_mm256_loadu_si256(pad.real.as_ptr().cast())),
+            }
+        }
+    }
+
+    /// The last group's rows with the padding lanes' values (zero state and gradient, unit mass, neither
+    /// free nor weighted).
+    struct Padded {
+        x: [f64; 12],
+        v: [f64; 12],
+        grad: [f64; 12],
+        m: [f64; VL],
+        mf: [f64; VL],
+        af: [f64; VL],
+        real: [i64; VL],
+    }
+
+    impl Padded {
+        fn new() -> Self {
+            Self {
+                x: [0.0; 12],
+                v: [0.0; 12],
+                grad: [0.0; 12],
+                m: [1.0; VL],
+                mf: [0.0; VL],
+                af: [0.0; VL],
+                real: [0; VL],
+            }
+        }
+    }
+
+    /// The potential's gradient `grad - m g` on a row, 0 on a padding lane.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn potential_gradient(gr: &Group, gravity: &[__m256d; 3]) -> [__m256d; 3] {
+        std::array::from_fn(|a| _mm256_and_pd(sub(gr.grad[a], mul(gr.m, gravity[a])), gr.real))
+    }
+
+    /// The accumulators' lanes.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn store<const N: usize>(acc: &[__m256d; N], out: &mut [Lane]) {
+        for (o, a) in out.iter_mut().zip(acc) {
+            // SAFETY: a lane array holds VL = 4 values.
+            unsafe { _mm256_storeu_pd(o.as_mut_ptr(), *a) };
+        }
+    }
+
+    /// Runs `body(accumulators, group)` over every group of `n` rows (`load` gives the group at a start).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn pass<const N: usize, G>(
+        n: usize,
+        load: impl Fn(usize) -> G,
+        mut body: impl FnMut(&mut [__m256d; N], G),
+    ) -> [__m256d; N] {
+        let mut acc = [_mm256_setzero_pd(); N];
+        for start in (0..n).step_by(VL) {
+            body(&mut acc, load(start));
+        }
+        acc
+    }
+
+    /// One group's constraint terms added to `acc` (the portable `constraint_terms`, operation by
+    /// operation).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn constraint_group(
+        acc: &mut [__m256d; CONSTRAINT_SUMS],
+        xs: &[__m256d; 3],
+        vs: &[__m256d; 3],
+        m: __m256d,
+        g: &[__m256d; 3],
+        center: &[__m256d; 3],
+    ) {
+        let vv = norm2(vs);
+        let r: [__m256d; 3] = std::array::from_fn(|a| sub(xs[a], center[a]));
+        acc[q::KINETIC] = add(acc[q::KINETIC], mul(mul(_mm256_set1_pd(0.5), m), vv));
+        let gx = add(add(mul(g[0], xs[0]), mul(g[1], xs[1])), mul(g[2], xs[2]));
+        // -(m gx): a sign flip, as the portable negation.
+        let neg = _mm256_xor_pd(mul(m, gx), _mm256_set1_pd(-0.0));
+        acc[q::GRAVITATIONAL] = add(acc[q::GRAVITATIONAL], neg);
+        for a in 0..3 {
+            acc[q::MOMENTUM + a] = add(acc[q::MOMENTUM + a], mul(m, vs[a]));
+            acc[q::ANGULAR + a] = add(acc[q::ANGULAR + a], mul(m, cross_at(&r, vs, a)));
+            acc[q::MASS_X + a] = add(acc[q::MASS_X + a], mul(m, xs[a]));
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn constraint_lanes(
+        x: &[Vec3],
+        v: &[Vec3],
+        mass: &[f64],
+        g: Vec3,
+        center: Vec3,
+    ) -> [Lane; CONSTRAINT_SUMS] {
+        let n = x.len();
+        let (gv, cv) = (splat3(g), splat3(center));
+        let load = |start: usize| {
+            if start + VL <= n {
+                // SAFETY: rows start .. start + VL exist in all three slices (asserted by the caller).
+                unsafe {
+                    (
+                        load_rows(x.as_ptr().add(start).cast()),
+                        load_rows(v.as_ptr().add(start).cast()),
+                        _mm256_loadu_pd(mass.as_ptr().add(start)),
+                    )
+                }
+            } else {
+                let (mut px, mut pv, mut pm) = ([0.0; 12], [0.0; 12], [1.0; VL]);
+                for l in 0..n - start {
+                    px[3 * l..3 * l + 3].copy_from_slice(&x[start + l]);
+                    pv[3 * l..3 * l + 3].copy_from_slice(&v[start + l]);
+                    pm[l] = mass[start + l];
+                }
+                // SAFETY: 12 and 4 values.
+                unsafe {
+                    (
+                        load_rows(px.as_ptr()),
+                        load_rows(pv.as_ptr()),
+                        _mm256_loadu_pd(pm.as_ptr()),
+                    )
+                }
+            }
+        };
+        let acc = pass(n, load, |acc, (xs, vs, m)| {
+            constraint_group(acc, &xs, &vs, m, &gv, &cv)
+        });
+        let mut out = [[0.0; VL]; CONSTRAINT_SUMS];
+        store(&acc, &mut out);
+        out
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
+        let n = rows.x.len();
+        let (gv, cv) = (splat3(g), splat3(center));
+        // SAFETY: Rows::len checked the lengths (by the caller).
+        let load = |start: usize| unsafe { group(rows, start) };
+        let mut out = [[0.0; VL]; q::COUNT];
+
+        let acc = pass(n, load, |acc, gr: Group| {
+            constraint_group(acc, &gr.x, &gr.v, gr.m, &gv, &cv)
+        });
+        store(&acc, &mut out[..CONSTRAINT_SUMS]);
+
+        // FREE_MASS, A_FREE_MASS, GRAD_SQ_OVER_W, TR_VV, A_GRAD_SUM (3), A_GRAD_CROSS_V (3).
+        let acc = pass(n, load, |acc: &mut [__m256d; 10], gr: Group| {
+            let gs = potential_gradient(&gr, &gv);
+            let am = mul(gr.af, gr.m);
+            acc[0] = add(acc[0], gr.mf);
+            acc[1] = add(acc[1], am);
+            acc[2] = add(acc[2], _mm256_div_pd(mul(gr.af, norm2(&gs)), gr.m));
+            acc[3] = add(acc[3], mul(gr.mf, norm2(&gr.v)));
+            for a in 0..3 {
+                acc[4 + a] = add(acc[4 + a], mul(gr.af, gs[a]));
+                acc[7 + a] = add(acc[7 + a], mul(gr.af, cross_at(&gs, &gr.v, a)));
+            }
+        });
+        store(&acc, &mut out[q::FREE_MASS..q::FREE_P]);
+
+        // FREE_P, A_FREE_P, FREE_L, FREE_R (3 each).
+        let acc = pass(n, load, |acc: &mut [__m256d; 12], gr: Group| {
+            let am = mul(gr.af, gr.m);
+            let r: [__m256d; 3] = std::array::from_fn(|a| sub(gr.x[a], cv[a]));
+            for a in 0..3 {
+                acc[a] = add(acc[a], mul(gr.mf, gr.v[a]));
+                acc[3 + a] = add(acc[3 + a], mul(am, gr.v[a]));
+                acc[6 + a] = add(acc[6 + a], mul(gr.mf, cross_at(&r, &gr.v, a)));
+                acc[9 + a] = add(acc[9 + a], mul(gr.mf, r[a]));
+            }
+        });
+        store(&acc, &mut out[q::FREE_P..q::A_VV]);
+
+        // A_VV, RR (the upper triangles).
+        let acc = pass(n, load, |acc: &mut [__m256d; 12], gr: Group| {
+            let am = mul(gr.af, gr.m);
+            let r: [__m256d; 3] = std::array::from_fn(|a| sub(gr.x[a], cv[a]));
+            for (k, &(a, b)) in UPPER.iter().enumerate() {
+                acc[k] = add(acc[k], mul(mul(am, gr.v[a]), gr.v[b]));
+                acc[6 + k] = add(acc[6 + k], mul(mul(gr.mf, r[a]), r[b]));
+            }
+        });
+        store(&acc, &mut out[q::A_VV..]);
+        out
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn second_order_lanes(
+        rows: &Rows,
+        g: Vec3,
+        center: Vec3,
+    ) -> [Lane; SECOND_ORDER_SUMS] {
+        let n = rows.x.len();
+        let (gv, cv) = (splat3(g), splat3(center));
+        // SAFETY: as in moment_lanes.
+        let load = |start: usize| unsafe { group(rows, start) };
+        let mut out = [[0.0; VL]; SECOND_ORDER_SUMS];
+        // sum a g r^T, row by row.
+        let acc = pass(n, load, |acc: &mut [__m256d; 9], gr: Group| {
+            let gs = potential_gradient(&gr, &gv);
+            let r: [__m256d; 3] =
+                std::array::from_fn(|a| _mm256_and_pd(sub(gr.x[a], cv[a]), gr.real));
+            for c in 0..3 {
+                for e in 0..3 {
+                    acc[3 * c + e] = add(acc[3 * c + e], mul(mul(gr.af, gs[c]), r[e]));
+                }
+            }
+        });
+        store(&acc, &mut out[..9]);
+        // sum a m r x v, sum a m r.
+        let acc = pass(n, load, |acc: &mut [__m256d; 6], gr: Group| {
+            let am = mul(gr.af, gr.m);
+            let r: [__m256d; 3] =
+                std::array::from_fn(|a| _mm256_and_pd(sub(gr.x[a], cv[a]), gr.real));
+            for c in 0..3 {
+                acc[c] = add(acc[c], mul(am, cross_at(&r, &gr.v, c)));
+                acc[3 + c] = add(acc[3 + c], mul(am, r[c]));
+            }
+        });
+        store(&acc, &mut out[9..]);
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Rows with every kind of value: unequal masses, pinned rows (free mass and factor 0), varied factors,
+    /// a gradient that does not cancel gravity.
+    fn rows_data(n: usize, seed: u64) -> (Vec<Vec3>, Vec<Vec3>, Vec<Vec3>, [Vec<f64>; 3]) {
+        let mut s = seed;
+        let mut rnd = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+        };
+        let mut vec3 = |scale: f64| [rnd() * scale, rnd() * scale, rnd() * scale];
+        let x: Vec<Vec3> = (0..n).map(|_| vec3(2.0)).collect();
+        let v: Vec<Vec3> = (0..n).map(|_| vec3(0.5)).collect();
+        let grad: Vec<Vec3> = (0..n).map(|_| vec3(30.0)).collect();
+        let mass: Vec<f64> = (0..n).map(|i| 0.2 + 0.01 * (i % 17) as f64).collect();
+        let pinned = |i: usize| i % 7 == 3;
+        let free_mass = (0..n)
+            .map(|i| if pinned(i) { 0.0 } else { mass[i] })
+            .collect();
+        let free_factor = (0..n)
+            .map(|i| {
+                if pinned(i) {
+                    0.0
+                } else {
+                    1.0 / (1.0 + 0.3 * (i % 5) as f64)
+                }
+            })
+            .collect();
+        (x, v, grad, [mass, free_mass, free_factor])
+    }
+
+    fn bits<const N: usize>(a: &[Lane; N]) -> Vec<u64> {
+        a.iter().flatten().map(|x| x.to_bits()).collect()
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_kernels_match_the_portable_sums_bit_for_bit() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let (g, center) = ([0.3, -0.2, -9.81], [0.4, -0.6, 0.5]);
+        // Lengths with every tail (0..3 padding lanes), and one row.
+        for n in [1, 4, 5, 6, 7, 8, 61, 64, 130] {
+            let (x, v, grad, [mass, free_mass, free_factor]) = rows_data(n, n as u64);
+            // With and without the gradient (the warm start's velocity moments need none).
+            for grad in [Some(&grad[..]), None] {
+                let rows = Rows {
+                    x: &x,
+                    v: &v,
+                    grad,
+                    mass: &mass,
+                    free_mass: &free_mass,
+                    free_factor: &free_factor,
+                };
+                // SAFETY: AVX2 is present (checked above); the slices have n rows each.
+                let (c, m, s) = unsafe {
+                    (
+                        avx2::constraint_lanes(&x, &v, &mass, g, center),
+                        avx2::moment_lanes(&rows, g, center),
+                        avx2::second_order_lanes(&rows, g, center),
+                    )
+                };
+                let c_ref = portable::constraint_lanes(&x, &v, &mass, g, center);
+                let m_ref = portable::moment_lanes(&rows, g, center);
+                let s_ref = portable::second_order_lanes(&rows, g, center);
+                assert_eq!(bits(&c), bits(&c_ref), "constraint sums, {n} rows");
+                assert_eq!(bits(&m), bits(&m_ref), "moments, {n} rows");
+                assert_eq!(bits(&s), bits(&s_ref), "second-order moments, {n} rows");
+                // The moments' first sums are the constraint sums.
+                assert_eq!(bits(&c_ref), bits(&m_ref)[..VL * CONSTRAINT_SUMS].to_vec());
+            }
+        }
+    }
+
+    /// The lanes are sums over the rows: against a plain per-row sum of the same terms (to rounding).
+    #[test]
+    fn the_sums_are_the_documented_moments() {
+        let n = 23;
+        let (x, v, grad, [mass, free_mass, free_factor]) = rows_data(n, 7);
+        let rows = Rows {
+            x: &x,
+            v: &v,
+            grad: Some(&grad),
+            mass: &mass,
+            free_mass: &free_mass,
+            free_factor: &free_factor,
+        };
+        let (g, c) = ([0.3, -0.2, -9.81], [0.4, -0.6, 0.5]);
+        let m = moment_lanes(&rows, g, c);
+        let s = second_order_lanes(&rows, g, c);
+        let sum = |k: usize| lane_sum(&m[k]);
+        let close =
+            |a: f64, b: f64| assert!((a - b).abs() <= 1e-12 * (1.0 + b.abs()), "{a} vs {b}");
+        let mut want = [0.0; 8];
+        let mut want_s = [0.0; 3];
+        for i in 0..n {
+            let r: Vec3 = std::array::from_fn(|a| x[i][a] - c[a]);
+            let gi: Vec3 = std::array::from_fn(|a| grad[i][a] - mass[i] * g[a]);
+            let vv = v[i].iter().map(|a| a * a).sum::<f64>();
+            want[0] += 0.5 * mass[i] * vv;
+            want[1] -= mass[i] * (g[0] * x[i][0] + g[1] * x[i][1] + g[2] * x[i][2]);
+            want[2] += mass[i] * (r[1] * v[i][2] - r[2] * v[i][1]);
+            want[3] += free_factor[i] * gi.iter().map(|a| a * a).sum::<f64>() / mass[i];
+            want[4] += free_mass[i] * vv;
+            want[5] += free_factor[i] * mass[i] * v[i][0] * v[i][1];
+            want[6] += free_mass[i] * r[2] * r[2];
+            want[7] += free_factor[i] * (gi[1] * v[i][2] - gi[2] * v[i][1]);
+            want_s[0] += free_factor[i] * gi[0] * r[2];
+            want_s[1] += free_factor[i] * mass[i] * (r[0] * v[i][1] - r[1] * v[i][0]);
+            want_s[2] += free_factor[i] * mass[i] * r[1];
+        }
+        close(sum(q::KINETIC), want[0]);
+        close(sum(q::GRAVITATIONAL), want[1]);
+        close(sum(q::ANGULAR), want[2]);
+        close(sum(q::GRAD_SQ_OVER_W), want[3]);
+        close(sum(q::TR_VV), want[4]);
+        close(sum(q::A_VV + 1), want[5]);
+        close(sum(q::RR + 5), want[6]);
+        close(sum(q::A_GRAD_CROSS_V), want[7]);
+        close(lane_sum(&s[2]), want_s[0]);
+        close(lane_sum(&s[11]), want_s[1]);
+        close(lane_sum(&s[13]), want_s[2]);
+    }
+}
