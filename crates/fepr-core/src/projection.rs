@@ -326,6 +326,10 @@ struct Eval {
     a_mass_r: Vec3,
     /// `sum m_i x_i` (for the centre of mass).
     mass_x: Vec3,
+    /// The vertices' part of the squared D-norm distance from the base step's state, where the evaluation
+    /// summed it (a trial point: [`Step::measured_from`]); the projection's correction is then known without
+    /// a pass of its own when this point is the result.
+    correction_sq: Option<f64>,
 }
 
 impl Default for Eval {
@@ -360,6 +364,7 @@ impl Default for Eval {
             a_r_cross_v: z,
             a_mass_r: z,
             mass_x: z,
+            correction_sq: None,
         }
     }
 }
@@ -368,6 +373,11 @@ impl Eval {
     /// Add the vertex sums of `b` (a later chunk) to these.
     fn add(&mut self, b: &Eval) {
         self.s_moments &= b.s_moments;
+        // In task order from the first task's value, as `d_norm` adds its task sums: the same bits.
+        self.correction_sq = match (self.correction_sq, b.correction_sq) {
+            (Some(a), Some(b)) => Some(a + b),
+            _ => None,
+        };
         let add3 = |a: &mut Vec3, b: &Vec3| (0..3).for_each(|k| a[k] += b[k]);
         self.kinetic += b.kinetic;
         self.gravitational += b.gravitational;
@@ -913,6 +923,10 @@ impl Projector {
         report.correction = if base_returned {
             debug_assert!(s == 0.0 && t == 0.0, "q~ has s = t = 0");
             0.0
+        } else if let Some(sum) = fin.correction_sq {
+            // The result is a trial point, whose evaluation summed its distance from q~ (the same task sums
+            // in the same order as the pass below: the same bits).
+            d_norm_from(&pb, s, t, sum)
         } else {
             d_norm(
                 &pb,
@@ -1048,7 +1062,8 @@ impl Projector {
         alpha: f64,
     ) -> (Eval, f64, f64, f64) {
         let (x, v) = current!(self);
-        let step = Step::new(pb, x, v, &self.grad, lambda, alpha);
+        let step = Step::new(pb, x, v, &self.grad, lambda, alpha)
+            .measured_from(&self.x_base, &self.v_base);
         let (s_new, t_new) = step.slack(s, t);
         let e = evaluate_step(
             pb,
@@ -1345,18 +1360,41 @@ fn d_norm(
     vb: &[Vec3],
     parts: &mut Vec<f64>,
 ) -> f64 {
-    let h2 = pb.h * pb.h;
     // Over fixed vertex tasks, added in task order (the same bits for any thread count).
-    let term = |i: usize| {
-        let (dx, dv) = (sub(x[i], xb[i]), sub(v[i], vb[i]));
+    let map = |r: std::ops::Range<usize>| {
+        let base = (&xb[r.clone()], &vb[r.clone()]);
+        correction_sq_rows(pb, r.start, &x[r.clone()], &v[r], base)
+    };
+    let sum = reduce_chunks(x.len(), vertex_chunk(x.len()), parts, map, |a, b| a + b);
+    d_norm_from(pb, s, t, sum.unwrap_or(0.0))
+}
+
+/// `|q - q_base|_D` from the vertices' part of its square (the task sums of [`correction_sq_rows`] added in
+/// task order) and the slack values.
+fn d_norm_from(pb: &Problem, s: f64, t: f64, vertex_sum: f64) -> f64 {
+    (pb.eps * (s * s + t * t) + vertex_sum).sqrt()
+}
+
+/// The vertices' part of `|q - q_base|_D^2` over the rows `first..first + x.len()` (`x`, `v` and
+/// `base = (x_base, v_base)`: their rows), summed in row order.
+fn correction_sq_rows(
+    pb: &Problem,
+    first: usize,
+    x: &[Vec3],
+    v: &[Vec3],
+    base: (&[Vec3], &[Vec3]),
+) -> f64 {
+    let h2 = pb.h * pb.h;
+    let (xb, vb) = base;
+    let term = |k: usize| {
+        let (dx, dv) = (sub(x[k], xb[k]), sub(v[k], vb[k]));
         // A frozen position (a_i = 0) is held: its term is 0, not 0/0.
+        let i = first + k;
         let a = pb.metric_factor[i];
         let dx2 = if a > 0.0 { dot(dx, dx) / a } else { 0.0 };
         pb.model.masses[i] * (dx2 + h2 * dot(dv, dv))
     };
-    let map = |r: std::ops::Range<usize>| r.map(term).sum::<f64>();
-    let sum = reduce_chunks(x.len(), vertex_chunk(x.len()), parts, map, |a, b| a + b);
-    (pb.eps * (s * s + t * t) + sum.unwrap_or(0.0)).sqrt()
+    (0..x.len()).map(term).sum::<f64>()
 }
 
 /// Evaluate the constraints, the elastic gradient (into `grad`; the potential's is `grad E_el - m g`, formed
@@ -1372,10 +1410,11 @@ fn evaluate(
     sc: &mut EvalScratch,
     grad: &mut [Vec3],
 ) -> Eval {
-    evaluate_sums::<true>(pb, x, v, s, t, sc, grad)
+    evaluate_sums::<true>(pb, x, v, s, t, sc, grad, None)
 }
 
 /// [`evaluate`], with the moments for `S` only if `S` (`Eval::s_moments`).
+#[allow(clippy::too_many_arguments)]
 fn evaluate_sums<const S: bool>(
     pb: &Problem,
     x: &[Vec3],
@@ -1384,6 +1423,7 @@ fn evaluate_sums<const S: bool>(
     t: f64,
     sc: &mut EvalScratch,
     grad: &mut [Vec3],
+    base: Option<(&[Vec3], &[Vec3])>,
 ) -> Eval {
     let el = elastic_gradient_chunks(pb.model, x, &mut sc.ws);
     let ws = &sc.ws;
@@ -1395,7 +1435,12 @@ fn evaluate_sums<const S: bool>(
             *gk = ws.gradient_at(pb.model, first + k);
         }
         let r = first..first + g.len();
-        part[0] = vertex_moments::<S>(pb, first, &x[r.clone()], &v[r], Some(g));
+        part[0] = vertex_moments::<S>(pb, first, &x[r.clone()], &v[r.clone()], Some(g));
+        if let Some((xb, vb)) = base {
+            let rows_b = (&xb[r.clone()], &vb[r.clone()]);
+            let sq = correction_sq_rows(pb, first, &x[r.clone()], &v[r], rows_b);
+            part[0].correction_sq = Some(sq);
+        }
     });
     finish(pb, s, t, el, sum_parts(parts))
 }
@@ -1420,7 +1465,7 @@ fn evaluate_step(
     for_each_chunk_mut2(x_out, chunk, v_out, chunk, |c, xo, vo| {
         step.write_rows(c * chunk, xo, vo);
     });
-    evaluate_sums::<false>(pb, x_out, v_out, s, t, sc, g_out)
+    evaluate_sums::<false>(pb, x_out, v_out, s, t, sc, g_out, step.base)
 }
 
 /// [`evaluate`] without the elastic gradient: the same constraint values, energies and momenta; the gradient
@@ -1890,6 +1935,8 @@ struct Step<'a> {
     dp_star: Vec3,
     dl_star: Vec3,
     eps: f64,
+    /// The base state `(x_base, v_base)` whose D-norm distance the trial evaluation sums (`Eval::correction_sq`).
+    base: Option<(&'a [Vec3], &'a [Vec3])>,
 }
 
 impl<'a> Step<'a> {
@@ -1918,6 +1965,15 @@ impl<'a> Step<'a> {
             dp_star: pb.dp_star,
             dl_star: pb.dl_star,
             eps: pb.eps,
+            base: None,
+        }
+    }
+
+    /// The trial evaluation also sums the trial point's D-norm distance from `(x_base, v_base)`.
+    fn measured_from(self, x_base: &'a [Vec3], v_base: &'a [Vec3]) -> Self {
+        Self {
+            base: Some((x_base, v_base)),
+            ..self
         }
     }
 
@@ -2203,6 +2259,94 @@ mod tests {
                     l2_closed[a]
                 );
             }
+        }
+    }
+
+    /// The trial evaluation sums its point's D-norm distance from the base state in the same task order as
+    /// `d_norm`'s own pass: the projection's reported correction (taken from it when the result is a trial
+    /// point) keeps its bits, for the mass and the stiffness metric and with a pinned vertex.
+    #[test]
+    fn the_correction_summed_by_the_trial_pass_is_the_d_norm_pass_bit_for_bit() {
+        for (implicit, pin) in [(false, false), (true, false), (false, true)] {
+            let mut model = cube_model(1e4, [0.0, 0.0, -9.81]);
+            model.pinned[2] = pin;
+            // Stretched 10% about a point, moving: far enough from the targets for a few iterations.
+            let x: Vec<Vec3> = model
+                .mesh
+                .vertices()
+                .iter()
+                .map(|p| [0, 1, 2].map(|a| 0.5 + 1.1 * (p[a] - 0.5)))
+                .collect();
+            let v: Vec<Vec3> = (0..x.len())
+                .map(|i| [0.1 * (i as f64).sin(), -0.05, 0.02 * (i as f64).cos()])
+                .collect();
+            let state = crate::model::State { x, v, time: 0.0 };
+            let inv = crate::invariants::measure(&model, &state);
+            let targets = Targets {
+                energy: 0.9 * inv.total,
+                momentum: inv.momentum,
+                angular_momentum: inv.angular_momentum,
+                center_of_mass: inv.center_of_mass,
+                energy_scale: inv.total.abs(),
+                uncertain_impulses: false,
+            };
+            let h = 0.005;
+            let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
+            proj.set_implicit_base(implicit);
+            let mut out = state.clone();
+            let (report, _) = proj.project(&model, &mut out, h, &targets);
+            assert!(report.converged && report.iterations >= 1, "{report:?}");
+            assert!(
+                !report.warm_start,
+                "the result is a trial point: {report:?}"
+            );
+            let mut pb = Problem {
+                metric_factor: proj.metric_factor.clone(),
+                rows: MetricRows::default(),
+                model: &model,
+                h,
+                targets: &targets,
+                dp_star: [0.0; 3],
+                dl_star: [0.0; 3],
+                active: [true; ROWS],
+                row_scale: [1.0; ROWS],
+                eps: proj.settings.c_eps * model.total_mass * model.length_scale.powi(2),
+            };
+            pb.refresh_rows();
+            let pass = d_norm(
+                &pb,
+                &out.x,
+                &out.v,
+                report.s,
+                report.t,
+                &proj.x_base,
+                &proj.v_base,
+                &mut Vec::new(),
+            );
+            assert!(report.correction > 0.0);
+            assert_eq!(report.correction.to_bits(), pass.to_bits(), "{report:?}");
+
+            // The trial evaluation's sum itself (so that the gate above cannot pass by both sides taking the
+            // pass): a step from the base state, measured from it, against the pass's vertex sum.
+            let m = model.num_vertices();
+            let (xb, vb) = (proj.x_base.clone(), proj.v_base.clone());
+            let mut grad = vec![[0.0; 3]; m];
+            let mut sc = EvalScratch::default();
+            evaluate(&pb, &xb, &vb, 0.0, 0.0, &mut sc, &mut grad);
+            let lambda = [0.3, -0.2, 0.1, 0.05, 0.02, -0.04, 0.03, 0.2, -0.1, 0.07];
+            let step = Step::new(&pb, &xb, &vb, &grad, &lambda, 0.5).measured_from(&xb, &vb);
+            let (mut xo, mut vo, mut go) =
+                (vec![[0.0; 3]; m], vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
+            let e = evaluate_step(&pb, &step, 0.0, 0.0, &mut sc, &mut xo, &mut vo, &mut go);
+            let want = d_norm(&pb, &xo, &vo, 0.0, 0.0, &xb, &vb, &mut Vec::new());
+            let got = d_norm_from(
+                &pb,
+                0.0,
+                0.0,
+                e.correction_sq.expect("summed by the trial pass"),
+            );
+            assert!(want > 0.0);
+            assert_eq!(got.to_bits(), want.to_bits());
         }
     }
 
