@@ -453,6 +453,9 @@ pub struct Projector {
     base_elastic: Option<ElasticSummary>,
     /// The current iterate is q~ itself, in `x_base`/`v_base` (`x`/`v` hold stale rows): see `current!`.
     at_base: bool,
+    /// Iterations of the last projection: the trial points of the iterations before that count sum the
+    /// moments for `S` in their own pass (the next iteration solves with them), the last one does not.
+    expected_iterations: usize,
 }
 
 /// The current iterate's `(x, v)` of a [`Projector`] inside `project`: q~ itself (`x_base`, `v_base`) until
@@ -761,7 +764,11 @@ impl Projector {
                     let mut alpha = 1.0;
                     let mut accepted = None;
                     report.evaluations += 1;
-                    let mut cand = self.trial(&pb, s, t, &lambda, 1.0);
+                    // Sum S's moments with the trial point where another iteration is expected after this
+                    // one (backward Euler takes two per step): the pass after an accepted trial is then not
+                    // needed. Which pass sums them changes no bits (the same task sums in the same order).
+                    let moments = report.iterations + 1 < self.expected_iterations;
+                    let mut cand = self.trial(&pb, s, t, &lambda, 1.0, moments);
                     // Curvature-aware step length: along the step, P and C are linear in alpha, L is quadratic,
                     // so c(alpha) = (1 - alpha) c(0) + alpha^2 e with e = c(1) holds for them exactly and models H's
                     // curvature (its row with the second-order offset, see `model_step_length`). Where the full
@@ -773,7 +780,7 @@ impl Projector {
                             // second evaluation.
                             self.swap_trial_spare();
                             report.evaluations += 1;
-                            let alt = self.trial(&pb, s, t, &lambda, a_star);
+                            let alt = self.trial(&pb, s, t, &lambda, a_star, moments);
                             if alt.0.c.iter().all(|c| c.is_finite()) && alt.1 < cand.1 {
                                 cand = alt;
                                 alpha = a_star;
@@ -785,7 +792,7 @@ impl Projector {
                     for halving in 0..=self.settings.max_halvings {
                         if halving > 0 {
                             report.evaluations += 1;
-                            cand = self.trial(&pb, s, t, &lambda, alpha);
+                            cand = self.trial(&pb, s, t, &lambda, alpha, moments);
                         }
                         let (trial, n, s_new, t_new) = cand;
                         // Intermediate iterates may pass through states with more inverted tets (the
@@ -1009,6 +1016,7 @@ impl Projector {
         };
         self.metric_factor = std::mem::take(&mut pb.metric_factor);
         self.metric_rows = std::mem::take(&mut pb.rows);
+        self.expected_iterations = report.iterations;
         (report, inv)
     }
 }
@@ -1060,6 +1068,7 @@ impl Projector {
         t: f64,
         lambda: &[f64; ROWS],
         alpha: f64,
+        moments: bool,
     ) -> (Eval, f64, f64, f64) {
         let (x, v) = current!(self);
         let step = Step::new(pb, x, v, &self.grad, lambda, alpha)
@@ -1074,6 +1083,7 @@ impl Projector {
             &mut self.x_trial,
             &mut self.v_trial,
             &mut self.grad_trial,
+            moments,
         );
         let n = norm_scaled(pb, &e.c);
         (e, n, s_new, t_new)
@@ -1446,8 +1456,8 @@ fn evaluate_sums<const S: bool>(
 }
 
 /// [`evaluate`] at the trial point of `step` (`q - alpha D^-1 G lambda`, written to `x_out`, `v_out`, its
-/// elastic gradient to `g_out`), with the slack values `(s, t)` of that point; without the moments for `S`
-/// (`Eval::s_moments`). The trial point is written by a pass of its own: computing each position where the
+/// elastic gradient to `g_out`), with the slack values `(s, t)` of that point; with the moments for `S` only
+/// if `moments` (`Eval::s_moments`). The trial point is written by a pass of its own: computing each position where the
 /// elastic chunks gather it (no pass, 1.5 times the work) measured slower on bunny2, its arrays read in
 /// the user's vertex order.
 #[allow(clippy::too_many_arguments)]
@@ -1460,12 +1470,17 @@ fn evaluate_step(
     x_out: &mut [Vec3],
     v_out: &mut [Vec3],
     g_out: &mut [Vec3],
+    moments: bool,
 ) -> Eval {
     let chunk = vertex_chunk(x_out.len());
     for_each_chunk_mut2(x_out, chunk, v_out, chunk, |c, xo, vo| {
         step.write_rows(c * chunk, xo, vo);
     });
-    evaluate_sums::<false>(pb, x_out, v_out, s, t, sc, g_out, step.base)
+    if moments {
+        evaluate_sums::<true>(pb, x_out, v_out, s, t, sc, g_out, step.base)
+    } else {
+        evaluate_sums::<false>(pb, x_out, v_out, s, t, sc, g_out, step.base)
+    }
 }
 
 /// [`evaluate`] without the elastic gradient: the same constraint values, energies and momenta; the gradient
@@ -2188,7 +2203,9 @@ mod tests {
             let (mut xo, mut vo, mut go) =
                 (vec![[0.0; 3]; m], vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
             let (s1, t1) = step.slack(s0, t0);
-            let trial = evaluate_step(&pb, &step, s1, t1, &mut sc, &mut xo, &mut vo, &mut go);
+            let trial = evaluate_step(
+                &pb, &step, s1, t1, &mut sc, &mut xo, &mut vo, &mut go, false,
+            );
             // The trial evaluation is the plain evaluation at the trial point, bit for bit; its moments for S,
             // summed afterwards, too.
             let mut g1 = vec![[0.0; 3]; m];
@@ -2204,6 +2221,17 @@ mod tests {
                 small_matrix(&pb, e, velocity_block(&pb, e)).map(|row| row.map(f64::to_bits))
             };
             assert_eq!(s_bits(&later), s_bits(&plain));
+            // Summed by the trial pass itself (where another iteration is expected): the same bits again.
+            let (mut xo2, mut vo2, mut go2) =
+                (vec![[0.0; 3]; m], vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
+            let with = evaluate_step(
+                &pb, &step, s1, t1, &mut sc, &mut xo2, &mut vo2, &mut go2, true,
+            );
+            assert!(with.s_moments);
+            assert_eq!(bits(&with), bits(&plain));
+            assert_eq!(s_bits(&with), s_bits(&plain));
+            let second = |e: &Eval| angular_second_order(&pb, e, &lambda).map(f64::to_bits);
+            assert_eq!(second(&with), second(&plain));
             for k in 0..n {
                 let dq: f64 = dinv(k) * (0..ROWS).map(|r| g[k][r] * lambda[r]).sum::<f64>();
                 let got = if k < 3 * m {
@@ -2337,7 +2365,9 @@ mod tests {
             let step = Step::new(&pb, &xb, &vb, &grad, &lambda, 0.5).measured_from(&xb, &vb);
             let (mut xo, mut vo, mut go) =
                 (vec![[0.0; 3]; m], vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
-            let e = evaluate_step(&pb, &step, 0.0, 0.0, &mut sc, &mut xo, &mut vo, &mut go);
+            let e = evaluate_step(
+                &pb, &step, 0.0, 0.0, &mut sc, &mut xo, &mut vo, &mut go, false,
+            );
             let want = d_norm(&pb, &xo, &vo, 0.0, 0.0, &xb, &vb, &mut Vec::new());
             let got = d_norm_from(
                 &pb,
@@ -2348,6 +2378,47 @@ mod tests {
             assert!(want > 0.0);
             assert_eq!(got.to_bits(), want.to_bits());
         }
+    }
+
+    /// Where another iteration is expected, the trial pass sums the moments for `S` itself instead of a pass
+    /// after the trial is accepted: the projection's result keeps every bit.
+    #[test]
+    fn moments_summed_by_the_trial_pass_change_no_bits() {
+        let model = cube_model(1e4, [0.0, 0.0, -9.81]);
+        let x: Vec<Vec3> = (model.mesh.vertices().iter())
+            .map(|p| [0, 1, 2].map(|a| 0.5 + 1.1 * (p[a] - 0.5)))
+            .collect();
+        let v: Vec<Vec3> = (0..x.len())
+            .map(|i| [0.1 * (i as f64).sin(), -0.05, 0.02 * (i as f64).cos()])
+            .collect();
+        let state = crate::model::State { x, v, time: 0.0 };
+        let inv = crate::invariants::measure(&model, &state);
+        let targets = Targets {
+            energy: 0.9 * inv.total,
+            momentum: inv.momentum,
+            angular_momentum: inv.angular_momentum,
+            center_of_mass: inv.center_of_mass,
+            energy_scale: inv.total.abs(),
+            uncertain_impulses: false,
+        };
+        let run = |expected: usize| {
+            let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
+            proj.set_implicit_base(true);
+            proj.expected_iterations = expected;
+            let mut out = state.clone();
+            let (report, inv) = proj.project(&model, &mut out, 0.005, &targets);
+            let bits = |rows: &[Vec3]| {
+                rows.iter()
+                    .flatten()
+                    .map(|c| c.to_bits())
+                    .collect::<Vec<_>>()
+            };
+            (report, inv.total.to_bits(), bits(&out.x), bits(&out.v))
+        };
+        let (plain, with) = (run(0), run(usize::MAX));
+        assert!(plain.0.iterations >= 2, "{:?}", plain.0);
+        assert_eq!(format!("{:?}", plain.0), format!("{:?}", with.0));
+        assert_eq!((plain.1, &plain.2, &plain.3), (with.1, &with.2, &with.3));
     }
 
     /// The multipliers solve `S lambda = c + d(lambda)`, `d` the second-order terms of H (kinetic) and L along
