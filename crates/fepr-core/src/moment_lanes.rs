@@ -136,8 +136,8 @@ pub(crate) fn second_order_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; S
     portable::second_order_lanes(rows, g, center)
 }
 
-/// Lane `l`'s sum added in lane order (the fixed order that makes the result independent of the tasks'
-/// threads).
+/// One sum's lanes added in lane order (a fixed order: the result does not depend on which threads ran the
+/// tasks).
 #[inline]
 pub(crate) fn lane_sum(lane: &Lane) -> f64 {
     lane.iter().fold(0.0, |s, a| s + a)

@@ -2068,6 +2068,28 @@ mod tests {
         .unwrap()
     }
 
+    /// `model`'s rest shape stretched 10% about a point and moving, with targets 10% below its energy and at
+    /// its momenta: far enough from the manifold for a few iterations.
+    fn stretched_and_moving(model: &Model) -> (State, Targets) {
+        let x: Vec<Vec3> = (model.mesh.vertices().iter())
+            .map(|p| [0, 1, 2].map(|a| 0.5 + 1.1 * (p[a] - 0.5)))
+            .collect();
+        let v: Vec<Vec3> = (0..x.len())
+            .map(|i| [0.1 * (i as f64).sin(), -0.05, 0.02 * (i as f64).cos()])
+            .collect();
+        let state = State { x, v, time: 0.0 };
+        let inv = crate::invariants::measure(model, &state);
+        let targets = Targets {
+            energy: 0.9 * inv.total,
+            momentum: inv.momentum,
+            angular_momentum: inv.angular_momentum,
+            center_of_mass: inv.center_of_mass,
+            energy_scale: inv.total.abs(),
+            uncertain_impulses: false,
+        };
+        (state, targets)
+    }
+
     /// The closed-form `S` must equal `G^T D^-1 G` assembled from explicit constraint gradients, and the
     /// explicit gradients must match finite differences of `c(q)`.
     #[test]
@@ -2298,26 +2320,7 @@ mod tests {
         for (implicit, pin) in [(false, false), (true, false), (false, true)] {
             let mut model = cube_model(1e4, [0.0, 0.0, -9.81]);
             model.pinned[2] = pin;
-            // Stretched 10% about a point, moving: far enough from the targets for a few iterations.
-            let x: Vec<Vec3> = model
-                .mesh
-                .vertices()
-                .iter()
-                .map(|p| [0, 1, 2].map(|a| 0.5 + 1.1 * (p[a] - 0.5)))
-                .collect();
-            let v: Vec<Vec3> = (0..x.len())
-                .map(|i| [0.1 * (i as f64).sin(), -0.05, 0.02 * (i as f64).cos()])
-                .collect();
-            let state = crate::model::State { x, v, time: 0.0 };
-            let inv = crate::invariants::measure(&model, &state);
-            let targets = Targets {
-                energy: 0.9 * inv.total,
-                momentum: inv.momentum,
-                angular_momentum: inv.angular_momentum,
-                center_of_mass: inv.center_of_mass,
-                energy_scale: inv.total.abs(),
-                uncertain_impulses: false,
-            };
+            let (state, targets) = stretched_and_moving(&model);
             let h = 0.005;
             let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
             proj.set_implicit_base(implicit);
@@ -2385,22 +2388,7 @@ mod tests {
     #[test]
     fn moments_summed_by_the_trial_pass_change_no_bits() {
         let model = cube_model(1e4, [0.0, 0.0, -9.81]);
-        let x: Vec<Vec3> = (model.mesh.vertices().iter())
-            .map(|p| [0, 1, 2].map(|a| 0.5 + 1.1 * (p[a] - 0.5)))
-            .collect();
-        let v: Vec<Vec3> = (0..x.len())
-            .map(|i| [0.1 * (i as f64).sin(), -0.05, 0.02 * (i as f64).cos()])
-            .collect();
-        let state = crate::model::State { x, v, time: 0.0 };
-        let inv = crate::invariants::measure(&model, &state);
-        let targets = Targets {
-            energy: 0.9 * inv.total,
-            momentum: inv.momentum,
-            angular_momentum: inv.angular_momentum,
-            center_of_mass: inv.center_of_mass,
-            energy_scale: inv.total.abs(),
-            uncertain_impulses: false,
-        };
+        let (state, targets) = stretched_and_moving(&model);
         let run = |expected: usize| {
             let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
             proj.set_implicit_base(true);
