@@ -74,7 +74,8 @@ pub(crate) struct Rows<'a> {
 }
 
 impl Rows<'_> {
-    fn len(&self) -> usize {
+    /// Panics unless every slice has one row per vertex (the kernels read them unchecked).
+    fn assert_lengths(&self) {
         let n = self.x.len();
         assert!(
             [
@@ -88,7 +89,6 @@ impl Rows<'_> {
             .all(|&k| k == n),
             "one row per vertex"
         );
-        n
     }
 }
 
@@ -115,7 +115,7 @@ pub(crate) fn constraint_lanes(
 
 /// All the sums of [`q`] over `rows`: the constraints' and the moments for `S`.
 pub(crate) fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
-    rows.len();
+    rows.assert_lengths();
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: as in constraint_lanes.
@@ -127,7 +127,7 @@ pub(crate) fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUN
 /// The angular momentum's second-order moments over `rows`, with `r = x - center` and `g_i` the potential's
 /// gradient (see [`SECOND_ORDER_SUMS`]).
 pub(crate) fn second_order_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; SECOND_ORDER_SUMS] {
-    rows.len();
+    rows.assert_lengths();
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: as in constraint_lanes.
@@ -439,7 +439,7 @@ mod avx2 {
         if start + VL > rows.x.len() {
             return padded_group(rows, start);
         }
-        // SAFETY (caller): start + VL <= n rows of every slice (Rows::len).
+        // SAFETY (caller): start + VL <= n rows of every slice (Rows::assert_lengths).
         unsafe {
             Group {
                 x: load_rows(rows.x.as_ptr().add(start).cast()),
@@ -622,7 +622,7 @@ mod avx2 {
     pub(super) unsafe fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
         let n = rows.x.len();
         let (gv, cv) = (splat3(g), splat3(center));
-        // SAFETY: Rows::len checked the lengths (by the caller).
+        // SAFETY: Rows::assert_lengths checked the lengths (by the caller).
         let load = |start: usize| unsafe { group(rows, start) };
         let mut out = [[0.0; VL]; q::COUNT];
 

@@ -498,7 +498,34 @@ struct MetricRows {
     free_factor: Vec<f64>,
 }
 
-impl Problem<'_> {
+impl<'a> Problem<'a> {
+    /// The problem of one projection with the metric factors `metric_factor` (its per-vertex rows derived
+    /// into `rows`, a reused buffer), slack directions and row scales not yet set (zero and one).
+    fn new(
+        model: &'a Model,
+        h: f64,
+        targets: &'a Targets,
+        metric_factor: Vec<f64>,
+        rows: MetricRows,
+        active: [bool; ROWS],
+        eps: f64,
+    ) -> Self {
+        let mut pb = Problem {
+            model,
+            h,
+            targets,
+            dp_star: [0.0; 3],
+            dl_star: [0.0; 3],
+            active,
+            row_scale: [1.0; ROWS],
+            eps,
+            metric_factor,
+            rows,
+        };
+        pb.refresh_rows();
+        pb
+    }
+
     /// `rows` from `metric_factor`, the masses and the pins.
     fn refresh_rows(&mut self) {
         let model = self.model;
@@ -620,20 +647,17 @@ impl Projector {
             Slack::Auto => targets.uncertain_impulses,
         };
         self.prepare_metric(model, h);
-        let mut pb = Problem {
-            metric_factor: std::mem::take(&mut self.metric_factor),
-            rows: std::mem::take(&mut self.metric_rows),
+        // The slack directions are set from the first evaluation below (at s = t = 0 they do not enter the
+        // constraints), the row scales after it.
+        let mut pb = Problem::new(
             model,
             h,
             targets,
-            // Set from the first evaluation below (at s = t = 0 it does not enter the constraints).
-            dp_star: [0.0; 3],
-            dl_star: [0.0; 3],
-            active: self.active_rows(model, targets),
-            row_scale: [1.0; ROWS],
-            eps: self.settings.c_eps * mt * r * r,
-        };
-        pb.refresh_rows();
+            std::mem::take(&mut self.metric_factor),
+            std::mem::take(&mut self.metric_rows),
+            self.active_rows(model, targets),
+            self.settings.c_eps * mt * r * r,
+        );
         let (mut s, mut t) = (0.0, 0.0);
         // With a warm start possible, the first evaluation skips the elastic gradient: the warm start changes
         // the velocities alone and often leaves nothing to iterate (after PD, every step on the bunny), so the
@@ -2138,19 +2162,17 @@ mod tests {
                 model.pinned[3] = true;
             }
             let h = 0.02;
-            let mut pb = Problem {
-                metric_factor: factors.clone(),
-                rows: MetricRows::default(),
-                model: &model,
+            let mut pb = Problem::new(
+                &model,
                 h,
-                targets: &targets,
-                dp_star: [0.3, -0.1, 0.2],
-                dl_star: [-0.2, 0.4, 0.1],
-                active: [true; ROWS],
-                row_scale: [1.0; ROWS],
-                eps: 0.7,
-            };
-            pb.refresh_rows();
+                &targets,
+                factors.clone(),
+                MetricRows::default(),
+                [true; ROWS],
+                0.7,
+            );
+            pb.dp_star = [0.3, -0.1, 0.2];
+            pb.dl_star = [-0.2, 0.4, 0.1];
             let (s0, t0) = (0.1, -0.2);
             let mut grad = vec![[0.0; 3]; m];
             let mut sc = EvalScratch::default();
@@ -2331,19 +2353,9 @@ mod tests {
                 !report.warm_start,
                 "the result is a trial point: {report:?}"
             );
-            let mut pb = Problem {
-                metric_factor: proj.metric_factor.clone(),
-                rows: MetricRows::default(),
-                model: &model,
-                h,
-                targets: &targets,
-                dp_star: [0.0; 3],
-                dl_star: [0.0; 3],
-                active: [true; ROWS],
-                row_scale: [1.0; ROWS],
-                eps: proj.settings.c_eps * model.total_mass * model.length_scale.powi(2),
-            };
-            pb.refresh_rows();
+            let eps = proj.settings.c_eps * model.total_mass * model.length_scale.powi(2);
+            let (factors, rows) = (proj.metric_factor.clone(), MetricRows::default());
+            let pb = Problem::new(&model, h, &targets, factors, rows, [true; ROWS], eps);
             let pass = d_norm(
                 &pb,
                 &out.x,
@@ -2460,19 +2472,8 @@ mod tests {
             );
         }
         // The equations themselves, at the start: S lambda = c + d with d_H and d_L the terms at lambda.
-        let mut pb = Problem {
-            metric_factor: vec![1.0; m],
-            rows: MetricRows::default(),
-            model: &model,
-            h,
-            targets: &targets,
-            dp_star: [0.0; 3],
-            dl_star: [0.0; 3],
-            active: [true; ROWS],
-            row_scale: [1.0; ROWS],
-            eps: 1.0,
-        };
-        pb.refresh_rows();
+        let (factors, rows) = (vec![1.0; m], MetricRows::default());
+        let mut pb = Problem::new(&model, h, &targets, factors, rows, [true; ROWS], 1.0);
         pb.row_scale[0] = targets.energy;
         for a in 0..3 {
             pb.row_scale[1 + a] = model.total_mass * model.length_scale / h;
