@@ -1188,6 +1188,17 @@ struct RigidPart {
 }
 
 impl RigidPart {
+    /// No rigid motion (every velocity is deformational).
+    fn none() -> Self {
+        Self {
+            velocity: [0.0; 3],
+            omega: [0.0; 3],
+            center: [0.0; 3],
+            mass: 0.0,
+            inertia_inv: None,
+        }
+    }
+
     fn at(&self, x: Vec3) -> Vec3 {
         let w = cross(self.omega, sub(x, self.center));
         [
@@ -1208,13 +1219,7 @@ fn rigid_velocity(pb: &Problem, e: &Eval) -> RigidPart {
     debug_assert!(e.s_moments, "the moments for S");
     let mf = e.free_mass;
     if mf <= 0.0 {
-        return RigidPart {
-            velocity: [0.0; 3],
-            omega: [0.0; 3],
-            center: [0.0; 3],
-            mass: 0.0,
-            inertia_inv: None,
-        };
+        return RigidPart::none();
     }
     let d: Vec3 = std::array::from_fn(|a| e.free_r[a] / mf);
     let vc: Vec3 = std::array::from_fn(|a| e.free_p[a] / mf);
@@ -1275,7 +1280,7 @@ fn rigid_part_on_target(pb: &Problem, now: &RigidPart) -> Option<RigidPart> {
 /// momentum rows cover the whole body (see [`rigid_part_on_target`]), and scale `u` by the factor that then
 /// meets the energy row. The kinetic energy splits into rigid + deformational parts (u carries no momenta), so
 /// the result meets the energy row and, on the whole body, the momentum rows; otherwise P and L stay what they
-/// were. The iteration starts from there and only fixes what is left (the centre of mass, round-off): a
+/// were. With no momentum row active, nothing is rigid: every free velocity is scaled. The iteration starts from there and only fixes what is left (the centre of mass, round-off): a
 /// dissipative base step that lost most of H is then 0-2 iterations from the manifold instead of a stiff
 /// position correction away. False if that energy cannot be reached.
 fn warm_start_velocities(
@@ -1286,7 +1291,15 @@ fn warm_start_velocities(
     parts: &mut Vec<[f64; 3]>,
 ) -> bool {
     let c_h = e.c[0];
-    let now = rigid_velocity(pb, e);
+    // Without momentum rows (the default with pins) nothing holds P or L, so no rigid part is kept: every free
+    // velocity is scaled. A pinned body's swing is mostly a best-fit rigid rotation; scaling only the small
+    // rest amplified it up to 17x per step on the PD cantilever demo, and its energy error grew to 0.23.
+    let momenta_rows = pb.active[1..7].iter().any(|&a| a);
+    let now = if momenta_rows {
+        rigid_velocity(pb, e)
+    } else {
+        RigidPart::none()
+    };
     let target = rigid_part_on_target(pb, &now);
     let next = target.as_ref().unwrap_or(&now);
     // The kinetic energies of u, of the rigid part now and of the next one, over fixed vertex tasks added in
