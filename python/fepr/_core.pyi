@@ -51,6 +51,7 @@ class _ProjectionReportDict(TypedDict):
     base_energy: float
     warm_start: bool
     stiffness_metric: bool
+    system_metric: bool
     restarts: int
     frozen_vertices: int
     evaluations: int

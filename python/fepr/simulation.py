@@ -69,7 +69,9 @@ class Projection:
         fepr-spec section 3), ``"stiffness"`` (W = M + h^2 diag(K_0), K_0 the rest-state stiffness: stiff local
         modes such as sliver tets become expensive to move, so an energy deficit is restored through the
         velocities and the smooth modes) or ``"auto"`` (default: stiffness after an implicit base integrator,
-        mass after symplectic Euler).
+        mass after symplectic Euler; after Projective Dynamics, where the energy is the only row (pinned bodies)
+        and no vertex is in contact, PD's own prefactored matrix, W = M + h^2 L, which moves the positions as a
+        global step would).
     """
 
     tolerance: float = 1e-10
@@ -212,6 +214,9 @@ class ProjectionReport:
     ``residual`` and ``initial_residual`` are the largest scaled constraint residuals (compare with the
     tolerance) after and before the projection; ``correction`` is the D-norm of the change (sqrt(kg) m);
     ``fallback`` means it did not converge and kept the best iterate or the base step's state.
+    ``stiffness_metric`` and ``system_metric`` say which position metric it used (neither: the mass metric):
+    ``W = M + h^2 diag(K_0)``, or the base integrator's own matrix (after Projective Dynamics with the energy as
+    the only row, the default with pins: ``W = M + h^2 L``, PD's global matrix times ``h^2``).
     """
 
     iterations: int
@@ -229,6 +234,7 @@ class ProjectionReport:
     base_energy: float
     warm_start: bool
     stiffness_metric: bool
+    system_metric: bool
     restarts: int
     frozen_vertices: int
     evaluations: int

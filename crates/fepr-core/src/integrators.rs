@@ -64,6 +64,11 @@ pub trait Integrator: Send + Sync {
     fn result_elastic_gradient(&mut self) -> Option<(ElasticSummary, &[Vec3], &mut Vec<Vec3>)> {
         None
     }
+    /// The position metric this integrator has factorised for the projection that follows its step, if any
+    /// (Projective Dynamics: its global matrix; see [`crate::projection::SystemMetric`]). Default: none.
+    fn system_metric(&mut self) -> Option<&mut dyn crate::projection::SystemMetric> {
+        None
+    }
 }
 
 /// Symplectic (semi-implicit) Euler, the seed's integrator:

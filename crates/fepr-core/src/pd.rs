@@ -187,6 +187,63 @@ impl ProjectiveDynamics {
     }
 }
 
+/// The PD matrix as the projection's position metric: `W = h^2 A = M + h^2 L` (`A = M / h^2 + L`, the matrix
+/// the global step solves with; `L = sum_e w_e G_e G_e^T`, per coordinate), factorised already. After a PD step
+/// the projection's energy correction then moves the positions as a global step would (smooth modes first),
+/// where the diagonal stiffness metric moved each vertex on its own.
+impl crate::projection::SystemMetric for ProjectiveDynamics {
+    fn solve(&mut self, model: &Model, h: f64, rhs: &[Vec3], out: &mut [Vec3]) -> bool {
+        let Some(pre) = self.pre.as_mut() else {
+            return false;
+        };
+        if pre.h != h || pre.key != model.key() {
+            return false;
+        }
+        let inv_h2 = 1.0 / (h * h);
+        let b = &mut self.rhs;
+        b.clear();
+        b.extend(pre.free_vertices.iter().map(|&v| scale(rhs[v], inv_h2)));
+        pre.chol.solve3_in_place(b);
+        out.iter_mut().for_each(|o| *o = [0.0; 3]);
+        for (c, &v) in pre.free_vertices.iter().enumerate() {
+            out[v] = b[c];
+        }
+        true
+    }
+
+    fn norm_sq(&self, model: &Model, h: f64, dx: &[Vec3]) -> f64 {
+        // dx^T M dx + h^2 sum_e w_e |sum_k dx_k g_k^T|_F^2 (the tet's change of F), in tet order.
+        let mu = match model.material {
+            Material::Arap(a) => a.mu,
+            _ => return f64::NAN,
+        };
+        let mass: f64 = (0..dx.len())
+            .filter(|&i| !model.pinned[i])
+            .map(|i| {
+                model.masses[i] * (dx[i][0] * dx[i][0] + dx[i][1] * dx[i][1] + dx[i][2] * dx[i][2])
+            })
+            .sum();
+        let mut stiff = 0.0;
+        for (e, t) in model.mesh.tets().iter().enumerate() {
+            let g = shape_gradients(model, e);
+            let mut df = [[0.0; 3]; 3];
+            for (k, &v) in t.iter().enumerate() {
+                if model.pinned[v] {
+                    continue;
+                }
+                for a in 0..3 {
+                    for b in 0..3 {
+                        df[a][b] += dx[v][a] * g[k][b];
+                    }
+                }
+            }
+            let f2: f64 = df.iter().flatten().map(|q| q * q).sum();
+            stiff += 2.0 * mu * model.rest_volume[e] * f2;
+        }
+        mass + h * h * stiff
+    }
+}
+
 /// Free vertices per parallel task of the right-hand side assembly.
 const RHS_CHUNK: usize = 256;
 
@@ -197,6 +254,10 @@ impl Integrator for ProjectiveDynamics {
 
     fn is_implicit(&self) -> bool {
         true
+    }
+
+    fn system_metric(&mut self) -> Option<&mut dyn crate::projection::SystemMetric> {
+        Some(self)
     }
 
     fn check(&self, model: &Model) -> Result<()> {

@@ -137,6 +137,20 @@ impl Metric {
     }
 }
 
+/// A position metric `W` that the base integrator has factorised (Projective Dynamics: `W = M + h^2 L`, its
+/// global matrix times `h^2`; see [`crate::integrators::Integrator::system_metric`]). Under [`Metric::Auto`]
+/// the projection uses it for the position block where the energy is its only row (the default with pins)
+/// and no position is frozen: the diagonal stiffness metric moves each vertex on its own, and where the energy
+/// has to come out of the positions of a stiff body (the base step left more than the kinetic energy it could
+/// come from) that takes many small steps; with `W` one step moves the smooth modes as the base integrator would.
+pub trait SystemMetric {
+    /// `out = W^-1 rhs` (shape (m, 3)) on the free vertices, 0 on the pinned ones, for `model` and step
+    /// size `h`. False (and `out` untouched) where the factorisation is not for them.
+    fn solve(&mut self, model: &Model, h: f64, rhs: &[Vec3], out: &mut [Vec3]) -> bool;
+    /// `dx^T W dx` (kg m^2) of a position change `dx` (shape (m, 3)) that is zero on the pinned vertices.
+    fn norm_sq(&self, model: &Model, h: f64, dx: &[Vec3]) -> f64;
+}
+
 /// When the slack variables s and t of fepr-spec section 2 are free to move.
 ///
 /// With slack, the projection may keep part of the base step's own momentum change (at cost
@@ -281,6 +295,9 @@ pub struct ProjectionReport {
     pub warm_start: bool,
     /// The position metric was `W = M + h^2 diag(K_0)` (see [`Metric`]).
     pub stiffness_metric: bool,
+    /// The position metric was the base integrator's factorised matrix (see [`SystemMetric`]); then
+    /// `stiffness_metric` is false.
+    pub system_metric: bool,
     /// Restarts from the base state after an attempt inverted tets the base step had upright.
     pub restarts: usize,
     /// Vertices whose positions were frozen by those restarts (their velocities stay free).
@@ -456,6 +473,10 @@ pub struct Projector {
     /// Iterations of the last projection: the trial points of the iterations before that count sum the
     /// moments for `S` in their own pass (the next iteration solves with them), the last one does not.
     expected_iterations: usize,
+    /// With a [`SystemMetric`]: the potential's gradient at the iterate and `W^-1` of it (the positions'
+    /// direction of the energy row).
+    system_rhs: Vec<Vec3>,
+    system_dir: Vec<Vec3>,
 }
 
 /// The current iterate's `(x, v)` of a [`Projector`] inside `project`: q~ itself (`x_base`, `v_base`) until
@@ -621,6 +642,20 @@ impl Projector {
         h: f64,
         targets: &Targets,
     ) -> (ProjectionReport, Invariants) {
+        self.project_with(model, state, h, targets, None)
+    }
+
+    /// [`Projector::project`] with the base integrator's factorised position metric, if it offers one
+    /// ([`crate::integrators::Integrator::system_metric`]): used under [`Metric::Auto`] where the energy is the
+    /// only active row and no position is frozen (see [`SystemMetric`]).
+    pub fn project_with(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        targets: &Targets,
+        system: Option<&mut dyn SystemMetric>,
+    ) -> (ProjectionReport, Invariants) {
         let m = model.num_vertices();
         self.grad_is_final = false;
         for buf in [
@@ -658,6 +693,14 @@ impl Projector {
             self.active_rows(model, targets),
             self.settings.c_eps * mt * r * r,
         );
+        let energy_only = pb.active[0] && pb.active[1..].iter().all(|&a| !a);
+        let mut system = system.filter(|_| {
+            self.settings.metric == Metric::Auto && energy_only && self.frozen_positions.is_empty()
+        });
+        if system.is_some() {
+            self.system_rhs.resize(m, [0.0; 3]);
+            self.system_dir.resize(m, [0.0; 3]);
+        }
         let (mut s, mut t) = (0.0, 0.0);
         // With a warm start possible, the first evaluation skips the elastic gradient: the warm start changes
         // the velocities alone and often leaves nothing to iterate (after PD, every step on the bunny), so the
@@ -699,7 +742,8 @@ impl Projector {
             active_rows: pb.active.iter().filter(|a| **a).count(),
             initial_residual: max_scaled(&pb, &cur.c),
             base_energy: cur.kinetic + cur.el.energy + cur.gravitational,
-            stiffness_metric: self.uses_stiffness_metric(),
+            stiffness_metric: self.uses_stiffness_metric() && system.is_none(),
+            system_metric: system.is_some(),
             evaluations: usize::from(offered.is_none()),
             ..Default::default()
         };
@@ -779,6 +823,22 @@ impl Projector {
                         let (x, v) = current!(self);
                         cur = evaluate_with_elastic(&pb, x, v, s, t, cur.el, grad, parts);
                     }
+                    if let Some(sys) = system.as_deref_mut() {
+                        // The energy row's position block in the metric W: its direction W^-1 grad U and
+                        // S_HH's position part grad U . W^-1 grad U (in place of the diagonal metric's moment).
+                        let (x, _) = current!(self);
+                        let (rhs, dir) = (&mut self.system_rhs, &mut self.system_dir);
+                        let parts = &mut self.scratch.norms;
+                        match system_direction(&pb, sys, x, &self.grad, rhs, dir, parts) {
+                            Some(gz) => cur.grad_sq_over_w = gz,
+                            None => {
+                                system = None;
+                                report.system_metric = false;
+                                report.stiffness_metric = self.uses_stiffness_metric();
+                            }
+                        }
+                    }
+                    let dir = system.is_some();
                     let Multipliers {
                         lambda,
                         least_squares,
@@ -792,7 +852,7 @@ impl Projector {
                     // one (backward Euler takes two per step): the pass after an accepted trial is then not
                     // needed. Which pass sums them changes no bits (the same task sums in the same order).
                     let moments = report.iterations + 1 < self.expected_iterations;
-                    let mut cand = self.trial(&pb, s, t, &lambda, 1.0, moments);
+                    let mut cand = self.trial(&pb, s, t, &lambda, 1.0, moments, dir);
                     // Curvature-aware step length: along the step, P and C are linear in alpha, L is quadratic,
                     // so c(alpha) = (1 - alpha) c(0) + alpha^2 e with e = c(1) holds for them exactly and models H's
                     // curvature (its row with the second-order offset, see `model_step_length`). Where the full
@@ -804,7 +864,7 @@ impl Projector {
                             // second evaluation.
                             self.swap_trial_spare();
                             report.evaluations += 1;
-                            let alt = self.trial(&pb, s, t, &lambda, a_star, moments);
+                            let alt = self.trial(&pb, s, t, &lambda, a_star, moments, dir);
                             if alt.0.c.iter().all(|c| c.is_finite()) && alt.1 < cand.1 {
                                 cand = alt;
                                 alpha = a_star;
@@ -816,7 +876,7 @@ impl Projector {
                     for halving in 0..=self.settings.max_halvings {
                         if halving > 0 {
                             report.evaluations += 1;
-                            cand = self.trial(&pb, s, t, &lambda, alpha, moments);
+                            cand = self.trial(&pb, s, t, &lambda, alpha, moments, dir);
                         }
                         let (trial, n, s_new, t_new) = cand;
                         // Intermediate iterates may pass through states with more inverted tets (the
@@ -880,6 +940,11 @@ impl Projector {
             pb.refresh_rows();
             if frozen == 0 {
                 break;
+            }
+            // Frozen positions are outside what the factorised metric can hold: the diagonal one restarts.
+            if system.take().is_some() {
+                report.system_metric = false;
+                report.stiffness_metric = self.uses_stiffness_metric();
             }
             report.restarts += 1;
             report.frozen_vertices += frozen;
@@ -954,6 +1019,20 @@ impl Projector {
         report.correction = if base_returned {
             debug_assert!(s == 0.0 && t == 0.0, "q~ has s = t = 0");
             0.0
+        } else if let Some(sys) = system.as_deref() {
+            let dx = &mut self.system_rhs;
+            for (d, (x, xb)) in dx.iter_mut().zip(state.x.iter().zip(&self.x_base)) {
+                *d = sub(*x, *xb);
+            }
+            let h2 = h * h;
+            let velocity: f64 = (0..m)
+                .filter(|&i| !model.pinned[i])
+                .map(|i| {
+                    let dv = sub(state.v[i], self.v_base[i]);
+                    model.masses[i] * h2 * dot(dv, dv)
+                })
+                .sum();
+            (sys.norm_sq(model, h, dx) + velocity + pb.eps * (s * s + t * t)).sqrt()
         } else if let Some(sum) = fin.correction_sq {
             // The result is a trial point, whose evaluation summed its distance from q~ (the same task sums
             // in the same order as the pass below: the same bits).
@@ -1084,7 +1163,9 @@ impl Projector {
     }
 
     /// Evaluate the trial point `q - alpha D^-1 G lambda` (into the trial buffers): returns its evaluation,
-    /// scaled residual norm and slack values.
+    /// scaled residual norm and slack values. `system_dir`: the positions move along `system_dir` (the
+    /// [`SystemMetric`]'s direction of the energy row).
+    #[allow(clippy::too_many_arguments)]
     fn trial(
         &mut self,
         pb: &Problem,
@@ -1093,10 +1174,14 @@ impl Projector {
         lambda: &[f64; ROWS],
         alpha: f64,
         moments: bool,
+        system_dir: bool,
     ) -> (Eval, f64, f64, f64) {
         let (x, v) = current!(self);
-        let step = Step::new(pb, x, v, &self.grad, lambda, alpha)
+        let mut step = Step::new(pb, x, v, &self.grad, lambda, alpha)
             .measured_from(&self.x_base, &self.v_base);
+        if system_dir {
+            step.dir = Some(&self.system_dir);
+        }
         let (s_new, t_new) = step.slack(s, t);
         let e = evaluate_step(
             pb,
@@ -1393,6 +1478,39 @@ fn norm_scaled(pb: &Problem, c: &[f64; ROWS]) -> f64 {
         .map(|i| (c[i] / pb.row_scale[i]).powi(2))
         .sum::<f64>()
         .sqrt()
+}
+
+/// The energy row's position direction in the metric of `sys`: `rhs` gets the potential's gradient
+/// `grad E_el - m g` at `x` (0 on pinned vertices), `dir` gets `W^-1` of it. Returns `rhs . dir` (S_HH's position
+/// part), summed over fixed vertex tasks in task order (the same bits for any thread count), or `None` where
+/// `sys` has no factorisation for this model and step size.
+fn system_direction(
+    pb: &Problem,
+    sys: &mut dyn SystemMetric,
+    x: &[Vec3],
+    grad: &[Vec3],
+    rhs: &mut [Vec3],
+    dir: &mut [Vec3],
+    parts: &mut Vec<f64>,
+) -> Option<f64> {
+    let model = pb.model;
+    let g = model.gravity;
+    debug_assert_eq!(x.len(), rhs.len());
+    for (i, r) in rhs.iter_mut().enumerate() {
+        let m = model.masses[i];
+        *r = if model.pinned[i] {
+            [0.0; 3]
+        } else {
+            [0, 1, 2].map(|a| grad[i][a] - m * g[a])
+        };
+    }
+    if !sys.solve(model, pb.h, rhs, dir) {
+        return None;
+    }
+    let chunk = vertex_chunk(rhs.len());
+    let (rhs, dir) = (&*rhs, &*dir);
+    let map = |r: std::ops::Range<usize>| r.map(|i| dot(rhs[i], dir[i])).sum::<f64>();
+    reduce_chunks(rhs.len(), chunk, parts, map, |a, b| a + b)
 }
 
 /// `|q - q_base|_D` with `D = diag(W, h^2 M, eps, eps)`, `W = diag(m_i / a_i)`.
@@ -1989,6 +2107,8 @@ struct Step<'a> {
     eps: f64,
     /// The base state `(x_base, v_base)` whose D-norm distance the trial evaluation sums (`Eval::correction_sq`).
     base: Option<(&'a [Vec3], &'a [Vec3])>,
+    /// With a [`SystemMetric`] (the energy the only row): `W^-1 grad U`, the positions' direction.
+    dir: Option<&'a [Vec3]>,
 }
 
 impl<'a> Step<'a> {
@@ -2018,6 +2138,7 @@ impl<'a> Step<'a> {
             dl_star: pb.dl_star,
             eps: pb.eps,
             base: None,
+            dir: None,
         }
     }
 
@@ -2032,6 +2153,10 @@ impl<'a> Step<'a> {
     /// The trial positions (m) and velocities (m/s) of the vertices `first..first + x_out.len()`, into
     /// `x_out` and `v_out`; a pinned vertex keeps its own. One pass over the vertices' arrays side by side.
     fn write_rows(&self, first: usize, x_out: &mut [Vec3], v_out: &mut [Vec3]) {
+        if let Some(dir) = self.dir {
+            self.write_rows_along(dir, first, x_out, v_out);
+            return;
+        }
         let r = first..first + x_out.len();
         let model = self.model;
         let (g, ll, lc, lp, ct) = (model.gravity, self.ll, self.lc_over_mt, self.lp, self.ct);
@@ -2066,6 +2191,24 @@ impl<'a> Step<'a> {
                 xo[a] = x[a] - alpha * dx;
                 let dv = (lh * v[a] + lp[a] + lxr[a]) * inv_h2;
                 vo[a] = v[a] - alpha * dv;
+            }
+        }
+    }
+
+    /// [`Step::write_rows`] with the positions moved along `dir = W^-1 grad U` of a [`SystemMetric`] (the energy
+    /// the only active row: the other multipliers are zero).
+    fn write_rows_along(&self, dir: &[Vec3], first: usize, x_out: &mut [Vec3], v_out: &mut [Vec3]) {
+        let (lh, alpha, inv_h2) = (self.lh, self.alpha, self.inv_h2);
+        for (k, (xo, vo)) in x_out.iter_mut().zip(v_out.iter_mut()).enumerate() {
+            let i = first + k;
+            let (x, v) = (self.x[i], self.v[i]);
+            if self.model.pinned[i] {
+                (*xo, *vo) = (x, v);
+                continue;
+            }
+            for a in 0..3 {
+                xo[a] = x[a] - alpha * lh * dir[i][a];
+                vo[a] = v[a] - alpha * lh * v[a] * inv_h2;
             }
         }
     }

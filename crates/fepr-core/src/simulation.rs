@@ -506,7 +506,9 @@ impl Simulation {
                         p.offer_base_gradient(summary, grad);
                     }
                 }
-                let (rep, inv) = p.project(&self.model, &mut self.state, self.dt, &targets);
+                let system = self.integrator.system_metric();
+                let (rep, inv) =
+                    p.project_with(&self.model, &mut self.state, self.dt, &targets, system);
                 if let Some(grad) = p.take_final_gradient() {
                     self.integrator
                         .offer_elastic_gradient(&self.model, &self.state.x, grad);

@@ -222,6 +222,7 @@ fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py
     d.set_item("base_energy", r.base_energy)?;
     d.set_item("warm_start", r.warm_start)?;
     d.set_item("stiffness_metric", r.stiffness_metric)?;
+    d.set_item("system_metric", r.system_metric)?;
     d.set_item("restarts", r.restarts)?;
     d.set_item("frozen_vertices", r.frozen_vertices)?;
     d.set_item("evaluations", r.evaluations)?;
