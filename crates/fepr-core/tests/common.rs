@@ -133,3 +133,12 @@ pub fn max_drifts(
     }
     (dh, dp, dl)
 }
+
+/// `f()` inside a fresh rayon pool of `threads` threads (the bit-identity tests run the same work in several).
+pub fn in_pool<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap()
+        .install(f)
+}

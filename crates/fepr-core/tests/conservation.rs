@@ -216,32 +216,28 @@ fn damping_budget_is_honoured_by_the_projection() {
 #[test]
 fn projected_run_is_bit_identical_for_any_thread_count() {
     let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| {
-                let big = cubes_mesh(
-                    &(0..6)
-                        .flat_map(|i| (0..6).flat_map(move |j| (0..6).map(move |k| [i, j, k])))
-                        .collect::<Vec<_>>(),
-                    0.1,
-                );
-                let model = model(big, neo_hookean(1e4, 0.3), 0.01, [0.0, 0.0, -9.81]);
-                let mut state = State::at_rest(&model);
-                scaled(&mut state, 1.1, [0.3, 0.3, 0.3]);
-                let mut sim = simulation(model, state, 2e-3, true);
-                for _ in 0..20 {
-                    sim.step().unwrap();
-                }
-                sim.state
-                    .x
-                    .iter()
-                    .chain(&sim.state.v)
-                    .flatten()
-                    .map(|c| c.to_bits())
-                    .collect::<Vec<u64>>()
-            })
+        in_pool(threads, || {
+            let big = cubes_mesh(
+                &(0..6)
+                    .flat_map(|i| (0..6).flat_map(move |j| (0..6).map(move |k| [i, j, k])))
+                    .collect::<Vec<_>>(),
+                0.1,
+            );
+            let model = model(big, neo_hookean(1e4, 0.3), 0.01, [0.0, 0.0, -9.81]);
+            let mut state = State::at_rest(&model);
+            scaled(&mut state, 1.1, [0.3, 0.3, 0.3]);
+            let mut sim = simulation(model, state, 2e-3, true);
+            for _ in 0..20 {
+                sim.step().unwrap();
+            }
+            sim.state
+                .x
+                .iter()
+                .chain(&sim.state.v)
+                .flatten()
+                .map(|c| c.to_bits())
+                .collect::<Vec<u64>>()
+        })
     };
     let one = run(1);
     assert_eq!(one, run(2));
@@ -330,10 +326,33 @@ fn deformational_part(masses: &[f64], x: &[[f64; 3]], v: &[[f64; 3]]) -> Vec<[f6
         .collect()
 }
 
+/// Project `state` (dt = 1/30 s) with the warm start above `threshold`, and check that the warm start alone
+/// ended the projection: converged without iterations, the positions held, the energy on its target.
+fn warm_start_alone(
+    model: &fepr_core::model::Model,
+    state: &mut State,
+    targets: &fepr_core::projection::Targets,
+    threshold: f64,
+) -> fepr_core::invariants::Invariants {
+    use fepr_core::projection::{ProjectionSettings, Projector};
+    let x0 = state.x.clone();
+    let settings = ProjectionSettings {
+        warm_start_threshold: threshold,
+        ..Default::default()
+    };
+    let mut proj = Projector::new(settings).unwrap();
+    let (report, out) = proj.project(model, state, 1.0 / 30.0, targets);
+    assert!(report.warm_start && report.converged, "{report:?}");
+    assert_eq!(report.iterations, 0, "{report:?}");
+    assert_eq!(state.x, x0, "the warm start holds the positions");
+    assert!(rel(out.total, targets.energy) <= 1e-12, "{out:?}");
+    out
+}
+
 #[test]
 fn warm_start_puts_the_momenta_on_their_targets_with_positions_held_and_leaves_no_iteration() {
     use fepr_core::invariants::measure;
-    use fepr_core::projection::{ProjectionSettings, Projector, Targets};
+    use fepr_core::projection::Targets;
     let model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0; 3]);
     let mut state = State::at_rest(&model);
     let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
@@ -358,16 +377,7 @@ fn warm_start_puts_the_momenta_on_their_targets_with_positions_held_and_leaves_n
         uncertain_impulses: false,
     };
     let base = state.clone();
-    let settings = ProjectionSettings {
-        warm_start_threshold: 0.05,
-        ..Default::default()
-    };
-    let mut proj = Projector::new(settings).unwrap();
-    let (report, out) = proj.project(&model, &mut state, 1.0 / 30.0, &targets);
-    assert!(report.warm_start && report.converged, "{report:?}");
-    assert_eq!(report.iterations, 0, "{report:?}");
-    assert_eq!(state.x, base.x, "the warm start holds the positions");
-    assert!(rel(out.total, targets.energy) <= 1e-12, "{out:?}");
+    let out = warm_start_alone(&model, &mut state, &targets, 0.05);
     for a in 0..3 {
         assert!((out.momentum[a] - targets.momentum[a]).abs() <= 1e-12 * norm(targets.momentum));
         assert!(
@@ -399,7 +409,7 @@ fn warm_start_puts_the_momenta_on_their_targets_with_positions_held_and_leaves_n
 #[test]
 fn warm_start_on_a_pinned_body_scales_every_free_velocity_alike() {
     use fepr_core::invariants::measure;
-    use fepr_core::projection::{ProjectionSettings, Projector, Targets};
+    use fepr_core::projection::Targets;
     let mut model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0, 0.0, -9.81]);
     for i in 0..model.num_vertices() {
         model.pinned[i] = model.mesh.vertices()[i][2] == 0.0;
@@ -422,16 +432,7 @@ fn warm_start_on_a_pinned_body_scales_every_free_velocity_alike() {
         uncertain_impulses: false,
     };
     let base = state.clone();
-    let settings = ProjectionSettings {
-        warm_start_threshold: 0.0,
-        ..Default::default()
-    };
-    let mut proj = Projector::new(settings).unwrap();
-    let (report, out) = proj.project(&model, &mut state, 1.0 / 30.0, &targets);
-    assert!(report.warm_start && report.converged, "{report:?}");
-    assert_eq!(report.iterations, 0, "{report:?}");
-    assert_eq!(state.x, base.x, "the warm start holds the positions");
-    assert!(rel(out.total, targets.energy) <= 1e-12, "{out:?}");
+    warm_start_alone(&model, &mut state, &targets, 0.0);
     let beta = ((inv.kinetic + 10.0) / inv.kinetic).sqrt();
     for (i, (v1, v0)) in state.v.iter().zip(&base.v).enumerate() {
         for a in 0..3 {

@@ -145,34 +145,30 @@ fn newton_iteration_cost_breakdown() {
 #[test]
 fn implicit_euler_is_bit_identical_for_any_thread_count() {
     let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| {
-                let cells: Vec<[i64; 3]> = (0..8)
-                    .flat_map(|i| (0..8).flat_map(move |j| (0..8).map(move |k| [i, j, k])))
-                    .collect();
-                let model = model(
-                    cubes_mesh(&cells, 0.05),
-                    neo_hookean(1e5, 0.3),
-                    0.01,
-                    [0.0, 0.0, -9.81],
-                );
-                let mut state = State::at_rest(&model);
-                scaled(&mut state, 1.1, [0.2; 3]);
-                let mut ie = ImplicitEuler::default();
-                for _ in 0..3 {
-                    ie.step(&model, &mut state, 1.0 / 30.0);
-                }
-                state
-                    .x
-                    .iter()
-                    .chain(&state.v)
-                    .flatten()
-                    .map(|c| c.to_bits())
-                    .collect::<Vec<u64>>()
-            })
+        in_pool(threads, || {
+            let cells: Vec<[i64; 3]> = (0..8)
+                .flat_map(|i| (0..8).flat_map(move |j| (0..8).map(move |k| [i, j, k])))
+                .collect();
+            let model = model(
+                cubes_mesh(&cells, 0.05),
+                neo_hookean(1e5, 0.3),
+                0.01,
+                [0.0, 0.0, -9.81],
+            );
+            let mut state = State::at_rest(&model);
+            scaled(&mut state, 1.1, [0.2; 3]);
+            let mut ie = ImplicitEuler::default();
+            for _ in 0..3 {
+                ie.step(&model, &mut state, 1.0 / 30.0);
+            }
+            state
+                .x
+                .iter()
+                .chain(&state.v)
+                .flatten()
+                .map(|c| c.to_bits())
+                .collect::<Vec<u64>>()
+        })
     };
     let one = run(1);
     assert_eq!(one, run(2));

@@ -127,20 +127,15 @@ fn pd_fepr_on_a_pinned_cantilever_converges_in_the_pd_matrix_metric() {
 #[test]
 fn pd_fepr_in_the_pd_matrix_metric_is_bit_identical_for_any_thread_count() {
     let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| {
-                let mut sim = pd_cantilever(true);
-                let mut iterations = 0;
-                for _ in 0..15 {
-                    iterations += sim.step().unwrap().projection.unwrap().iterations;
-                }
-                let bits =
-                    |a: &[[f64; 3]]| a.iter().flatten().map(|q| q.to_bits()).collect::<Vec<_>>();
-                (iterations, bits(&sim.state.x), bits(&sim.state.v))
-            })
+        in_pool(threads, || {
+            let mut sim = pd_cantilever(true);
+            let mut iterations = 0;
+            for _ in 0..15 {
+                iterations += sim.step().unwrap().projection.unwrap().iterations;
+            }
+            let bits = |a: &[[f64; 3]]| a.iter().flatten().map(|q| q.to_bits()).collect::<Vec<_>>();
+            (iterations, bits(&sim.state.x), bits(&sim.state.v))
+        })
     };
     let one = run(1);
     assert!(one.0 > 0, "some projections iterate");

@@ -116,11 +116,9 @@ fn xpbd_pins_hold_under_gravity() {
 #[test]
 fn xpbd_is_bit_identical_for_any_thread_count() {
     let run = |threads: usize| {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(|| spinning_ell_run(constraint_nh(), Box::new(Xpbd::default()), true, 20).1)
+        in_pool(threads, || {
+            spinning_ell_run(constraint_nh(), Box::new(Xpbd::default()), true, 20).1
+        })
     };
     let one = run(1);
     for threads in [2, 3] {
