@@ -826,10 +826,9 @@ impl Projector {
                     if let Some(sys) = system.as_deref_mut() {
                         // The energy row's position block in the metric W: its direction W^-1 grad U and
                         // S_HH's position part grad U . W^-1 grad U (in place of the diagonal metric's moment).
-                        let (x, _) = current!(self);
                         let (rhs, dir) = (&mut self.system_rhs, &mut self.system_dir);
                         let parts = &mut self.scratch.norms;
-                        match system_direction(&pb, sys, x, &self.grad, rhs, dir, parts) {
+                        match system_direction(&pb, sys, &self.grad, rhs, dir, parts) {
                             Some(gz) => cur.grad_sq_over_w = gz,
                             None => {
                                 system = None;
@@ -1365,9 +1364,10 @@ fn rigid_part_on_target(pb: &Problem, now: &RigidPart) -> Option<RigidPart> {
 /// momentum rows cover the whole body (see [`rigid_part_on_target`]), and scale `u` by the factor that then
 /// meets the energy row. The kinetic energy splits into rigid + deformational parts (u carries no momenta), so
 /// the result meets the energy row and, on the whole body, the momentum rows; otherwise P and L stay what they
-/// were. With no momentum row active, nothing is rigid: every free velocity is scaled. The iteration starts from there and only fixes what is left (the centre of mass, round-off): a
-/// dissipative base step that lost most of H is then 0-2 iterations from the manifold instead of a stiff
-/// position correction away. False if that energy cannot be reached.
+/// were. With no momentum row active, nothing is rigid: every free velocity is scaled. The iteration starts
+/// from there and only fixes what is left (the centre of mass, round-off): a dissipative base step that lost
+/// most of H is then 0-2 iterations from the manifold instead of a stiff position correction away. False if
+/// that energy cannot be reached.
 fn warm_start_velocities(
     pb: &Problem,
     e: &Eval,
@@ -1481,13 +1481,12 @@ fn norm_scaled(pb: &Problem, c: &[f64; ROWS]) -> f64 {
 }
 
 /// The energy row's position direction in the metric of `sys`: `rhs` gets the potential's gradient
-/// `grad E_el - m g` at `x` (0 on pinned vertices), `dir` gets `W^-1` of it. Returns `rhs . dir` (S_HH's position
-/// part), summed over fixed vertex tasks in task order (the same bits for any thread count), or `None` where
-/// `sys` has no factorisation for this model and step size.
+/// `grad E_el - m g` (`grad`: the elastic gradient at the iterate; 0 on pinned vertices), `dir` gets `W^-1` of
+/// it. Returns `rhs . dir` (S_HH's position part), summed over fixed vertex tasks in task order (the same bits
+/// for any thread count), or `None` where `sys` has no factorisation for this model and step size.
 fn system_direction(
     pb: &Problem,
     sys: &mut dyn SystemMetric,
-    x: &[Vec3],
     grad: &[Vec3],
     rhs: &mut [Vec3],
     dir: &mut [Vec3],
@@ -1495,7 +1494,6 @@ fn system_direction(
 ) -> Option<f64> {
     let model = pb.model;
     let g = model.gravity;
-    debug_assert_eq!(x.len(), rhs.len());
     for (i, r) in rhs.iter_mut().enumerate() {
         let m = model.masses[i];
         *r = if model.pinned[i] {
