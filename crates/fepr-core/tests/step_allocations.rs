@@ -53,13 +53,24 @@ fn block(n: i64) -> fepr_core::mesh::TetMesh {
 
 /// Allocations and bytes per step over steps 11..=30 of a projected run (the first ten grow the workspaces),
 /// in a pool of four threads (the keep-awake guard allocates per further thread).
-fn per_step(n: i64, material: Material, integrator: Box<dyn Integrator>, dt: f64) -> (f64, f64) {
+/// With `pinned`, the bottom face is pinned (the projection's energy row alone; after PD, its matrix metric).
+fn per_step(
+    n: i64,
+    material: Material,
+    integrator: Box<dyn Integrator>,
+    dt: f64,
+    pinned: bool,
+) -> (f64, f64) {
+    let pinned_pd = pinned && integrator.name() == "projective_dynamics";
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(4)
         .build()
         .unwrap();
     pool.install(|| {
-        let m = model(block(n), material, 0.01, [0.0, 0.0, -9.81]);
+        let mut m = model(block(n), material, 0.01, [0.0, 0.0, -9.81]);
+        for i in 0..m.num_vertices() {
+            m.pinned[i] = pinned && m.mesh.vertices()[i][2] == 0.0;
+        }
         let mut state = State::at_rest(&m);
         scaled(&mut state, 1.05, [0.05 * n as f64; 3]);
         let proj = Projector::new(ProjectionSettings::default()).unwrap();
@@ -80,6 +91,15 @@ fn per_step(n: i64, material: Material, integrator: Box<dyn Integrator>, dt: f64
             BYTES.load(Ordering::Relaxed),
         );
         assert!(sim.history().last().unwrap().projection.is_some());
+        // The pinned PD run iterates in PD's matrix metric (its solves and buffers are counted too).
+        let in_system_metric = sim.history()[1..]
+            .iter()
+            .filter(|d| {
+                d.projection
+                    .is_some_and(|p| p.system_metric && p.iterations > 0)
+            })
+            .count();
+        assert_eq!(in_system_metric > 0, pinned_pd);
         (
             (a1 - a0) as f64 / steps as f64,
             (b1 - b0) as f64 / steps as f64,
@@ -90,35 +110,58 @@ fn per_step(n: i64, material: Material, integrator: Box<dyn Integrator>, dt: f64
 #[test]
 fn projected_steps_allocate_nothing_the_size_of_the_mesh() {
     type Make = fn() -> (Material, Box<dyn Integrator>, f64);
-    let runs: [(&str, Make); 3] = [
-        ("symplectic Euler", || {
-            (
-                neo_hookean(1e4, 0.3),
-                Box::new(SymplecticEuler::new()),
-                1e-4,
-            )
-        }),
-        ("Projective Dynamics", || {
-            (
-                Material::Arap(Arap::new(1e4, 0.3).unwrap()),
-                Box::new(ProjectiveDynamics::default()),
-                1.0 / 60.0,
-            )
-        }),
-        ("XPBD", || {
-            (
-                Material::ConstraintNeoHookean(ConstraintNeoHookean::new(1e4, 0.3).unwrap()),
-                Box::new(Xpbd::new(Default::default()).unwrap()),
-                1.0 / 60.0,
-            )
-        }),
+    let runs: [(&str, Make, bool); 4] = [
+        (
+            "symplectic Euler",
+            || {
+                (
+                    neo_hookean(1e4, 0.3),
+                    Box::new(SymplecticEuler::new()),
+                    1e-4,
+                )
+            },
+            false,
+        ),
+        (
+            "Projective Dynamics",
+            || {
+                (
+                    Material::Arap(Arap::new(1e4, 0.3).unwrap()),
+                    Box::new(ProjectiveDynamics::default()),
+                    1.0 / 60.0,
+                )
+            },
+            false,
+        ),
+        (
+            "Projective Dynamics, pinned",
+            || {
+                (
+                    Material::Arap(Arap::new(1e4, 0.3).unwrap()),
+                    Box::new(ProjectiveDynamics::default()),
+                    1.0 / 60.0,
+                )
+            },
+            true,
+        ),
+        (
+            "XPBD",
+            || {
+                (
+                    Material::ConstraintNeoHookean(ConstraintNeoHookean::new(1e4, 0.3).unwrap()),
+                    Box::new(Xpbd::new(Default::default()).unwrap()),
+                    1.0 / 60.0,
+                )
+            },
+            false,
+        ),
     ];
-    for (name, make) in runs {
+    for (name, make, pinned) in runs {
         // 162 and 3,072 tets (64 and 729 vertices: one position array is 1.5 and 17 KiB).
         let (mat, integ, dt) = make();
-        let (small_allocs, small_bytes) = per_step(3, mat, integ, dt);
+        let (small_allocs, small_bytes) = per_step(3, mat, integ, dt, pinned);
         let (mat, integ, dt) = make();
-        let (large_allocs, large_bytes) = per_step(8, mat, integ, dt);
+        let (large_allocs, large_bytes) = per_step(8, mat, integ, dt, pinned);
         eprintln!(
             "{name}: {small_allocs:.1} allocations, {small_bytes:.0} bytes per step (162 tets); \
              {large_allocs:.1}, {large_bytes:.0} (3,072 tets)"
