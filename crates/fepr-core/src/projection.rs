@@ -549,20 +549,28 @@ impl<'a> Problem<'a> {
 
     /// `rows` from `metric_factor`, the masses and the pins.
     fn refresh_rows(&mut self) {
-        let model = self.model;
-        let rows = &mut self.rows;
-        let per_vertex = self
-            .metric_factor
-            .iter()
-            .zip(&model.masses)
-            .zip(&model.pinned);
-        rows.a_over_m.clear();
-        rows.free_mass.clear();
-        rows.free_factor.clear();
-        for ((&a, &m), &pinned) in per_vertex {
-            rows.a_over_m.push(a / m);
-            rows.free_mass.push(if pinned { 0.0 } else { m });
-            rows.free_factor.push(if pinned { 0.0 } else { a });
+        let (model, rows, factor) = (self.model, &mut self.rows, &self.metric_factor[..]);
+        let n = factor.len();
+        // Sized first, then filled by plain loops over slices of one length (no `push`): they compile to
+        // packed divisions and selects. This runs on one thread once per projection; the pushing loop took
+        // 1.3% of a projection on the elephant (perf, one thread), and the projection 1-2% less time on two
+        // threads without it (elephant, bunny, alternated runs).
+        for row in [
+            &mut rows.a_over_m,
+            &mut rows.free_mass,
+            &mut rows.free_factor,
+        ] {
+            row.resize(n, 0.0);
+        }
+        let (masses, pinned) = (&model.masses[..n], &model.pinned[..n]);
+        for ((out, &a), &m) in rows.a_over_m.iter_mut().zip(factor).zip(masses) {
+            *out = a / m;
+        }
+        for ((out, &m), &p) in rows.free_mass.iter_mut().zip(masses).zip(pinned) {
+            *out = if p { 0.0 } else { m };
+        }
+        for ((out, &a), &p) in rows.free_factor.iter_mut().zip(factor).zip(pinned) {
+            *out = if p { 0.0 } else { a };
         }
     }
 }
