@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -37,7 +38,22 @@ def test_cli_bench_writes_json(tmp_path, capsys):
     assert code == 0
     doc = json.loads(out.read_text())
     assert doc["quick"] is True and doc["scenes"][0]["scene"] == "box_1k"
-    assert "symplectic_euler+fepr" in capsys.readouterr().out
+    machine = doc["machine"]
+    assert machine["sync_threads"] >= 1 and machine["parallel_region_us"] > 0
+    printed = capsys.readouterr().out
+    assert "symplectic_euler+fepr" in printed and "a parallel region that" in printed
+
+
+def test_sync_floor_measures_a_joined_region_and_a_round_trip():
+    m = bench.sync_floor(2)
+    # A region both threads must join costs more than nothing and far less than a millisecond (0.8 us here).
+    assert m["sync_threads"] == 2 and 0 < m["parallel_region_us"] < 1000
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if usable >= 2:
+        assert 1 < m["core_round_trip_ns"] < 1e6
+    else:
+        assert m["core_round_trip_ns"] is None
+    assert "2 threads join" in bench.format_sync_floor(m)
 
 
 def test_cli_bench_rejects_unknown_scene(capsys):

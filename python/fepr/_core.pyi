@@ -33,6 +33,11 @@ def material_eval(
     stresses (n, 3, 3) Pa and, if ``derivative``, stress derivatives (n, 9, 9) Pa (row-major flattening of F),
     else None. ``j0`` is used by "neo_hookean" only."""
 
+def bench_sync_floor(threads: int) -> Tuple[float, float]:
+    """Measure what synchronising ``threads`` threads costs on this machine, in about 0.1 s: (seconds per empty
+    parallel region with the threads kept awake, seconds per cache-line round trip between two threads; NaN on a
+    single CPU). ``fepr bench`` reports both with the machine."""
+
 class _ProjectionReportDict(TypedDict):
     """What ``Simulation.last_projection()`` returns (the fields of ``fepr.ProjectionReport``)."""
 

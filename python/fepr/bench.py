@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import gc
 import json
+import math
 import os
 import platform
 import subprocess
@@ -412,6 +413,36 @@ def run_suite(
     return results
 
 
+def sync_floor(threads: int) -> Dict[str, Any]:
+    """What synchronising ``threads`` threads costs on this machine (about 0.1 s to measure): the floor under
+    the all-threads speed-up of a small scene, whose energy + gradient is some tens of microseconds of work.
+
+    ``parallel_region_us``: one parallel region with no work in it that every one of ``threads`` threads must
+    join (the threads kept awake, as between the regions of a step; an energy + gradient enters two regions, a
+    projection iteration four to five), in microseconds. ``core_round_trip_ns``: a value sent from one thread to
+    another and back through the cache, in nanoseconds (None on a single CPU). Both are the best batch's mean.
+    """
+    from fepr import _core
+
+    region_s, round_trip_s = _core.bench_sync_floor(threads)
+    return {
+        "sync_threads": threads,
+        "parallel_region_us": 1e6 * region_s,
+        "core_round_trip_ns": None if math.isnan(round_trip_s) else 1e9 * round_trip_s,
+    }
+
+
+def format_sync_floor(machine: Dict[str, Any]) -> str:
+    """One line on the machine's synchronisation floor (the numbers of :func:`sync_floor`)."""
+    trip = machine.get("core_round_trip_ns")
+    trip_text = "n/a (one CPU)" if trip is None else f"{trip:.0f} ns"
+    return (
+        f"machine: a parallel region that {machine['sync_threads']} threads join, with no work in it, "
+        f"{machine['parallel_region_us']:.2f} us; a cache line's round trip between two threads {trip_text} "
+        "(the floor under small scenes' speed-ups)"
+    )
+
+
 def format_table(results: Sequence[Dict[str, Any]]) -> str:
     """A plain-text table of the main numbers."""
     head = (
@@ -489,16 +520,18 @@ def cmd_bench(args) -> int:
             print(f"  {r['scene']}: {what} ({r['wall_s']:.1f} s)", file=sys.stderr, flush=True)
 
     t0 = time.perf_counter()
+    machine = {
+        "cpus": os.cpu_count(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "python": platform.python_version(),
+        **sync_floor(args.threads or os.cpu_count() or 1),
+    }
     results = run_suite(names, quick=args.quick, threads=args.threads, meshes=args.meshes, progress=progress)
     doc = {
         "fepr_bench": 1,
         "quick": bool(args.quick),
-        "machine": {
-            "cpus": os.cpu_count(),
-            "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "python": platform.python_version(),
-        },
+        "machine": machine,
         "wall_s": time.perf_counter() - t0,
         "scenes": results,
     }
@@ -510,6 +543,7 @@ def cmd_bench(args) -> int:
             Path(args.json).write_text(text + "\n")
     if not to_stdout:
         print(format_table(results))
+        print(format_sync_floor(machine))
     return 1 if any("error" in r for r in results) else 0
 
 

@@ -242,6 +242,144 @@ impl Drop for KeepAwake {
     }
 }
 
+/// What synchronising threads costs on this machine, measured ([`measure_sync_floor`]): the floor under the
+/// two-thread speed-up of a small evaluation. An energy + gradient on the 1,296-tet box is about 20 us of work on
+/// one thread, and each parallel region of it pays a start, an end, and the cache lines its threads hand each
+/// other; `fepr bench` reports these numbers with the machine, so that small meshes' speed-ups can be read
+/// against them.
+#[derive(Clone, Copy, Debug)]
+pub struct SyncFloor {
+    /// Threads of the current pool when measured.
+    pub threads: usize,
+    /// Seconds per parallel region that every thread must join ([`for_each_task`] with one task per thread, the
+    /// first waiting until the others have started), the pool's other threads kept awake ([`KeepAwake`]) as
+    /// between the regions of a step: a region's start and end with no work in it. The best batch's mean.
+    pub region_s: f64,
+    /// Seconds for a value to go from one thread to another and back through two atomics on cache lines of
+    /// their own, both threads spinning (a cache line's round trip between two cores): the best batch's mean.
+    /// NaN where the machine has a single CPU (the two threads would take turns on it).
+    pub round_trip_s: f64,
+}
+
+/// Measures [`SyncFloor`] on the current pool, in about `budget` (a few tens of milliseconds suffice; the pool's
+/// threads first get 20 ms of warm-up, as a fresh pool's threads take milliseconds to start helping on a virtual
+/// machine). The round trip uses a thread of its own besides the caller's, not the pool's.
+pub fn measure_sync_floor(budget: std::time::Duration) -> SyncFloor {
+    use std::time::Instant;
+    let threads = rayon::current_num_threads();
+    let half = budget / 2;
+    let region_s = {
+        let _awake = KeepAwake::new();
+        let warm = Instant::now();
+        while warm.elapsed() < std::time::Duration::from_millis(20) {
+            joined_region(threads);
+        }
+        best_batch_mean(half, 200, || joined_region(threads))
+    };
+    let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let round_trip_s = if cpus < 2 { f64::NAN } else { round_trip(half) };
+    SyncFloor {
+        threads,
+        region_s,
+        round_trip_s,
+    }
+}
+
+/// One parallel region of `threads` tasks (`threads` the pool's size) that the caller cannot finish alone: the
+/// caller's first task waits until every other task has started, so each region pays the other threads' start
+/// (an empty region's tasks would mostly run on the caller, which takes back a job no other thread has picked up
+/// yet, and measure nothing of the kind).
+fn joined_region(threads: usize) {
+    if threads <= 1 {
+        for_each_task(1, |i| {
+            std::hint::black_box(i);
+        });
+        return;
+    }
+    let started = Padded(AtomicUsize::new(0));
+    // The caller's home task ([`for_each_task`] gives thread `t` task `t mod threads` first): the caller claims it
+    // before any other, so the caller waits there and the other tasks need the other threads.
+    let mine = rayon::current_thread_index().unwrap_or(0) % threads;
+    for_each_task(threads, |i| {
+        if i == mine {
+            let mut spins = 0;
+            while started.0.load(Ordering::Acquire) < threads - 1 {
+                spin_or_yield(&mut spins);
+            }
+        } else {
+            started.0.fetch_add(1, Ordering::AcqRel);
+        }
+    });
+}
+
+/// The smallest mean seconds per call of `f` over batches of `per_batch` calls, for about `budget` (at least
+/// one batch).
+fn best_batch_mean(budget: std::time::Duration, per_batch: u32, mut f: impl FnMut()) -> f64 {
+    let start = std::time::Instant::now();
+    let mut best = f64::INFINITY;
+    loop {
+        let t0 = std::time::Instant::now();
+        for _ in 0..per_batch {
+            f();
+        }
+        best = best.min(t0.elapsed().as_secs_f64() / f64::from(per_batch));
+        if start.elapsed() >= budget {
+            return best;
+        }
+    }
+}
+
+/// [`SyncFloor::round_trip_s`]: the caller writes `n` to one line, a second thread answers `n` on another.
+fn round_trip(budget: std::time::Duration) -> f64 {
+    let ping = std::sync::Arc::new([Padded(AtomicUsize::new(0)), Padded(AtomicUsize::new(0))]);
+    let pong = std::sync::Arc::clone(&ping);
+    // usize::MAX tells the answering thread to stop.
+    let answer = std::thread::spawn(move || {
+        let (mut seen, mut spins) = (0, 0u32);
+        loop {
+            let n = pong[0].0.load(Ordering::Acquire);
+            if n == usize::MAX {
+                return;
+            }
+            if n != seen {
+                seen = n;
+                pong[1].0.store(n, Ordering::Release);
+                spins = 0;
+            } else {
+                spin_or_yield(&mut spins);
+            }
+        }
+    });
+    let mut n = 0;
+    let mut once = || {
+        n += 1;
+        ping[0].0.store(n, Ordering::Release);
+        let mut spins = 0;
+        while ping[1].0.load(Ordering::Acquire) != n {
+            spin_or_yield(&mut spins);
+        }
+    };
+    // The answering thread's first answer includes its start: warm up before timing.
+    for _ in 0..1000 {
+        once();
+    }
+    let best = best_batch_mean(budget, 2000, &mut once);
+    ping[0].0.store(usize::MAX, Ordering::Release);
+    answer.join().expect("the answering thread does not panic");
+    best
+}
+
+/// A spin-wait step that gives the CPU to the OS after many fruitless spins, so that a busy machine (the other
+/// thread descheduled) costs a yield per round trip rather than a whole time slice.
+fn spin_or_yield(spins: &mut u32) {
+    *spins += 1;
+    if *spins < 10_000 {
+        std::hint::spin_loop();
+    } else {
+        std::thread::yield_now();
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -408,6 +546,26 @@ mod tests {
                 .unwrap();
             pool.install(f)
         })
+    }
+
+    #[test]
+    fn sync_floor_measures_a_region_and_a_round_trip() {
+        let floor = on_pool(2, || {
+            measure_sync_floor(std::time::Duration::from_millis(20))
+        });
+        assert_eq!(floor.threads, 2);
+        // Positive and far below a millisecond on any machine that runs the tests (typically 0.1-1 us).
+        assert!(floor.region_s > 0.0 && floor.region_s < 1e-3, "{floor:?}");
+        let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+        if cpus >= 2 {
+            // One value each way through the cache: tens of nanoseconds at least, never a time slice.
+            assert!(
+                floor.round_trip_s > 1e-9 && floor.round_trip_s < 1e-3,
+                "{floor:?}"
+            );
+        } else {
+            assert!(floor.round_trip_s.is_nan());
+        }
     }
 
     #[test]

@@ -831,10 +831,28 @@ impl Simulation {
     }
 }
 
+/// Measure what synchronising `threads` threads costs on this machine (`fepr_core::parallel::SyncFloor`), in
+/// about 0.1 s: (seconds per empty parallel region with the threads kept awake, seconds per cache-line round
+/// trip between two threads; NaN on a single CPU).
+#[pyfunction]
+fn bench_sync_floor(py: Python<'_>, threads: usize) -> PyResult<(f64, f64)> {
+    if threads == 0 {
+        return Err(PyValueError::new_err("threads must be at least 1"));
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| PyRuntimeError::new_err(format!("cannot start {threads} threads: {e}")))?;
+    let budget = std::time::Duration::from_millis(80);
+    let floor = py.detach(|| pool.install(|| fepr_core::parallel::measure_sync_floor(budget)));
+    Ok((floor.region_s, floor.round_trip_s))
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(validate_mesh, m)?)?;
     m.add_function(wrap_pyfunction!(material_eval, m)?)?;
+    m.add_function(wrap_pyfunction!(bench_sync_floor, m)?)?;
     m.add_class::<Simulation>()?;
     m.add("INTEGRATORS", INTEGRATOR_NAMES.to_vec())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
