@@ -49,7 +49,7 @@ pub(crate) mod q {
 /// the target centre of mass, `sum m x`.
 pub(crate) const CONSTRAINT_SUMS: usize = q::MASS_X + 3;
 
-/// The sums of [`second_order_lanes`]: `sum a g r^T` (9, row by row), `sum a m r x v` (3), `sum a m r` (3).
+/// The second-order sums of [`moment_and_second_order_lanes`]: `sum a g r^T` (9, row by row), `sum a m r x v` (3), `sum a m r` (3).
 pub(crate) const SECOND_ORDER_SUMS: usize = 15;
 
 /// The upper triangle of a symmetric 3x3 matrix, row by row (`a <= b`).
@@ -124,16 +124,23 @@ pub(crate) fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUN
     portable::moment_lanes(rows, g, center)
 }
 
-/// The angular momentum's second-order moments over `rows`, with `r = x - center` and `g_i` the potential's
-/// gradient (see [`SECOND_ORDER_SUMS`]).
-pub(crate) fn second_order_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; SECOND_ORDER_SUMS] {
+/// All the sums of [`q`] over `rows` ([`moment_lanes`]) and the angular momentum's second-order moments, with
+/// `r = x - center` and `g_i` the potential's gradient (see [`SECOND_ORDER_SUMS`]), in one sweep over the rows.
+pub(crate) fn moment_and_second_order_lanes(
+    rows: &Rows,
+    g: Vec3,
+    center: Vec3,
+) -> ([Lane; q::COUNT], [Lane; SECOND_ORDER_SUMS]) {
     rows.assert_lengths();
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: as in constraint_lanes.
-        return unsafe { avx2::second_order_lanes(rows, g, center) };
+        return unsafe { avx2::moment_and_second_order_lanes(rows, g, center) };
     }
-    portable::second_order_lanes(rows, g, center)
+    (
+        portable::moment_lanes(rows, g, center),
+        portable::second_order_lanes(rows, g, center),
+    )
 }
 
 /// One sum's lanes added in lane order (a fixed order: the result does not depend on which threads ran the
@@ -618,22 +625,77 @@ mod avx2 {
         out
     }
 
+    /// Groups per block of [`for_blocks`]: 16 groups of four rows (6.5 KiB of lanes) stay in L1 while every
+    /// pass runs over them.
+    const BLOCK_GROUPS: usize = 16;
+
+    /// Runs `f` on the groups of `rows` in blocks of up to [`BLOCK_GROUPS`] consecutive groups, each group
+    /// loaded (transposed into lanes) once per block. The passes then run over the block's groups in order: each
+    /// lane's sum still takes its rows in row order, so the bits are those of one pass over all rows at a time.
+    /// Why: loading a group costs about twenty shuffles, and with six passes over the task's rows (the 45
+    /// moments for `S` in four, the second-order ones in two) each group was loaded six times; the shuffles were
+    /// most of the moment pass (it took about 16 ns per vertex on one thread, perf on the bunny).
+    #[inline]
     #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
+    unsafe fn for_blocks(rows: &Rows, mut f: impl FnMut(&[Group])) {
         let n = rows.x.len();
-        let (gv, cv) = (splat3(g), splat3(center));
-        // SAFETY: Rows::assert_lengths checked the lengths (by the caller).
-        let load = |start: usize| unsafe { group(rows, start) };
-        let mut out = [[0.0; VL]; q::COUNT];
+        // SAFETY: a Group is plain vector registers' values (all-zero bits are valid).
+        let mut block: [Group; BLOCK_GROUPS] = unsafe { std::mem::zeroed() };
+        let mut start = 0;
+        while start < n {
+            let count = (n - start).div_ceil(VL).min(BLOCK_GROUPS);
+            for (j, slot) in block[..count].iter_mut().enumerate() {
+                // SAFETY (caller): Rows::assert_lengths checked the lengths.
+                *slot = unsafe { group(rows, start + j * VL) };
+            }
+            f(&block[..count]);
+            start += count * VL;
+        }
+    }
 
-        let acc = pass(n, load, |acc, gr: Group| {
-            constraint_group(acc, &gr.x, &gr.v, gr.m, &gv, &cv)
+    /// `body(accumulators, group)` over `groups` in order, the accumulators held in registers meanwhile.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn over<const N: usize>(
+        acc: &mut [__m256d; N],
+        groups: &[Group],
+        mut body: impl FnMut(&mut [__m256d; N], &Group),
+    ) {
+        let mut a = *acc;
+        for gr in groups {
+            body(&mut a, gr);
+        }
+        *acc = a;
+    }
+
+    /// The accumulators of [`moment_lanes`], by pass.
+    struct MomentAcc {
+        constraints: [__m256d; CONSTRAINT_SUMS],
+        /// FREE_MASS, A_FREE_MASS, GRAD_SQ_OVER_W, TR_VV, A_GRAD_SUM (3), A_GRAD_CROSS_V (3).
+        gradient: [__m256d; 10],
+        /// FREE_P, A_FREE_P, FREE_L, FREE_R (3 each).
+        free: [__m256d; 12],
+        /// A_VV, RR (the upper triangles).
+        outer: [__m256d; 12],
+    }
+
+    /// The accumulators of the second-order moments, by pass.
+    struct SecondOrderAcc {
+        /// `sum a g r^T`, row by row.
+        grad_r: [__m256d; 9],
+        /// `sum a m r x v`, `sum a m r`.
+        mass_r: [__m256d; 6],
+    }
+
+    /// The four passes of the moments for `S` over one block's groups.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn moment_passes(acc: &mut MomentAcc, groups: &[Group], gv: &[__m256d; 3], cv: &[__m256d; 3]) {
+        over(&mut acc.constraints, groups, |acc, gr| {
+            constraint_group(acc, &gr.x, &gr.v, gr.m, gv, cv)
         });
-        store(&acc, &mut out[..CONSTRAINT_SUMS]);
-
-        // FREE_MASS, A_FREE_MASS, GRAD_SQ_OVER_W, TR_VV, A_GRAD_SUM (3), A_GRAD_CROSS_V (3).
-        let acc = pass(n, load, |acc: &mut [__m256d; 10], gr: Group| {
-            let gs = potential_gradient(&gr, &gv);
+        over(&mut acc.gradient, groups, |acc, gr| {
+            let gs = potential_gradient(gr, gv);
             let am = mul(gr.af, gr.m);
             acc[0] = add(acc[0], gr.mf);
             acc[1] = add(acc[1], am);
@@ -644,10 +706,7 @@ mod avx2 {
                 acc[7 + a] = add(acc[7 + a], mul(gr.af, cross_at(&gs, &gr.v, a)));
             }
         });
-        store(&acc, &mut out[q::FREE_MASS..q::FREE_P]);
-
-        // FREE_P, A_FREE_P, FREE_L, FREE_R (3 each).
-        let acc = pass(n, load, |acc: &mut [__m256d; 12], gr: Group| {
+        over(&mut acc.free, groups, |acc, gr| {
             let am = mul(gr.af, gr.m);
             let r: [__m256d; 3] = std::array::from_fn(|a| sub(gr.x[a], cv[a]));
             for a in 0..3 {
@@ -657,10 +716,7 @@ mod avx2 {
                 acc[9 + a] = add(acc[9 + a], mul(gr.mf, r[a]));
             }
         });
-        store(&acc, &mut out[q::FREE_P..q::A_VV]);
-
-        // A_VV, RR (the upper triangles).
-        let acc = pass(n, load, |acc: &mut [__m256d; 12], gr: Group| {
+        over(&mut acc.outer, groups, |acc, gr| {
             let am = mul(gr.af, gr.m);
             let r: [__m256d; 3] = std::array::from_fn(|a| sub(gr.x[a], cv[a]));
             for (k, &(a, b)) in UPPER.iter().enumerate() {
@@ -668,24 +724,19 @@ mod avx2 {
                 acc[6 + k] = add(acc[6 + k], mul(mul(gr.mf, r[a]), r[b]));
             }
         });
-        store(&acc, &mut out[q::A_VV..]);
-        out
     }
 
+    /// The two passes of the second-order moments over one block's groups.
+    #[inline]
     #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn second_order_lanes(
-        rows: &Rows,
-        g: Vec3,
-        center: Vec3,
-    ) -> [Lane; SECOND_ORDER_SUMS] {
-        let n = rows.x.len();
-        let (gv, cv) = (splat3(g), splat3(center));
-        // SAFETY: as in moment_lanes.
-        let load = |start: usize| unsafe { group(rows, start) };
-        let mut out = [[0.0; VL]; SECOND_ORDER_SUMS];
-        // sum a g r^T, row by row.
-        let acc = pass(n, load, |acc: &mut [__m256d; 9], gr: Group| {
-            let gs = potential_gradient(&gr, &gv);
+    fn second_order_passes(
+        acc: &mut SecondOrderAcc,
+        groups: &[Group],
+        gv: &[__m256d; 3],
+        cv: &[__m256d; 3],
+    ) {
+        over(&mut acc.grad_r, groups, |acc, gr| {
+            let gs = potential_gradient(gr, gv);
             let r: [__m256d; 3] =
                 std::array::from_fn(|a| _mm256_and_pd(sub(gr.x[a], cv[a]), gr.real));
             for c in 0..3 {
@@ -694,9 +745,7 @@ mod avx2 {
                 }
             }
         });
-        store(&acc, &mut out[..9]);
-        // sum a m r x v, sum a m r.
-        let acc = pass(n, load, |acc: &mut [__m256d; 6], gr: Group| {
+        over(&mut acc.mass_r, groups, |acc, gr| {
             let am = mul(gr.af, gr.m);
             let r: [__m256d; 3] =
                 std::array::from_fn(|a| _mm256_and_pd(sub(gr.x[a], cv[a]), gr.real));
@@ -705,8 +754,72 @@ mod avx2 {
                 acc[3 + c] = add(acc[3 + c], mul(am, r[c]));
             }
         });
-        store(&acc, &mut out[9..]);
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn zero_moments() -> MomentAcc {
+        let z = _mm256_setzero_pd();
+        MomentAcc {
+            constraints: [z; CONSTRAINT_SUMS],
+            gradient: [z; 10],
+            free: [z; 12],
+            outer: [z; 12],
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn zero_second_order() -> SecondOrderAcc {
+        let z = _mm256_setzero_pd();
+        SecondOrderAcc {
+            grad_r: [z; 9],
+            mass_r: [z; 6],
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn store_moments(acc: &MomentAcc) -> [Lane; q::COUNT] {
+        let mut out = [[0.0; VL]; q::COUNT];
+        store(&acc.constraints, &mut out[..CONSTRAINT_SUMS]);
+        store(&acc.gradient, &mut out[q::FREE_MASS..q::FREE_P]);
+        store(&acc.free, &mut out[q::FREE_P..q::A_VV]);
+        store(&acc.outer, &mut out[q::A_VV..]);
         out
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn store_second_order(acc: &SecondOrderAcc) -> [Lane; SECOND_ORDER_SUMS] {
+        let mut out = [[0.0; VL]; SECOND_ORDER_SUMS];
+        store(&acc.grad_r, &mut out[..9]);
+        store(&acc.mass_r, &mut out[9..]);
+        out
+    }
+
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
+        let (gv, cv) = (splat3(g), splat3(center));
+        let mut acc = zero_moments();
+        // SAFETY: Rows::assert_lengths checked the lengths (by the caller).
+        unsafe { for_blocks(rows, |groups| moment_passes(&mut acc, groups, &gv, &cv)) };
+        store_moments(&acc)
+    }
+
+    /// [`moment_lanes`] and the second-order moments, each block's groups loaded once for both.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn moment_and_second_order_lanes(
+        rows: &Rows,
+        g: Vec3,
+        center: Vec3,
+    ) -> ([Lane; q::COUNT], [Lane; SECOND_ORDER_SUMS]) {
+        let (gv, cv) = (splat3(g), splat3(center));
+        let (mut moments, mut second) = (zero_moments(), zero_second_order());
+        // SAFETY: as in moment_lanes.
+        unsafe {
+            for_blocks(rows, |groups| {
+                moment_passes(&mut moments, groups, &gv, &cv);
+                second_order_passes(&mut second, groups, &gv, &cv);
+            })
+        };
+        (store_moments(&moments), store_second_order(&second))
     }
 }
 
@@ -756,8 +869,8 @@ mod tests {
             return;
         }
         let (g, center) = ([0.3, -0.2, -9.81], [0.4, -0.6, 0.5]);
-        // Lengths with every tail (0..3 padding lanes), and one row.
-        for n in [1, 4, 5, 6, 7, 8, 61, 64, 130] {
+        // Lengths with every tail (0..3 padding lanes), one row, and one to four blocks of 64 rows.
+        for n in [1, 4, 5, 6, 7, 8, 61, 64, 65, 130, 255] {
             let (x, v, grad, [mass, free_mass, free_factor]) = rows_data(n, n as u64);
             // With and without the gradient (the warm start's velocity moments need none).
             for grad in [Some(&grad[..]), None] {
@@ -770,11 +883,11 @@ mod tests {
                     free_factor: &free_factor,
                 };
                 // SAFETY: AVX2 is present (checked above); the slices have n rows each.
-                let (c, m, s) = unsafe {
+                let (c, m, (m2, s)) = unsafe {
                     (
                         avx2::constraint_lanes(&x, &v, &mass, g, center),
                         avx2::moment_lanes(&rows, g, center),
-                        avx2::second_order_lanes(&rows, g, center),
+                        avx2::moment_and_second_order_lanes(&rows, g, center),
                     )
                 };
                 let c_ref = portable::constraint_lanes(&x, &v, &mass, g, center);
@@ -782,6 +895,11 @@ mod tests {
                 let s_ref = portable::second_order_lanes(&rows, g, center);
                 assert_eq!(bits(&c), bits(&c_ref), "constraint sums, {n} rows");
                 assert_eq!(bits(&m), bits(&m_ref), "moments, {n} rows");
+                assert_eq!(
+                    bits(&m2),
+                    bits(&m_ref),
+                    "moments with the second-order ones, {n} rows"
+                );
                 assert_eq!(bits(&s), bits(&s_ref), "second-order moments, {n} rows");
                 // The moments' first sums are the constraint sums.
                 assert_eq!(bits(&c_ref), bits(&m_ref)[..VL * CONSTRAINT_SUMS].to_vec());
@@ -803,8 +921,7 @@ mod tests {
             free_factor: &free_factor,
         };
         let (g, c) = ([0.3, -0.2, -9.81], [0.4, -0.6, 0.5]);
-        let m = moment_lanes(&rows, g, c);
-        let s = second_order_lanes(&rows, g, c);
+        let (m, s) = moment_and_second_order_lanes(&rows, g, c);
         let sum = |k: usize| lane_sum(&m[k]);
         let close =
             |a: f64, b: f64| assert!((a - b).abs() <= 1e-12 * (1.0 + b.abs()), "{a} vs {b}");

@@ -1765,12 +1765,14 @@ fn vertex_moments<const S: bool>(
         free_mass: &pb.rows.free_mass[r.clone()],
         free_factor: &pb.rows.free_factor[r],
     };
-    let acc = ml::moment_lanes(&rows, g, ct);
     // The second-order moments only with a gradient (a solve needs them; the energy-only first evaluation
     // and the warm start, which mostly end the projection after Projective Dynamics, do not).
-    let second = match grad {
-        Some(_) => ml::second_order_lanes(&rows, g, ct),
-        None => [[0.0; VL]; ml::SECOND_ORDER_SUMS],
+    let (acc, second) = match grad {
+        Some(_) => ml::moment_and_second_order_lanes(&rows, g, ct),
+        None => (
+            ml::moment_lanes(&rows, g, ct),
+            [[0.0; VL]; ml::SECOND_ORDER_SUMS],
+        ),
     };
     let sum = |k: usize| ml::lane_sum(&acc[k]);
     let vec3 = |k: usize| [sum(k), sum(k + 1), sum(k + 2)];
