@@ -6,6 +6,8 @@
 //! one symplectic Euler step (dt = 1 ms) from the same set-up, the same input every call: ms per call (best
 //! and median), iterations, and the energy + gradient in the same pool for the ratio.
 //! `EG_AWAKE=1` (with `eg` and `proj`): hold `parallel::KeepAwake` around the timed loop, as a step does.
+//! `cargo bench -p fepr-core --bench eg_loop -- becold STEM [THREADS]`: the projection right after a backward
+//! Euler step (caches cold) against the same projection again at once, per elastic evaluation.
 //! `cargo bench -p fepr-core --bench eg_loop -- small` times the small dense kernels instead (polar
 //! decomposition, 3x3 and 9x9 symmetric eigen-decompositions, PSD projection), one thread, ns per call.
 //! `cargo bench -p fepr-core --bench eg_loop -- newton STEM STEPS` runs backward Euler (no projection) on a
@@ -191,6 +193,65 @@ fn newton_study(stem: &str, steps: usize, project: bool) {
     }
 }
 
+/// The projection right after a backward Euler step (its caches cold from the Newton solve) against the same
+/// projection again at once (warm): microseconds per elastic evaluation of each, over steps 10-59 of the
+/// set-up of `newton_study` on `threads` threads, with a `KeepAwake` guard per step as `Simulation::step` holds.
+fn cold_projection_study(stem: &str, threads: usize) {
+    use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
+    use fepr_core::integrators::Integrator;
+    use fepr_core::invariants::measure;
+    use fepr_core::projection::{Projector, Targets};
+    let material = Material::NeoHookean(NeoHookean::new(1e5, 0.3).unwrap());
+    let (model, mut state) = stretched_study_model(stem, material);
+    let inv = measure(&model, &state);
+    let targets = Targets {
+        energy: inv.total,
+        momentum: inv.momentum,
+        angular_momentum: inv.angular_momentum,
+        center_of_mass: inv.center_of_mass,
+        energy_scale: inv.total.abs(),
+        uncertain_impulses: false,
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        let mut ie = ImplicitEuler::new(NewtonSettings::default()).unwrap();
+        let mut proj = Projector::new(Default::default()).unwrap();
+        proj.set_implicit_base(true);
+        let h = 1.0 / 30.0;
+        // (seconds, evaluations) of the cold and of the warm projections.
+        let mut totals = [(0.0, 0); 2];
+        for step in 0..60 {
+            // As `Simulation::step` holds it: for one step, base step and projection.
+            let _awake = fepr_core::parallel::KeepAwake::new();
+            let mut base = state.clone();
+            ie.step(&model, &mut base, h);
+            let mut results = Vec::with_capacity(2);
+            for total in totals.iter_mut() {
+                let mut s = base.clone();
+                let t0 = Instant::now();
+                let (report, _) = proj.project(&model, &mut s, h, &targets);
+                if step >= 10 {
+                    total.0 += t0.elapsed().as_secs_f64();
+                    total.1 += report.evaluations;
+                }
+                results.push(s);
+            }
+            state = results.swap_remove(0);
+        }
+        let per = |(t, n): (f64, usize)| t * 1e6 / n.max(1) as f64;
+        println!(
+            "threads {threads}: cold {:.1} us per evaluation, warm {:.1} ({} and {} evaluations)",
+            per(totals[0]),
+            per(totals[1]),
+            totals[0].1,
+            totals[1].1
+        );
+    });
+}
+
 /// Projective Dynamics (10 iterations) on a TetGen mesh as in `newton_study`, but with the
 /// ARAP material; prints ms per step and the phase times (`fepr` after STEPS: with the FEPR projection).
 struct TimedPd(fepr_core::pd::ProjectiveDynamics);
@@ -358,6 +419,11 @@ type Study = fn(&str, usize, bool);
 
 fn main() {
     let raw: Vec<String> = std::env::args().skip(1).collect();
+    if raw.first().map(String::as_str) == Some("becold") {
+        let threads = raw.get(2).and_then(|s| s.parse().ok()).unwrap_or(2);
+        cold_projection_study(&raw[1], threads);
+        return;
+    }
     if raw.first().map(String::as_str) == Some("small") {
         small_kernels();
         return;
