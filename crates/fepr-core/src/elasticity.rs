@@ -255,7 +255,7 @@ pub fn elastic_energy_gradient(
     grad: &mut [Vec3],
 ) -> ElasticSummary {
     let summary = elastic_gradient_chunks(model, x, ws);
-    model.corner_sums.sums_into(&ws.corner_acc, grad);
+    ws.gradient_into(model, grad);
     summary
 }
 
@@ -279,6 +279,12 @@ pub(crate) fn elastic_gradient_chunks(
 }
 
 impl ElasticWorkspace {
+    /// The elastic gradient on every vertex (J/m, into `out`, shape (m, 3)) from the last
+    /// [`elastic_gradient_chunks`] of `model`: the vertex pass of [`elastic_energy_gradient`].
+    pub(crate) fn gradient_into(&self, model: &Model, out: &mut [Vec3]) {
+        model.corner_sums.sums_into(&self.corner_acc, out);
+    }
+
     /// The elastic gradient on user vertex `v` (J/m) from the last [`elastic_gradient_chunks`] of `model`.
     #[inline(always)]
     pub(crate) fn gradient_at(&self, model: &Model, v: usize) -> Vec3 {

@@ -140,6 +140,31 @@ pub fn for_each_chunk_mut2<A: Send, B: Send>(
     for_each_task(a.count, |c| f(c, unsafe { a.get(c) }, unsafe { b.get(c) }));
 }
 
+/// [`for_each_chunk_mut2`] over three slices cut into the same number of chunks: `f(c, a_chunk, b_chunk,
+/// c_chunk)`.
+#[allow(clippy::too_many_arguments)]
+pub fn for_each_chunk_mut3<A: Send, B: Send, C: Send>(
+    a: &mut [A],
+    len_a: usize,
+    b: &mut [B],
+    len_b: usize,
+    c: &mut [C],
+    len_c: usize,
+    f: impl Fn(usize, &mut [A], &mut [B], &mut [C]) + Sync,
+) {
+    let (a, b, c) = (
+        DisjointChunks::new(a, len_a),
+        DisjointChunks::new(b, len_b),
+        DisjointChunks::new(c, len_c),
+    );
+    assert!(
+        a.count == b.count && b.count == c.count,
+        "the same number of chunks"
+    );
+    // SAFETY: as in for_each_chunk_mut, for each slice.
+    for_each_task(a.count, |k| unsafe { f(k, a.get(k), b.get(k), c.get(k)) });
+}
+
 /// A mutable slice cut into chunks that tasks on different threads take one each, by index.
 struct DisjointChunks<'a, T> {
     ptr: *mut T,
