@@ -193,6 +193,18 @@ fn newton_study(stem: &str, steps: usize, project: bool) {
     }
 }
 
+/// The projection's targets that keep the invariants `inv` (no impulses).
+fn targets_at(inv: &fepr_core::invariants::Invariants) -> fepr_core::projection::Targets {
+    fepr_core::projection::Targets {
+        energy: inv.total,
+        momentum: inv.momentum,
+        angular_momentum: inv.angular_momentum,
+        center_of_mass: inv.center_of_mass,
+        energy_scale: inv.total.abs(),
+        uncertain_impulses: false,
+    }
+}
+
 /// The projection right after a backward Euler step (its caches cold from the Newton solve) against the same
 /// projection again at once (warm): microseconds per elastic evaluation of each, over steps 10-59 of the
 /// set-up of `newton_study` on `threads` threads, with a `KeepAwake` guard per step as `Simulation::step` holds.
@@ -200,18 +212,11 @@ fn cold_projection_study(stem: &str, threads: usize) {
     use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
     use fepr_core::integrators::Integrator;
     use fepr_core::invariants::measure;
-    use fepr_core::projection::{Projector, Targets};
+    use fepr_core::projection::Projector;
     let material = Material::NeoHookean(NeoHookean::new(1e5, 0.3).unwrap());
     let (model, mut state) = stretched_study_model(stem, material);
     let inv = measure(&model, &state);
-    let targets = Targets {
-        energy: inv.total,
-        momentum: inv.momentum,
-        angular_momentum: inv.angular_momentum,
-        center_of_mass: inv.center_of_mass,
-        energy_scale: inv.total.abs(),
-        uncertain_impulses: false,
-    };
+    let targets = targets_at(&inv);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
@@ -545,7 +550,7 @@ fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
     use fepr_core::integrators::{Integrator, SymplecticEuler};
     use fepr_core::invariants::measure;
     use fepr_core::model::State;
-    use fepr_core::projection::{ProjectionSettings, Projector, Targets};
+    use fepr_core::projection::{ProjectionSettings, Projector};
     let model = bench_model(mesh);
     let mut start = State::at_rest(&model);
     let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &start.x);
@@ -553,14 +558,7 @@ fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
         *p = [0, 1, 2].map(|a| c[a] + 1.05 * (p[a] - c[a]));
     }
     let inv = measure(&model, &start);
-    let targets = Targets {
-        energy: inv.total,
-        momentum: inv.momentum,
-        angular_momentum: inv.angular_momentum,
-        center_of_mass: inv.center_of_mass,
-        energy_scale: inv.total.abs(),
-        uncertain_impulses: false,
-    };
+    let targets = targets_at(&inv);
     let h = 1e-3;
     let mut base = start.clone();
     SymplecticEuler::new().step(&model, &mut base, h);
