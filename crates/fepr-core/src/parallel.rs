@@ -322,9 +322,11 @@ fn joined_region(threads: usize) {
         return;
     }
     let started = Padded(AtomicUsize::new(0));
-    // The caller's home task ([`for_each_task`] gives thread `t` task `t mod threads` first): the caller claims it
-    // before any other, so the caller waits there and the other tasks need the other threads.
-    let mine = rayon::current_thread_index().unwrap_or(0) % threads;
+    // The first task of the caller's home range (as [`for_each_task`] assigns them): the caller claims it before
+    // any other, so the caller waits there and the other tasks need the other threads.
+    let workers = threads.min(MAX_HOME_RANGES);
+    let home = rayon::current_thread_index().unwrap_or(0) % workers;
+    let mine = home * threads / workers;
     for_each_task(threads, |i| {
         if i == mine {
             let mut spins = 0;
@@ -579,13 +581,16 @@ mod tests {
             measure_sync_floor(std::time::Duration::from_millis(20))
         });
         assert_eq!(floor.threads, 2);
-        // Positive and far below a millisecond on any machine that runs the tests (typically 0.1-1 us).
-        assert!(floor.region_s > 0.0 && floor.region_s < 1e-3, "{floor:?}");
+        // The times themselves are reported, not asserted on (no timing bounds in tests; 0.8 us and 0.25 us
+        // here on a quiet machine): the measurement finishes and gives finite positive times.
+        assert!(
+            floor.region_s.is_finite() && floor.region_s > 0.0,
+            "{floor:?}"
+        );
         let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
         if cpus >= 2 {
-            // One value each way through the cache: tens of nanoseconds at least, never a time slice.
             assert!(
-                floor.round_trip_s > 1e-9 && floor.round_trip_s < 1e-3,
+                floor.round_trip_s.is_finite() && floor.round_trip_s > 0.0,
                 "{floor:?}"
             );
         } else {
