@@ -2588,9 +2588,10 @@ mod tests {
     }
 
     /// A trial point without the moments for `S` has its vertex sums taken as each task writes its rows: every
-    /// constraint sum, the D-norm sum, the elastic summary and the gradient keep the bits of the evaluation
-    /// that sums them after the elastic chunks (the path with moments), over several vertex tasks and any
-    /// thread count. Fails if the written rows are summed in another order or over other tasks.
+    /// constraint sum, the D-norm sum, the elastic summary and the gradient keep the bits of `evaluate_sums`,
+    /// which sums them after the elastic chunks (as trial points with the moments still do), over several
+    /// vertex tasks and any thread count. Fails if the written rows are summed in another order or over other
+    /// tasks.
     #[test]
     fn the_trial_pass_sums_what_an_evaluation_sums() {
         let model = crate::elasticity::tests::grid_model(
