@@ -34,9 +34,9 @@ def material_eval(
     else None. ``j0`` is used by "neo_hookean" only."""
 
 def bench_sync_floor(threads: int) -> Tuple[float, float]:
-    """Measure what synchronising ``threads`` threads costs on this machine, in about 0.1 s: (seconds per empty
-    parallel region with the threads kept awake, seconds per cache-line round trip between two threads; NaN on a
-    single CPU). ``fepr bench`` reports both with the machine."""
+    """Measure what synchronising ``threads`` threads costs on this machine, in about 0.1 s: (seconds per parallel
+    region that every thread must join, with no work in it and the threads kept awake, seconds per cache-line
+    round trip between two threads; NaN on a single CPU). ``fepr bench`` reports both with the machine."""
 
 class _ProjectionReportDict(TypedDict):
     """What ``Simulation.last_projection()`` returns (the fields of ``fepr.ProjectionReport``)."""

@@ -832,8 +832,8 @@ impl Simulation {
 }
 
 /// Measure what synchronising `threads` threads costs on this machine (`fepr_core::parallel::SyncFloor`), in
-/// about 0.1 s: (seconds per empty parallel region with the threads kept awake, seconds per cache-line round
-/// trip between two threads; NaN on a single CPU).
+/// about 0.1 s: (seconds per parallel region that every thread must join, with no work in it and the threads
+/// kept awake, seconds per cache-line round trip between two threads; NaN on a single CPU).
 #[pyfunction]
 fn bench_sync_floor(py: Python<'_>, threads: usize) -> PyResult<(f64, f64)> {
     if threads == 0 {
