@@ -459,6 +459,13 @@ fn main() {
         time_projection(mesh, num(2, 1), num(3, 200));
         return;
     }
+    if raw.first().map(String::as_str) == Some("sim") {
+        let num =
+            |i: usize, default: usize| raw.get(i).and_then(|s| s.parse().ok()).unwrap_or(default);
+        let mesh = load_tetgen(std::path::Path::new(&raw[1])).expect("a TetGen mesh");
+        time_simulation(mesh, num(2, 1), num(3, 2000));
+        return;
+    }
     if raw.first().map(String::as_str) == Some("eg") {
         let num =
             |i: usize, default: usize| raw.get(i).and_then(|s| s.parse().ok()).unwrap_or(default);
@@ -546,6 +553,75 @@ fn time_energy_gradient(mesh: TetMesh, threads: usize, repeats: usize) {
 
 /// Times `Projector::project` on the state after one symplectic Euler step from the set-up of
 /// [`time_energy_gradient`] (targets: the invariants of the initial state), the same input every call.
+/// Steps a `Simulation` as `fepr bench` does (symplectic Euler + FEPR, dt = 1 ms, released from a 5% stretch
+/// about the centroid; bench_model) for `steps` steps in a pool of `threads` threads, and prints the base
+/// step's and the projection's time per step (mean and the best of ten batches, as `fepr bench` takes
+/// `it/EG`), the iterations, and the energy + gradient in the same pool for the ratio.
+fn time_simulation(mesh: TetMesh, threads: usize, steps: usize) {
+    use fepr_core::integrators::SymplecticEuler;
+    use fepr_core::model::State;
+    use fepr_core::projection::{ProjectionSettings, Projector};
+    use fepr_core::simulation::Simulation;
+    let model = bench_model(mesh);
+    let mut start = State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &start.x);
+    for p in start.x.iter_mut() {
+        *p = [0, 1, 2].map(|a| c[a] + 1.05 * (p[a] - c[a]));
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        let x = start.x.clone();
+        let proj = Projector::new(ProjectionSettings::default()).unwrap();
+        let integ = Box::new(SymplecticEuler::new());
+        let mut sim = Simulation::new(model, start, integ, 1e-3, Some(proj)).unwrap();
+        for _ in 0..20 {
+            sim.step().unwrap();
+        }
+        let n0 = sim.num_steps();
+        for _ in 0..steps {
+            sim.step().unwrap();
+        }
+        let h = &sim.history()[n0 + 1..];
+        let mean = |f: &dyn Fn(&fepr_core::simulation::StepDiagnostics) -> f64| {
+            h.iter().map(f).sum::<f64>() / h.len() as f64
+        };
+        let iters = |d: &fepr_core::simulation::StepDiagnostics| {
+            d.projection.map_or(0.0, |p| p.iterations as f64)
+        };
+        let best_batch = h
+            .chunks(h.len().div_ceil(10))
+            .map(|b| {
+                let t: f64 = b.iter().map(|d| d.proj_ms).sum();
+                let u: f64 = b.iter().map(|d| 1.0 + iters(d)).sum();
+                t / u
+            })
+            .fold(f64::INFINITY, f64::min);
+        let (mut grad, mut ws) = (vec![[0.0; 3]; x.len()], ElasticWorkspace::default());
+        let _awake = fepr_core::parallel::KeepAwake::new();
+        let mut eg = f64::INFINITY;
+        for _ in 0..10 {
+            let t0 = Instant::now();
+            for _ in 0..50 {
+                std::hint::black_box(elastic_energy_gradient(&sim.model, &x, &mut ws, &mut grad));
+            }
+            eg = eg.min(t0.elapsed().as_secs_f64() * 1e3 / 50.0);
+        }
+        println!(
+            "tets {} threads {threads}: base {:.4} ms, projection {:.4} ms per step, {:.2} iterations; \
+             E+G {eg:.4} ms; it/EG (best batch) {:.3}, (mean) {:.3}",
+            sim.model.num_tets(),
+            mean(&|d| d.base_ms),
+            mean(&|d| d.proj_ms),
+            mean(&iters),
+            best_batch / eg,
+            mean(&|d| d.proj_ms) / (1.0 + mean(&iters)) / eg,
+        );
+    });
+}
+
 fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
     use fepr_core::integrators::{Integrator, SymplecticEuler};
     use fepr_core::invariants::measure;
