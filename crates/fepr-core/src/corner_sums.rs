@@ -16,19 +16,12 @@
 use std::cell::Cell;
 
 use crate::linalg::Vec3;
-use crate::parallel::{for_each_chunk_mut, for_each_chunk_mut2, tet_chunk_for, TET_CHUNK};
+use crate::parallel::{
+    for_each_chunk_mut, for_each_chunk_mut2, tet_chunk_for, vertex_task_len, TET_CHUNK,
+};
 
 // Local indices are u16: a chunk touches at most 4 TET_CHUNK vertices (the largest chunk).
 const _: () = assert!(4 * TET_CHUNK <= u16::MAX as usize + 1);
-
-/// Vertices per task of the vertex pass on a mesh of `m` vertices: about an eighth of the mesh, 64 to 2048.
-/// Each vertex's sum is its own (no sum spans tasks), so the task length changes no bits. With one task
-/// of 4096 vertices, meshes below that summed every vertex on one thread, and on two threads that thread read
-/// half of the partial sums from the other core's cache: the 10k box's 2,197 vertices took 11 us there
-/// against 5.4 us on one thread (perf), 7% of the whole energy + gradient.
-fn vertex_task(m: usize) -> usize {
-    m.div_ceil(8).clamp(64, 2048)
-}
 
 thread_local! {
     /// The chunk-local positions of the chunk that this thread runs (reused: no allocation once grown).
@@ -191,7 +184,11 @@ impl CornerSums {
             self.vertex_offsets.len(),
             "one sum per vertex"
         );
-        let task = vertex_task(out.len());
+        // Each vertex's sum is its own (no sum spans tasks), so the task length changes no bits. With one task
+        // of 4096 vertices, meshes below that summed every vertex on one thread, and on two threads that
+        // thread read half of the partial sums from the other core's cache: the 10k box's 2,197 vertices
+        // took 11 us there against 5.4 us on one thread (perf), 7% of the whole energy + gradient.
+        let task = vertex_task_len(out.len());
         for_each_chunk_mut(out, task, |t, out| {
             for (k, sum) in out.iter_mut().enumerate() {
                 *sum = self.vertex_sum(acc, t * task + k);

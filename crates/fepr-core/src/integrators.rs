@@ -6,6 +6,7 @@ use crate::elasticity::{elastic_energy_gradient, ElasticSummary, ElasticWorkspac
 use crate::invariants::{angular_momentum, center_of_mass, kinetic_energy, linear_momentum};
 use crate::linalg::{scale, Vec3};
 use crate::model::{Model, ModelKey, State};
+use crate::parallel::{for_each_chunk_mut, for_each_chunk_mut2};
 
 /// What a base step reports besides the new state.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -121,47 +122,69 @@ impl Integrator for SymplecticEuler {
         self.offered_x = offered;
         self.offered_x.clear();
         let g = model.gravity;
-        for i in 0..m {
-            if model.pinned[i] {
-                state.v[i] = [0.0; 3];
-                continue;
-            }
-            let inv_m = 1.0 / model.masses[i];
-            for a in 0..3 {
-                state.v[i][a] += h * (g[a] - self.grad[i][a] * inv_m);
-            }
-        }
         let mut report = StepReport {
             impulse: scale(g, h * model.free_mass()),
             ..Default::default()
         };
-        if model.damping > 0.0 {
-            // The damping impulse and dissipated energy, measured on the undamped velocities at the
-            // positions the step ends at (uniform scaling of v scales P and L by the same factor).
-            let d = model.damping;
-            let kin = kinetic_energy(&model.masses, &state.v);
-            let p = linear_momentum(&model.masses, &state.v);
-            // At the end positions x + h (1 - d) v, (x_i + h(1-d) v_i - c) x v_i = (x_i - c) x v_i: L about
-            // the end centre of mass needs no new positions.
-            let c0 = center_of_mass(&model.masses, model.total_mass, &state.x);
-            let c = [0, 1, 2].map(|a| c0[a] + h * (1.0 - d) * p[a] / model.total_mass);
-            let l = angular_momentum(&model.masses, &state.x, &state.v, c);
-            for vi in state.v.iter_mut() {
+        // The kick and the drift run in the vertex tasks of every vertex pass (`vertex_task_len`): each thread
+        // writes the rows that it reads next, in the projection's passes (on a serial update, the other
+        // thread read its half of the state from this one's cache). Each row's update is its own: the same
+        // bits for any thread count.
+        let task = crate::parallel::vertex_task_len(m);
+        let kick = |first: usize, v: &mut [Vec3]| {
+            for (k, vi) in v.iter_mut().enumerate() {
+                let i = first + k;
+                if model.pinned[i] {
+                    *vi = [0.0; 3];
+                    continue;
+                }
+                let (inv_m, gr) = (1.0 / model.masses[i], self.grad[i]);
+                for a in 0..3 {
+                    vi[a] += h * (g[a] - gr[a] * inv_m);
+                }
+            }
+        };
+        let drift = |x: &mut [Vec3], v: &[Vec3]| {
+            for (xi, vi) in x.iter_mut().zip(v) {
+                for a in 0..3 {
+                    xi[a] += h * vi[a];
+                }
+            }
+        };
+        let (x, v) = (&mut state.x, &mut state.v);
+        if model.damping == 0.0 {
+            for_each_chunk_mut2(x, task, v, task, |c, x, v| {
+                kick(c * task, v);
+                drift(x, v);
+            });
+            state.time += h;
+            return report;
+        }
+        for_each_chunk_mut(v, task, |c, v| kick(c * task, v));
+        // The damping impulse and dissipated energy, measured on the undamped velocities at the positions the
+        // step ends at (uniform scaling of v scales P and L by the same factor).
+        let d = model.damping;
+        let kin = kinetic_energy(&model.masses, &state.v);
+        let p = linear_momentum(&model.masses, &state.v);
+        // At the end positions x + h (1 - d) v, (x_i + h(1-d) v_i - c) x v_i = (x_i - c) x v_i: L about the end
+        // centre of mass needs no new positions.
+        let c0 = center_of_mass(&model.masses, model.total_mass, &state.x);
+        let c = [0, 1, 2].map(|a| c0[a] + h * (1.0 - d) * p[a] / model.total_mass);
+        let l = angular_momentum(&model.masses, &state.x, &state.v, c);
+        report.energy_budget = -kin * (1.0 - (1.0 - d) * (1.0 - d));
+        report.impulse = [
+            report.impulse[0] - d * p[0],
+            report.impulse[1] - d * p[1],
+            report.impulse[2] - d * p[2],
+        ];
+        report.angular_impulse = scale(l, -d);
+        let (x, v) = (&mut state.x, &mut state.v);
+        for_each_chunk_mut2(x, task, v, task, |_, x, v| {
+            for vi in v.iter_mut() {
                 *vi = scale(*vi, 1.0 - d);
             }
-            report.energy_budget = -kin * (1.0 - (1.0 - d) * (1.0 - d));
-            report.impulse = [
-                report.impulse[0] - d * p[0],
-                report.impulse[1] - d * p[1],
-                report.impulse[2] - d * p[2],
-            ];
-            report.angular_impulse = scale(l, -d);
-        }
-        for i in 0..m {
-            for a in 0..3 {
-                state.x[i][a] += h * state.v[i][a];
-            }
-        }
+            drift(x, v);
+        });
         state.time += h;
         report
     }

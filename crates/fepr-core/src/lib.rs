@@ -46,6 +46,7 @@ pub mod renumber;
 pub(crate) mod rotation_blocks;
 pub mod simulation;
 pub mod sparse;
+pub(crate) mod trial_lanes;
 pub mod world;
 pub mod xpbd;
 

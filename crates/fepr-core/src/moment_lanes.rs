@@ -365,14 +365,14 @@ pub(crate) mod portable {
 /// vector registers hold), the second-order ones as two more; the task's rows stay in L1/L2 between
 /// passes. (Compiled for AVX-512VL's 32 registers, the same passes measured no faster.)
 #[cfg(target_arch = "x86_64")]
-mod avx2 {
+pub(crate) mod avx2 {
     use super::*;
     use std::arch::x86_64::*;
 
     /// Four rows of three `f64` (12 consecutive values from `p`) as three lane vectors (x, y, z).
     #[inline]
     #[target_feature(enable = "avx2")]
-    unsafe fn load_rows(p: *const f64) -> [__m256d; 3] {
+    pub(crate) unsafe fn load_rows(p: *const f64) -> [__m256d; 3] {
         // SAFETY (caller): p..p + 12 is readable.
         let (a, b, c) = unsafe {
             (
@@ -391,37 +391,37 @@ mod avx2 {
 
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn splat3(v: Vec3) -> [__m256d; 3] {
+    pub(crate) fn splat3(v: Vec3) -> [__m256d; 3] {
         v.map(|c| _mm256_set1_pd(c))
     }
 
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn add(a: __m256d, b: __m256d) -> __m256d {
+    pub(crate) fn add(a: __m256d, b: __m256d) -> __m256d {
         _mm256_add_pd(a, b)
     }
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn sub(a: __m256d, b: __m256d) -> __m256d {
+    pub(crate) fn sub(a: __m256d, b: __m256d) -> __m256d {
         _mm256_sub_pd(a, b)
     }
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn mul(a: __m256d, b: __m256d) -> __m256d {
+    pub(crate) fn mul(a: __m256d, b: __m256d) -> __m256d {
         _mm256_mul_pd(a, b)
     }
 
     /// `|v|^2` as the portable version sums it.
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn norm2(v: &[__m256d; 3]) -> __m256d {
+    pub(crate) fn norm2(v: &[__m256d; 3]) -> __m256d {
         add(add(mul(v[0], v[0]), mul(v[1], v[1])), mul(v[2], v[2]))
     }
 
     /// Component `a` of `p x q` (`p_b q_c - p_c q_b`).
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn cross_at(p: &[__m256d; 3], q: &[__m256d; 3], a: usize) -> __m256d {
+    pub(crate) fn cross_at(p: &[__m256d; 3], q: &[__m256d; 3], a: usize) -> __m256d {
         let (b, c) = ((a + 1) % 3, (a + 2) % 3);
         sub(mul(p[b], q[c]), mul(p[c], q[b]))
     }
@@ -533,7 +533,7 @@ mod avx2 {
     /// The accumulators' lanes.
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn store<const N: usize>(acc: &[__m256d; N], out: &mut [Lane]) {
+    pub(crate) fn store<const N: usize>(acc: &[__m256d; N], out: &mut [Lane]) {
         for (o, a) in out.iter_mut().zip(acc) {
             // SAFETY: a lane array holds VL = 4 values.
             unsafe { _mm256_storeu_pd(o.as_mut_ptr(), *a) };
@@ -559,7 +559,7 @@ mod avx2 {
     /// operation).
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn constraint_group(
+    pub(crate) fn constraint_group(
         acc: &mut [__m256d; CONSTRAINT_SUMS],
         xs: &[__m256d; 3],
         vs: &[__m256d; 3],

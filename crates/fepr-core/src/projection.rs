@@ -29,6 +29,7 @@ use crate::invariants::Invariants;
 use crate::linalg::{cholesky_substitute, cross, dot, solve_symmetric_psd_into, sub, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
 use crate::moment_lanes::{self as ml, q, UPPER, VL};
+use crate::trial_lanes as tl;
 
 /// Which constraint rows the projection enforces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -459,6 +460,8 @@ pub struct Projector {
     metric_factor: Vec<f64>,
     /// The per-vertex arrays kept with the metric (`Problem::rows`).
     metric_rows: MetricRows,
+    /// What `metric_factor` and `metric_rows` hold, if they may be kept for the next projection.
+    metric_source: Option<MetricSource>,
     /// Vertices whose positions this step's projection must not move (in contact with an obstacle).
     frozen_positions: Vec<u32>,
     /// The full step's trial point while the model step length is tried.
@@ -479,6 +482,31 @@ pub struct Projector {
     /// direction of the energy row).
     system_rhs: Vec<Vec3>,
     system_dir: Vec<Vec3>,
+}
+
+/// What a projector's metric factors and rows were computed from: the next projection keeps them when it
+/// would compute the same ones (the metric of the same kind and step size, the same masses and pins, no
+/// frozen positions). They are the same every step of a typical simulation, and computing them was a serial
+/// pass over four arrays per projection: 15 us of the elephant's 550 us on two threads.
+#[derive(Clone, Debug, PartialEq)]
+struct MetricSource {
+    /// `None` for `W = M`; the step size's bits and the model's key for the stiffness metric.
+    stiffness: Option<(u64, ModelKey)>,
+    /// The masses and the pins the rows were derived from (the model's public fields, which a user may
+    /// change between steps; [`Model::key`] would hash them serially, about as long as deriving the rows).
+    masses: Vec<f64>,
+    pinned: Vec<bool>,
+}
+
+impl MetricSource {
+    /// Whether these are the metric of `model` with `stiffness` (compared bit for bit).
+    fn matches(&self, model: &Model, stiffness: Option<(u64, ModelKey)>) -> bool {
+        self.stiffness == stiffness
+            && self.pinned == model.pinned
+            && self.masses.len() == model.masses.len()
+            // Bits, not values (-0.0 == 0.0); or-ing the differences, which vectorises.
+            && self.masses.iter().zip(&model.masses).fold(0, |d, (a, b)| d | (a.to_bits() ^ b.to_bits())) == 0
+    }
 }
 
 /// The current iterate's `(x, v)` of a [`Projector`] inside `project`: q~ itself (`x_base`, `v_base`) until
@@ -524,6 +552,7 @@ struct MetricRows {
 impl<'a> Problem<'a> {
     /// The problem of one projection with the metric factors `metric_factor` (its per-vertex rows derived
     /// into `rows`, a reused buffer), slack directions and row scales not yet set (zero and one).
+    #[cfg(test)]
     fn new(
         model: &'a Model,
         h: f64,
@@ -533,7 +562,22 @@ impl<'a> Problem<'a> {
         active: [bool; ROWS],
         eps: f64,
     ) -> Self {
-        let mut pb = Problem {
+        let mut pb = Self::with_rows(model, h, targets, metric_factor, rows, active, eps);
+        pb.refresh_rows();
+        pb
+    }
+
+    /// [`Problem::new`] with `rows` already derived from `metric_factor` (kept from the last projection).
+    fn with_rows(
+        model: &'a Model,
+        h: f64,
+        targets: &'a Targets,
+        metric_factor: Vec<f64>,
+        rows: MetricRows,
+        active: [bool; ROWS],
+        eps: f64,
+    ) -> Self {
+        Problem {
             model,
             h,
             targets,
@@ -544,9 +588,7 @@ impl<'a> Problem<'a> {
             eps,
             metric_factor,
             rows,
-        };
-        pb.refresh_rows();
-        pb
+        }
     }
 
     /// `rows` from `metric_factor`, the masses and the pins.
@@ -621,17 +663,27 @@ impl Projector {
         m
     }
 
-    /// Fill `metric_factor` with `a_i = m_i / w_i` for step size `h` (0 for frozen positions).
-    fn prepare_metric(&mut self, model: &Model, h: f64) {
+    /// Fill `metric_factor` with `a_i = m_i / w_i` for step size `h` (0 for frozen positions). Returns false when
+    /// the last projection's factors (and rows) are these already, and were kept.
+    fn prepare_metric(&mut self, model: &Model, h: f64) -> bool {
         let m = model.num_vertices();
-        self.metric_factor.clear();
-        if self.uses_stiffness_metric() {
+        let stiffness = self.uses_stiffness_metric().then(|| {
             // From the mesh, the material and the masses, which a user of the Rust API may change between steps.
             let key = model.key();
             if self.stiffness_key != Some(key) {
                 self.stiffness_ratio = rest_stiffness_ratio(model);
                 self.stiffness_key = Some(key);
             }
+            (h.to_bits(), key)
+        });
+        let keep = self.frozen_positions.is_empty()
+            && self.metric_factor.len() == m
+            && (self.metric_source.as_ref()).is_some_and(|src| src.matches(model, stiffness));
+        if keep {
+            return false;
+        }
+        self.metric_factor.clear();
+        if stiffness.is_some() {
             let h2 = h * h;
             self.metric_factor
                 .extend(self.stiffness_ratio.iter().map(|k| 1.0 / (1.0 + h2 * k)));
@@ -641,6 +693,13 @@ impl Projector {
         for &i in &self.frozen_positions {
             self.metric_factor[i as usize] = 0.0;
         }
+        // Frozen positions change with the contacts, every step: no source is kept with them.
+        self.metric_source = self.frozen_positions.is_empty().then(|| MetricSource {
+            stiffness,
+            masses: model.masses.clone(),
+            pinned: model.pinned.clone(),
+        });
+        true
     }
 
     /// Project `state` (holding the base step's result `(x*, v*)`) in place, for step size `h` and the given
@@ -691,10 +750,10 @@ impl Projector {
             Slack::Off => false,
             Slack::Auto => targets.uncertain_impulses,
         };
-        self.prepare_metric(model, h);
+        let fresh_metric = self.prepare_metric(model, h);
         // The slack directions are set from the first evaluation below (at s = t = 0 they do not enter the
         // constraints), the row scales after it.
-        let mut pb = Problem::new(
+        let mut pb = Problem::with_rows(
             model,
             h,
             targets,
@@ -703,6 +762,9 @@ impl Projector {
             self.active_rows(model, targets),
             self.settings.c_eps * mt * r * r,
         );
+        if fresh_metric {
+            pb.refresh_rows();
+        }
         let energy_only = pb.active[0] && pb.active[1..].iter().all(|&a| !a);
         let mut system = system.filter(|_| {
             self.settings.metric == Metric::Auto && energy_only && self.frozen_positions.is_empty()
@@ -946,6 +1008,9 @@ impl Projector {
             }
             let (x, _) = current!(self);
             let frozen = freeze_newly_inverted(model, &self.x_base, x, &mut pb.metric_factor);
+            if frozen > 0 {
+                self.metric_source = None;
+            }
             pb.refresh_rows();
             if frozen == 0 {
                 break;
@@ -1533,41 +1598,43 @@ fn d_norm(
     vb: &[Vec3],
     parts: &mut Vec<f64>,
 ) -> f64 {
-    // Over fixed vertex tasks, added in task order (the same bits for any thread count).
-    let map = |r: std::ops::Range<usize>| {
-        let base = (&xb[r.clone()], &vb[r.clone()]);
-        correction_sq_rows(pb, r.start, &x[r.clone()], &v[r], base)
-    };
-    let sum = reduce_chunks(x.len(), vertex_chunk(x.len()), parts, map, |a, b| a + b);
-    d_norm_from(pb, s, t, sum.unwrap_or(0.0))
+    d_norm_from(pb, s, t, d_norm_vertex_sum(pb, x, v, xb, vb, parts))
 }
 
-/// `|q - q_base|_D` from the vertices' part of its square (the task sums of [`correction_sq_rows`] added in
-/// task order) and the slack values.
-fn d_norm_from(pb: &Problem, s: f64, t: f64, vertex_sum: f64) -> f64 {
-    (pb.eps * (s * s + t * t) + vertex_sum).sqrt()
-}
-
-/// The vertices' part of `|q - q_base|_D^2` over the rows `first..first + x.len()` (`x`, `v` and
-/// `base = (x_base, v_base)`: their rows), summed in row order.
-fn correction_sq_rows(
+/// The vertices' part of `|q - q_base|_D^2`.
+fn d_norm_vertex_sum(
     pb: &Problem,
-    first: usize,
     x: &[Vec3],
     v: &[Vec3],
-    base: (&[Vec3], &[Vec3]),
+    xb: &[Vec3],
+    vb: &[Vec3],
+    parts: &mut Vec<f64>,
 ) -> f64 {
-    let h2 = pb.h * pb.h;
-    let (xb, vb) = base;
-    let term = |k: usize| {
-        let (dx, dv) = (sub(x[k], xb[k]), sub(v[k], vb[k]));
-        // A frozen position (a_i = 0) is held: its term is 0, not 0/0.
-        let i = first + k;
-        let a = pb.metric_factor[i];
-        let dx2 = if a > 0.0 { dot(dx, dx) / a } else { 0.0 };
-        pb.model.masses[i] * (dx2 + h2 * dot(dv, dv))
+    // Over fixed vertex tasks, each in lanes, added in task order (the same bits for any thread count, and
+    // those of the trial pass's sums: `trial_lanes`).
+    let map = |r: std::ops::Range<usize>| {
+        let base = tl::BaseRows {
+            x: &xb[r.clone()],
+            v: &vb[r.clone()],
+            h2: pb.h * pb.h,
+        };
+        let (mass, factor) = (&pb.model.masses[r.clone()], &pb.metric_factor[r.clone()]);
+        ml::lane_sum(&tl::correction_lanes(
+            &x[r.clone()],
+            &v[r],
+            base,
+            mass,
+            factor,
+        ))
     };
-    (0..x.len()).map(term).sum::<f64>()
+    let sum = reduce_chunks(x.len(), vertex_chunk(x.len()), parts, map, |a, b| a + b);
+    sum.unwrap_or(0.0)
+}
+
+/// `|q - q_base|_D` from the vertices' part of its square (the task sums of [`tl::correction_lanes`] added
+/// in task order) and the slack values.
+fn d_norm_from(pb: &Problem, s: f64, t: f64, vertex_sum: f64) -> f64 {
+    (pb.eps * (s * s + t * t) + vertex_sum).sqrt()
 }
 
 /// Evaluate the constraints, the elastic gradient (into `grad`; the potential's is `grad E_el - m g`, formed
@@ -1583,7 +1650,7 @@ fn evaluate(
     sc: &mut EvalScratch,
     grad: &mut [Vec3],
 ) -> Eval {
-    evaluate_sums::<true>(pb, x, v, s, t, sc, grad, None)
+    evaluate_sums::<true>(pb, x, v, s, t, sc, grad)
 }
 
 /// [`evaluate`], with the moments for `S` only if `S` (`Eval::s_moments`).
@@ -1596,7 +1663,6 @@ fn evaluate_sums<const S: bool>(
     t: f64,
     sc: &mut EvalScratch,
     grad: &mut [Vec3],
-    base: Option<(&[Vec3], &[Vec3])>,
 ) -> Eval {
     let el = elastic_gradient_chunks(pb.model, x, &mut sc.ws);
     let ws = &sc.ws;
@@ -1608,12 +1674,7 @@ fn evaluate_sums<const S: bool>(
             *gk = ws.gradient_at(pb.model, first + k);
         }
         let r = first..first + g.len();
-        part[0] = vertex_moments::<S>(pb, first, &x[r.clone()], &v[r.clone()], Some(g));
-        if let Some((xb, vb)) = base {
-            let rows_b = (&xb[r.clone()], &vb[r.clone()]);
-            let sq = correction_sq_rows(pb, first, &x[r.clone()], &v[r], rows_b);
-            part[0].correction_sq = Some(sq);
-        }
+        part[0] = vertex_moments::<S>(pb, first, &x[r.clone()], &v[r], Some(g));
     });
     finish(pb, s, t, el, sum_parts(parts))
 }
@@ -1639,15 +1700,23 @@ fn evaluate_step(
 ) -> Eval {
     let chunk = vertex_chunk(x_out.len());
     if moments {
-        for_each_chunk_mut2(x_out, chunk, v_out, chunk, |c, xo, vo| {
-            step.write_rows(c * chunk, xo, vo);
+        // The D-norm distance is summed as the rows are written (the moment pass after the chunks sums the
+        // rest).
+        let norms = &mut sc.norms;
+        norms.resize(x_out.len().div_ceil(chunk), 0.0);
+        for_each_chunk_mut3(x_out, chunk, v_out, chunk, norms, 1, |c, xo, vo, norm| {
+            let sums = step.write(c * chunk, xo, vo, false);
+            norm[0] = sums.correction.map_or(0.0, |lanes| ml::lane_sum(&lanes));
         });
-        return evaluate_sums::<true>(pb, x_out, v_out, s, t, sc, g_out, step.base);
+        let correction_sq = step.base.map(|_| sum_in_order(&sc.norms));
+        let mut e = evaluate_sums::<true>(pb, x_out, v_out, s, t, sc, g_out);
+        e.correction_sq = correction_sq;
+        return e;
     }
     // Without the moments for `S`, every vertex sum of the trial point (the constraints' and its D-norm
     // distance from q~) needs its rows alone: each task sums them as it writes them, while they are in
-    // cache, and the pass after the elastic chunks only gathers the gradient. The same task sums in the
-    // same order as `evaluate_sums`, so the same bits (`the_trial_pass_sums_what_an_evaluation_sums`).
+    // registers, and the pass after the elastic chunks only gathers the gradient. The same lanes and the same
+    // tasks as the moment pass's sums, so the same bits (`the_trial_pass_sums_what_an_evaluation_sums`).
     let parts = task_parts(&mut sc.parts, x_out.len());
     for_each_chunk_mut3(
         x_out,
@@ -1657,19 +1726,22 @@ fn evaluate_step(
         &mut parts[..],
         1,
         |c, xo, vo, part| {
-            let first = c * chunk;
-            step.write_rows(first, xo, vo);
-            part[0] = vertex_moments::<false>(pb, first, xo, vo, None);
-            if let Some((xb, vb)) = step.base {
-                let r = first..first + xo.len();
-                let sq = correction_sq_rows(pb, first, xo, vo, (&xb[r.clone()], &vb[r]));
-                part[0].correction_sq = Some(sq);
-            }
+            let sums = step.write(c * chunk, xo, vo, true);
+            let constraints = sums.constraints.expect("asked for");
+            part[0] = Eval {
+                correction_sq: sums.correction.map(|lanes| ml::lane_sum(&lanes)),
+                ..constraint_sums(&constraints)
+            };
         },
     );
     let el = elastic_gradient_chunks(pb.model, x_out, &mut sc.ws);
     sc.ws.gradient_into(pb.model, g_out);
     finish(pb, s, t, el, sum_parts(parts))
+}
+
+/// Per-task sums added in task order.
+fn sum_in_order(parts: &[f64]) -> f64 {
+    parts.iter().copied().reduce(|a, b| a + b).unwrap_or(0.0)
 }
 
 /// [`evaluate`] without the elastic gradient: the same constraint values, energies and momenta; the gradient
@@ -1743,15 +1815,11 @@ fn finish(pb: &Problem, s: f64, t: f64, el: ElasticSummary, mut e: Eval) -> Eval
     e
 }
 
-/// Vertices per parallel task of the moment pass, the trial step and the D-norm, for a mesh of `m` vertices:
-/// about an eighth of the mesh (so that two threads get equal shares on the small and mid-sized meshes: with
-/// 2048-vertex tasks the armadillo's 1,446 vertices were one task and its projection ran slower on two
-/// threads than on one), at least 64 (task overhead; 256 before `parallel::for_each_task` made a task
-/// cheap to hand out, which left the 1k box's 343 vertices in tasks of 256 and 87), at most 2048 (the tasks'
-/// rows stay in L1/L2), a multiple of the moment lanes. It depends on `m` alone, never on the thread count: the sums keep their
-/// bits for any number of threads.
+/// Vertices per parallel task of the moment pass, the trial step and the D-norm: the length of every vertex
+/// pass ([`crate::parallel::vertex_task_len`]), a multiple of the moment lanes.
 fn vertex_chunk(m: usize) -> usize {
-    m.div_ceil(8).next_multiple_of(VL).clamp(64, 2048)
+    const { assert!(VL == 4, "vertex_task_len is a multiple of 4") };
+    crate::parallel::vertex_task_len(m)
 }
 
 /// The sums of [`Eval`] over the vertices `first..first + x.len()` (`x`, `v`, `grad`: their rows; `c`, `el`
@@ -1772,18 +1840,7 @@ fn vertex_moments<const S: bool>(
     let r = first..first + x.len();
     let mass = &model.masses[r.clone()];
     if !S {
-        let acc = ml::constraint_lanes(x, v, mass, g, ct);
-        let sum = |k: usize| ml::lane_sum(&acc[k]);
-        let vec3 = |k: usize| [sum(k), sum(k + 1), sum(k + 2)];
-        return Eval {
-            s_moments: false,
-            kinetic: sum(q::KINETIC),
-            gravitational: sum(q::GRAVITATIONAL),
-            momentum: vec3(q::MOMENTUM),
-            angular_momentum: vec3(q::ANGULAR),
-            mass_x: vec3(q::MASS_X),
-            ..Eval::default()
-        };
+        return constraint_sums(&ml::constraint_lanes(x, v, mass, g, ct));
     }
     let rows = ml::Rows {
         x,
@@ -1835,6 +1892,21 @@ fn vertex_moments<const S: bool>(
         a_grad_r: std::array::from_fn(|c| [sum2(3 * c), sum2(3 * c + 1), sum2(3 * c + 2)]),
         a_r_cross_v: [sum2(9), sum2(10), sum2(11)],
         a_mass_r: [sum2(12), sum2(13), sum2(14)],
+        ..Eval::default()
+    }
+}
+
+/// The constraints' sums of a task from their lanes ([`ml::constraint_lanes`]), without the moments for `S`.
+fn constraint_sums(acc: &[ml::Lane; ml::CONSTRAINT_SUMS]) -> Eval {
+    let sum = |k: usize| ml::lane_sum(&acc[k]);
+    let vec3 = |k: usize| [sum(k), sum(k + 1), sum(k + 2)];
+    Eval {
+        s_moments: false,
+        kinetic: sum(q::KINETIC),
+        gravitational: sum(q::GRAVITATIONAL),
+        momentum: vec3(q::MOMENTUM),
+        angular_momentum: vec3(q::ANGULAR),
+        mass_x: vec3(q::MASS_X),
         ..Eval::default()
     }
 }
@@ -2130,14 +2202,9 @@ struct Step<'a> {
     v: &'a [Vec3],
     /// The elastic gradient at `x`.
     grad: &'a [Vec3],
-    inv_h2: f64,
-    ct: Vec3,
-    lh: f64,
-    lp: Vec3,
-    ll: Vec3,
-    /// `lambda_C / m_total`.
-    lc_over_mt: Vec3,
-    alpha: f64,
+    /// The multipliers, the step length and the constants of the rows' update.
+    coefficients: tl::StepCoefficients,
+    h2: f64,
     dp_star: Vec3,
     dl_star: Vec3,
     eps: f64,
@@ -2163,13 +2230,17 @@ impl<'a> Step<'a> {
             x,
             v,
             grad,
-            inv_h2: 1.0 / (pb.h * pb.h),
-            ct: pb.targets.center_of_mass,
-            lh: lambda[0],
-            lp: [lambda[1], lambda[2], lambda[3]],
-            ll: [lambda[4], lambda[5], lambda[6]],
-            lc_over_mt: [7, 8, 9].map(|k| lambda[k] / pb.model.total_mass),
-            alpha,
+            coefficients: tl::StepCoefficients {
+                lh: lambda[0],
+                alpha,
+                inv_h2: 1.0 / (pb.h * pb.h),
+                lp: [lambda[1], lambda[2], lambda[3]],
+                ll: [lambda[4], lambda[5], lambda[6]],
+                lc_over_mt: [7, 8, 9].map(|k| lambda[k] / pb.model.total_mass),
+                gravity: pb.model.gravity,
+                center: pb.targets.center_of_mass,
+            },
+            h2: pb.h * pb.h,
             dp_star: pb.dp_star,
             dl_star: pb.dl_star,
             eps: pb.eps,
@@ -2187,54 +2258,49 @@ impl<'a> Step<'a> {
     }
 
     /// The trial positions (m) and velocities (m/s) of the vertices `first..first + x_out.len()`, into
-    /// `x_out` and `v_out`; a pinned vertex keeps its own. One pass over the vertices' arrays side by side.
-    fn write_rows(&self, first: usize, x_out: &mut [Vec3], v_out: &mut [Vec3]) {
-        if let Some(dir) = self.dir {
-            self.write_rows_along(dir, first, x_out, v_out);
-            return;
-        }
+    /// `x_out` and `v_out` (a pinned vertex keeps its own), and their sums (`trial_lanes`): the constraints'
+    /// if `constraints`, the D-norm distance from the base state if the step is measured from one.
+    fn write(
+        &self,
+        first: usize,
+        x_out: &mut [Vec3],
+        v_out: &mut [Vec3],
+        constraints: bool,
+    ) -> tl::TrialSums {
         let r = first..first + x_out.len();
         let model = self.model;
-        let (g, ll, lc, lp, ct) = (model.gravity, self.ll, self.lc_over_mt, self.lp, self.ct);
-        let (lh, alpha, inv_h2) = (self.lh, self.alpha, self.inv_h2);
-        let state = self.x[r.clone()].iter().zip(&self.v[r.clone()]);
-        let per_vertex = self.grad[r.clone()]
-            .iter()
-            .zip(&model.masses[r.clone()])
-            .zip(
-                self.metric_factor[r.clone()]
-                    .iter()
-                    .zip(&self.a_over_m[r.clone()]),
-            )
-            .zip(&model.pinned[r]);
-        let rows = x_out
-            .iter_mut()
-            .zip(v_out.iter_mut())
-            .zip(state)
-            .zip(per_vertex);
-        for (((xo, vo), (x, v)), (((gr, &m), (&ai, &a_over_m)), &pinned)) in rows {
-            if pinned {
-                (*xo, *vo) = (*x, *v);
-                continue;
-            }
-            // dx = W^-1 (x-block of G lambda) with W_i = m_i / a_i (no division: `a_over_m` is kept with the
-            // metric); dv = the v-block over m_i h^-2.
-            let vxl = cross(*v, ll);
-            let lxr = cross(ll, sub(*x, ct));
-            for a in 0..3 {
-                let gi = gr[a] - m * g[a];
-                let dx = lh * gi * a_over_m + ai * (vxl[a] + lc[a]);
-                xo[a] = x[a] - alpha * dx;
-                let dv = (lh * v[a] + lp[a] + lxr[a]) * inv_h2;
-                vo[a] = v[a] - alpha * dv;
-            }
+        let base = self.base.map(|(xb, vb)| tl::BaseRows {
+            x: &xb[r.clone()],
+            v: &vb[r.clone()],
+            h2: self.h2,
+        });
+        let (mass, factor) = (&model.masses[r.clone()], &self.metric_factor[r.clone()]);
+        let Some(dir) = self.dir else {
+            let rows = tl::IterateRows {
+                x: &self.x[r.clone()],
+                v: &self.v[r.clone()],
+                grad: &self.grad[r.clone()],
+                mass,
+                factor,
+                a_over_m: &self.a_over_m[r.clone()],
+                pinned: &model.pinned[r],
+            };
+            return tl::write_trial(&self.coefficients, &rows, base, constraints, x_out, v_out);
+        };
+        self.write_rows_along(dir, first, x_out, v_out);
+        let (x, v) = (&*x_out, &*v_out);
+        let (g, ct) = (self.coefficients.gravity, self.coefficients.center);
+        tl::TrialSums {
+            constraints: constraints.then(|| ml::constraint_lanes(x, v, mass, g, ct)),
+            correction: base.map(|b| tl::correction_lanes(x, v, b, mass, factor)),
         }
     }
 
-    /// [`Step::write_rows`] with the positions moved along `dir = W^-1 grad U` of a [`SystemMetric`] (the energy
+    /// [`Step::write`]'s rows with the positions moved along `dir = W^-1 grad U` of a [`SystemMetric`] (the energy
     /// the only active row: the other multipliers are zero).
     fn write_rows_along(&self, dir: &[Vec3], first: usize, x_out: &mut [Vec3], v_out: &mut [Vec3]) {
-        let (lh, alpha, inv_h2) = (self.lh, self.alpha, self.inv_h2);
+        let c = &self.coefficients;
+        let (lh, alpha, inv_h2) = (c.lh, c.alpha, c.inv_h2);
         for (k, (xo, vo)) in x_out.iter_mut().zip(v_out.iter_mut()).enumerate() {
             let i = first + k;
             let (x, v) = (self.x[i], self.v[i]);
@@ -2252,9 +2318,10 @@ impl<'a> Step<'a> {
     /// The trial point's slack values from `(s, t)`: d c_P / d s = -(P* - P_t), d c_L / d t = -(L* - L_t),
     /// and D^-1 = 1/eps on s and t.
     fn slack(&self, s: f64, t: f64) -> (f64, f64) {
+        let c = &self.coefficients;
         (
-            s + self.alpha * dot(self.lp, self.dp_star) / self.eps,
-            t + self.alpha * dot(self.ll, self.dl_star) / self.eps,
+            s + c.alpha * dot(c.lp, self.dp_star) / self.eps,
+            t + c.alpha * dot(c.ll, self.dl_star) / self.eps,
         )
     }
 }
@@ -2501,7 +2568,7 @@ mod tests {
             let at = |alpha: f64| {
                 let step = Step::new(&pb, &x, &v, &grad, &lambda, alpha);
                 let (mut xo, mut vo) = (vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
-                step.write_rows(0, &mut xo, &mut vo);
+                step.write(0, &mut xo, &mut vo, false);
                 let mut g = vec![[0.0; 3]; m];
                 evaluate(&pb, &xo, &vo, s0, t0, &mut EvalScratch::default(), &mut g)
             };
@@ -2619,9 +2686,11 @@ mod tests {
         let step = Step::new(&pb, x, v, &grad, &lambda, 0.7).measured_from(x, v);
         // The reference: the rows written, then summed by the evaluation's own pass after the chunks.
         let (mut xr, mut vr, mut gr) = (vec![[0.0; 3]; m], vec![[0.0; 3]; m], vec![[0.0; 3]; m]);
-        step.write_rows(0, &mut xr, &mut vr);
+        step.write(0, &mut xr, &mut vr, false);
         let mut sc = EvalScratch::default();
-        let want = evaluate_sums::<false>(&pb, &xr, &vr, 0.1, 0.2, &mut sc, &mut gr, Some((x, v)));
+        let mut want = evaluate_sums::<false>(&pb, &xr, &vr, 0.1, 0.2, &mut sc, &mut gr);
+        let norms = &mut Vec::new();
+        want.correction_sq = Some(d_norm_vertex_sum(&pb, &xr, &vr, x, v, norms));
         let sums = |e: &Eval| {
             let mut b = vec![e.kinetic, e.gravitational, e.el.energy, e.el.min_j];
             b.extend(e.c);

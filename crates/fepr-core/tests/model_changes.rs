@@ -1,6 +1,6 @@
 //! Integrators, the projection and the world keep data built from the model: backward Euler's sparsity
 //! pattern and symbolic analysis, the Projective Dynamics factor, the XPBD colouring and compliances, the
-//! projection's stiffness metric, the Rayleigh damping pattern and an elastic gradient offered to symplectic
+//! projection's stiffness metric and its metric rows, the Rayleigh damping pattern and an elastic gradient offered to symplectic
 //! Euler. The model's fields are public, so a user of the Rust API can change pins, masses or the material
 //! between steps (`sim.model.pinned[i] = true`), or step one integrator with two models. Guard: each cache
 //! notices the change and is rebuilt, so an integrator that has stepped before gives the bits a new one gives.
@@ -287,6 +287,56 @@ fn stiffness_metric_is_recomputed_after_a_material_change() {
         .project(&stiff, &mut b, h, &targets);
     assert!(ra.stiffness_metric && rb.stiffness_metric);
     assert_same_bits(&a, &b, "stiffness metric");
+}
+
+/// The projection keeps its metric's per-vertex rows from one step to the next; a change of the masses, of
+/// the pins or (for the stiffness metric) of the step size between two projections must give the bits of a
+/// new projector, for either metric.
+#[test]
+fn projection_metric_rows_follow_a_mass_pin_or_step_size_change() {
+    for metric in [Metric::Mass, Metric::Stiffness] {
+        let settings = ProjectionSettings {
+            metric,
+            ..Default::default()
+        };
+        let m0 = model(ell_mesh(), neo_hookean(1e4, 0.3), 1.0, [0.0, 0.0, -9.81]);
+        let project = |p: &mut Projector, m: &Model, h: f64| {
+            let mut s = moving_state(m);
+            let inv = measure(m, &s);
+            let targets = Targets {
+                energy: 1.05 * inv.total,
+                momentum: inv.momentum,
+                angular_momentum: inv.angular_momentum,
+                center_of_mass: inv.center_of_mass,
+                energy_scale: inv.kinetic + inv.elastic.abs(),
+                uncertain_impulses: false,
+            };
+            let (report, _) = p.project(m, &mut s, h, &targets);
+            assert!(report.converged, "{metric:?}: {report:?}");
+            s
+        };
+        let mut heavier = m0.clone();
+        for (i, mass) in heavier.masses.iter_mut().enumerate() {
+            *mass *= 1.0 + 0.1 * (i % 3) as f64;
+        }
+        heavier.total_mass = heavier.masses.iter().sum();
+        let mut pinned = heavier.clone();
+        let mut unused = State::at_rest(&pinned);
+        pin(&mut pinned, &mut unused, &bottom(&m0)[..2], true);
+        let mut used = Projector::new(settings).unwrap();
+        // The same model twice (the rows kept), then each change after the one before.
+        for (what, m, h) in [
+            ("same model", &m0, 0.01),
+            ("same model again", &m0, 0.01),
+            ("masses", &heavier, 0.01),
+            ("pins", &pinned, 0.01),
+            ("step size", &pinned, 0.02),
+        ] {
+            let a = project(&mut used, m, h);
+            let b = project(&mut Projector::new(settings).unwrap(), m, h);
+            assert_same_bits(&a, &b, &format!("{metric:?}: {what}"));
+        }
+    }
 }
 
 #[test]
