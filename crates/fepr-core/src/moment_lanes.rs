@@ -72,6 +72,10 @@ pub(crate) struct Rows<'a> {
     pub free_mass: &'a [f64],
     /// The metric factor `a` of a free vertex, 0 for a pinned one.
     pub free_factor: &'a [f64],
+    /// Every row is free with a unit factor (`free_mass == mass`, `free_factor == 1`): the mass metric on a
+    /// body without pins or frozen positions. The kernels then skip the sums that repeat others bit for bit
+    /// (see [`avx2`]); the results are the same bits either way.
+    pub unit: bool,
 }
 
 impl Rows<'_> {
@@ -89,6 +93,16 @@ impl Rows<'_> {
             .iter()
             .all(|&k| k == n),
             "one row per vertex"
+        );
+        debug_assert!(
+            !self.unit
+                || (self.free_factor.iter().all(|&a| a == 1.0)
+                    && self
+                        .free_mass
+                        .iter()
+                        .zip(self.mass)
+                        .all(|(f, m)| f.to_bits() == m.to_bits())),
+            "unit rows are free with a unit factor"
         );
     }
 }
@@ -688,28 +702,52 @@ pub(crate) mod avx2 {
         mass_r: [__m256d; 6],
     }
 
-    /// The four passes of the moments for `S` over one block's groups.
+    /// The four passes of the moments for `S` over one block's groups. `UNIT` ([`Rows::unit`]): every row
+    /// is free with `a = 1`, so `a m = m` and `a g = g` exactly, and these sums repeat others bit for bit:
+    /// `A_FREE_MASS` is `FREE_MASS`, `FREE_P` and `A_FREE_P` are `MOMENTUM`, `FREE_L` is `ANGULAR` (the same
+    /// products added in the same order; a padding lane adds `+0` or `-0` to either, which leaves a sum that
+    /// started at `+0` unchanged). Those are copied by [`store_moments`], and the factors of one are not
+    /// multiplied.
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn moment_passes(acc: &mut MomentAcc, groups: &[Group], gv: &[__m256d; 3], cv: &[__m256d; 3]) {
+    fn moment_passes<const UNIT: bool>(
+        acc: &mut MomentAcc,
+        groups: &[Group],
+        gv: &[__m256d; 3],
+        cv: &[__m256d; 3],
+    ) {
         over(&mut acc.constraints, groups, |acc, gr| {
             constraint_group(acc, &gr.x, &gr.v, gr.m, gv, cv)
         });
         over(&mut acc.gradient, groups, |acc, gr| {
             let gs = potential_gradient(gr, gv);
-            let am = mul(gr.af, gr.m);
             acc[0] = add(acc[0], gr.mf);
+            acc[3] = add(acc[3], mul(gr.mf, norm2(&gr.v)));
+            if UNIT {
+                acc[2] = add(acc[2], _mm256_div_pd(norm2(&gs), gr.m));
+                for a in 0..3 {
+                    acc[4 + a] = add(acc[4 + a], gs[a]);
+                    acc[7 + a] = add(acc[7 + a], cross_at(&gs, &gr.v, a));
+                }
+                return;
+            }
+            let am = mul(gr.af, gr.m);
             acc[1] = add(acc[1], am);
             acc[2] = add(acc[2], _mm256_div_pd(mul(gr.af, norm2(&gs)), gr.m));
-            acc[3] = add(acc[3], mul(gr.mf, norm2(&gr.v)));
             for a in 0..3 {
                 acc[4 + a] = add(acc[4 + a], mul(gr.af, gs[a]));
                 acc[7 + a] = add(acc[7 + a], mul(gr.af, cross_at(&gs, &gr.v, a)));
             }
         });
         over(&mut acc.free, groups, |acc, gr| {
-            let am = mul(gr.af, gr.m);
             let r: [__m256d; 3] = std::array::from_fn(|a| sub(gr.x[a], cv[a]));
+            if UNIT {
+                for a in 0..3 {
+                    acc[9 + a] = add(acc[9 + a], mul(gr.mf, r[a]));
+                }
+                return;
+            }
+            let am = mul(gr.af, gr.m);
             for a in 0..3 {
                 acc[a] = add(acc[a], mul(gr.mf, gr.v[a]));
                 acc[3 + a] = add(acc[3 + a], mul(am, gr.v[a]));
@@ -718,7 +756,7 @@ pub(crate) mod avx2 {
             }
         });
         over(&mut acc.outer, groups, |acc, gr| {
-            let am = mul(gr.af, gr.m);
+            let am = if UNIT { gr.m } else { mul(gr.af, gr.m) };
             let r: [__m256d; 3] = std::array::from_fn(|a| sub(gr.x[a], cv[a]));
             for (k, &(a, b)) in UPPER.iter().enumerate() {
                 acc[k] = add(acc[k], mul(mul(am, gr.v[a]), gr.v[b]));
@@ -727,10 +765,12 @@ pub(crate) mod avx2 {
         });
     }
 
-    /// The two passes of the second-order moments over one block's groups.
+    /// The two passes of the second-order moments over one block's groups. `UNIT` (see [`moment_passes`]):
+    /// `sum a m r x v` is `ANGULAR` and `sum a m r` is `FREE_R` bit for bit (`r` is masked to 0 on a padding
+    /// lane here, and multiplied by a zero free mass there), copied by [`store_second_order`].
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn second_order_passes(
+    fn second_order_passes<const UNIT: bool>(
         acc: &mut SecondOrderAcc,
         groups: &[Group],
         gv: &[__m256d; 3],
@@ -741,11 +781,15 @@ pub(crate) mod avx2 {
             let r: [__m256d; 3] =
                 std::array::from_fn(|a| _mm256_and_pd(sub(gr.x[a], cv[a]), gr.real));
             for c in 0..3 {
+                let ag = if UNIT { gs[c] } else { mul(gr.af, gs[c]) };
                 for e in 0..3 {
-                    acc[3 * c + e] = add(acc[3 * c + e], mul(mul(gr.af, gs[c]), r[e]));
+                    acc[3 * c + e] = add(acc[3 * c + e], mul(ag, r[e]));
                 }
             }
         });
+        if UNIT {
+            return;
+        }
         over(&mut acc.mass_r, groups, |acc, gr| {
             let am = mul(gr.af, gr.m);
             let r: [__m256d; 3] =
@@ -777,31 +821,69 @@ pub(crate) mod avx2 {
         }
     }
 
+    /// The moments' lanes; with `unit` ([`moment_passes`]), the sums it skipped copied from those they repeat.
     #[target_feature(enable = "avx2")]
-    fn store_moments(acc: &MomentAcc) -> [Lane; q::COUNT] {
+    fn store_moments(acc: &MomentAcc, unit: bool) -> [Lane; q::COUNT] {
         let mut out = [[0.0; VL]; q::COUNT];
         store(&acc.constraints, &mut out[..CONSTRAINT_SUMS]);
         store(&acc.gradient, &mut out[q::FREE_MASS..q::FREE_P]);
         store(&acc.free, &mut out[q::FREE_P..q::A_VV]);
         store(&acc.outer, &mut out[q::A_VV..]);
+        if unit {
+            out[q::A_FREE_MASS] = out[q::FREE_MASS];
+            for a in 0..3 {
+                out[q::FREE_P + a] = out[q::MOMENTUM + a];
+                out[q::A_FREE_P + a] = out[q::MOMENTUM + a];
+                out[q::FREE_L + a] = out[q::ANGULAR + a];
+            }
+        }
         out
     }
 
+    /// The second-order moments' lanes; with `unit`, the sums [`second_order_passes`] skipped copied from the
+    /// moments' lanes `moments`.
     #[target_feature(enable = "avx2")]
-    fn store_second_order(acc: &SecondOrderAcc) -> [Lane; SECOND_ORDER_SUMS] {
+    fn store_second_order(
+        acc: &SecondOrderAcc,
+        unit: bool,
+        moments: &[Lane; q::COUNT],
+    ) -> [Lane; SECOND_ORDER_SUMS] {
         let mut out = [[0.0; VL]; SECOND_ORDER_SUMS];
         store(&acc.grad_r, &mut out[..9]);
         store(&acc.mass_r, &mut out[9..]);
+        if unit {
+            for c in 0..3 {
+                out[9 + c] = moments[q::ANGULAR + c];
+                out[12 + c] = moments[q::FREE_R + c];
+            }
+        }
         out
     }
 
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
+        // SAFETY: as here (by the caller).
+        unsafe {
+            if rows.unit {
+                moments_of::<true>(rows, g, center)
+            } else {
+                moments_of::<false>(rows, g, center)
+            }
+        }
+    }
+
+    /// [`moment_lanes`] with `UNIT == rows.unit` (one instance each, as compiled before the variant).
+    #[target_feature(enable = "avx2")]
+    unsafe fn moments_of<const UNIT: bool>(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
         let (gv, cv) = (splat3(g), splat3(center));
         let mut acc = zero_moments();
         // SAFETY: Rows::assert_lengths checked the lengths (by the caller).
-        unsafe { for_blocks(rows, |groups| moment_passes(&mut acc, groups, &gv, &cv)) };
-        store_moments(&acc)
+        unsafe {
+            for_blocks(rows, |groups| {
+                moment_passes::<UNIT>(&mut acc, groups, &gv, &cv)
+            })
+        };
+        store_moments(&acc, UNIT)
     }
 
     /// [`moment_lanes`] and the second-order moments, each block's groups loaded once for both.
@@ -811,16 +893,35 @@ pub(crate) mod avx2 {
         g: Vec3,
         center: Vec3,
     ) -> ([Lane; q::COUNT], [Lane; SECOND_ORDER_SUMS]) {
+        // SAFETY: as in moment_lanes.
+        unsafe {
+            if rows.unit {
+                moments_and_second_order_of::<true>(rows, g, center)
+            } else {
+                moments_and_second_order_of::<false>(rows, g, center)
+            }
+        }
+    }
+
+    /// [`moment_and_second_order_lanes`] with `UNIT == rows.unit`.
+    #[target_feature(enable = "avx2")]
+    unsafe fn moments_and_second_order_of<const UNIT: bool>(
+        rows: &Rows,
+        g: Vec3,
+        center: Vec3,
+    ) -> ([Lane; q::COUNT], [Lane; SECOND_ORDER_SUMS]) {
         let (gv, cv) = (splat3(g), splat3(center));
         let (mut moments, mut second) = (zero_moments(), zero_second_order());
         // SAFETY: as in moment_lanes.
         unsafe {
             for_blocks(rows, |groups| {
-                moment_passes(&mut moments, groups, &gv, &cv);
-                second_order_passes(&mut second, groups, &gv, &cv);
+                moment_passes::<UNIT>(&mut moments, groups, &gv, &cv);
+                second_order_passes::<UNIT>(&mut second, groups, &gv, &cv);
             })
         };
-        (store_moments(&moments), store_second_order(&second))
+        let moments = store_moments(&moments, UNIT);
+        let second = store_second_order(&second, UNIT, &moments);
+        (moments, second)
     }
 }
 
@@ -882,6 +983,7 @@ mod tests {
                     mass: &mass,
                     free_mass: &free_mass,
                     free_factor: &free_factor,
+                    unit: false,
                 };
                 // SAFETY: AVX2 is present (checked above); the slices have n rows each.
                 let (c, m, (m2, s)) = unsafe {
@@ -908,6 +1010,60 @@ mod tests {
         }
     }
 
+    /// On rows that are all free with a unit factor, the kernels that skip the repeated sums (`Rows::unit`)
+    /// give the bits of the portable sums, which compute every one; the sums they copy are the ones they
+    /// repeat. Fails if a skipped sum is not a bit-for-bit repeat, or a factor of one is multiplied where the
+    /// reference's order differs.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn unit_rows_skip_the_repeated_sums_and_keep_every_bit() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        let (g, center) = ([0.3, -0.2, -9.81], [0.4, -0.6, 0.5]);
+        for n in [1, 3, 4, 5, 7, 8, 61, 64, 65, 130, 255] {
+            let (x, v, grad, [mass, ..]) = rows_data(n, 3 + n as u64);
+            let ones = vec![1.0; n];
+            for grad in [Some(&grad[..]), None] {
+                let plain = Rows {
+                    x: &x,
+                    v: &v,
+                    grad,
+                    mass: &mass,
+                    free_mass: &mass,
+                    free_factor: &ones,
+                    unit: false,
+                };
+                let unit = Rows {
+                    unit: true,
+                    ..plain
+                };
+                // SAFETY: AVX2 is present (checked above); the slices have n rows each.
+                let (m, (m2, s), m_plain) = unsafe {
+                    (
+                        avx2::moment_lanes(&unit, g, center),
+                        avx2::moment_and_second_order_lanes(&unit, g, center),
+                        avx2::moment_lanes(&plain, g, center),
+                    )
+                };
+                let m_ref = portable::moment_lanes(&plain, g, center);
+                let s_ref = portable::second_order_lanes(&plain, g, center);
+                assert_eq!(bits(&m_plain), bits(&m_ref), "{n} rows");
+                assert_eq!(bits(&m), bits(&m_ref), "unit moments, {n} rows");
+                assert_eq!(
+                    bits(&m2),
+                    bits(&m_ref),
+                    "unit moments (second pass), {n} rows"
+                );
+                assert_eq!(
+                    bits(&s),
+                    bits(&s_ref),
+                    "unit second-order moments, {n} rows"
+                );
+            }
+        }
+    }
+
     /// The lanes are sums over the rows: against a plain per-row sum of the same terms (to rounding).
     #[test]
     fn the_sums_are_the_documented_moments() {
@@ -920,6 +1076,7 @@ mod tests {
             mass: &mass,
             free_mass: &free_mass,
             free_factor: &free_factor,
+            unit: false,
         };
         let (g, c) = ([0.3, -0.2, -9.81], [0.4, -0.6, 0.5]);
         let (m, s) = moment_and_second_order_lanes(&rows, g, c);

@@ -547,6 +547,9 @@ struct MetricRows {
     free_mass: Vec<f64>,
     /// `a_i` of a free vertex, 0 of a pinned one.
     free_factor: Vec<f64>,
+    /// No vertex is pinned and every `a_i` is 1 (the mass metric without frozen positions): the moment
+    /// kernels skip the sums that then repeat others ([`ml::Rows::unit`]).
+    unit: bool,
 }
 
 impl<'a> Problem<'a> {
@@ -616,6 +619,7 @@ impl<'a> Problem<'a> {
         for ((out, &a), &p) in rows.free_factor.iter_mut().zip(factor).zip(pinned) {
             *out = if p { 0.0 } else { a };
         }
+        rows.unit = !pinned.contains(&true) && factor.iter().all(|&a| a == 1.0);
     }
 }
 
@@ -1849,6 +1853,7 @@ fn vertex_moments<const S: bool>(
         mass,
         free_mass: &pb.rows.free_mass[r.clone()],
         free_factor: &pb.rows.free_factor[r],
+        unit: pb.rows.unit,
     };
     // The second-order moments only with a gradient (a solve needs them; the energy-only first evaluation
     // and the warm start, which mostly end the projection after Projective Dynamics, do not).
