@@ -852,10 +852,8 @@ pub(crate) mod avx2 {
         store(&acc.grad_r, &mut out[..9]);
         store(&acc.mass_r, &mut out[9..]);
         if unit {
-            for c in 0..3 {
-                out[9 + c] = moments[q::ANGULAR + c];
-                out[12 + c] = moments[q::FREE_R + c];
-            }
+            out[9..12].copy_from_slice(&moments[q::ANGULAR..q::ANGULAR + 3]);
+            out[12..15].copy_from_slice(&moments[q::FREE_R..q::FREE_R + 3]);
         }
         out
     }
