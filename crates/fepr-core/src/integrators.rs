@@ -6,7 +6,7 @@ use crate::elasticity::{elastic_energy_gradient, ElasticSummary, ElasticWorkspac
 use crate::invariants::{angular_momentum, center_of_mass, kinetic_energy, linear_momentum};
 use crate::linalg::{scale, Vec3};
 use crate::model::{Model, ModelKey, State};
-use crate::parallel::{for_each_chunk_mut, for_each_chunk_mut2};
+use crate::parallel::row_tasks2;
 
 /// What a base step reports besides the new state.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -126,11 +126,10 @@ impl Integrator for SymplecticEuler {
             impulse: scale(g, h * model.free_mass()),
             ..Default::default()
         };
-        // The kick and the drift run in the vertex tasks of every vertex pass (`vertex_task_len`): each thread
+        // The kick and the drift run in the vertex tasks of every vertex pass (`row_tasks2`): each thread
         // writes the rows that it reads next, in the projection's passes (on a serial update, the other
         // thread read its half of the state from this one's cache). Each row's update is its own: the same
         // bits for any thread count.
-        let task = crate::parallel::vertex_task_len(m);
         let kick = |first: usize, v: &mut [Vec3]| {
             for (k, vi) in v.iter_mut().enumerate() {
                 let i = first + k;
@@ -153,14 +152,14 @@ impl Integrator for SymplecticEuler {
         };
         let (x, v) = (&mut state.x, &mut state.v);
         if model.damping == 0.0 {
-            for_each_chunk_mut2(x, task, v, task, |c, x, v| {
-                kick(c * task, v);
+            row_tasks2(x, v, |first, x, v| {
+                kick(first, v);
                 drift(x, v);
             });
             state.time += h;
             return report;
         }
-        for_each_chunk_mut(v, task, |c, v| kick(c * task, v));
+        row_tasks2(&mut state.x, &mut state.v, |first, _, v| kick(first, v));
         // The damping impulse and dissipated energy, measured on the undamped velocities at the positions the
         // step ends at (uniform scaling of v scales P and L by the same factor).
         let d = model.damping;
@@ -179,7 +178,7 @@ impl Integrator for SymplecticEuler {
         ];
         report.angular_impulse = scale(l, -d);
         let (x, v) = (&mut state.x, &mut state.v);
-        for_each_chunk_mut2(x, task, v, task, |_, x, v| {
+        row_tasks2(x, v, |_, x, v| {
             for vi in v.iter_mut() {
                 *vi = scale(*vi, 1.0 - d);
             }
@@ -194,8 +193,7 @@ impl Integrator for SymplecticEuler {
             return;
         }
         std::mem::swap(&mut self.grad, grad);
-        self.offered_x.clear();
-        self.offered_x.extend_from_slice(x);
+        crate::parallel::copy_rows(x, &mut self.offered_x);
         self.offered_key = Some(model.elastic_key());
     }
 }
@@ -203,9 +201,13 @@ impl Integrator for SymplecticEuler {
 /// True when the two position arrays agree bit for bit (so a cached evaluation is exactly the fresh one).
 pub(crate) fn same_bits(a: &[Vec3], b: &[Vec3]) -> bool {
     a.len() == b.len()
-        && a.iter()
-            .zip(b)
-            .all(|(p, q)| (0..3).all(|k| p[k].to_bits() == q[k].to_bits()))
+        && crate::parallel::all_rows(a.len(), |r| {
+            // Or-ing the differences, which vectorises (an early exit per row does not).
+            let diff = a[r.clone()].iter().zip(&b[r]).fold(0, |d, (p, q)| {
+                (0..3).fold(d, |d, k| d | (p[k].to_bits() ^ q[k].to_bits()))
+            });
+            diff == 0
+        })
 }
 
 /// End a step of a position-based integrator (backward Euler, Projective Dynamics): the new positions

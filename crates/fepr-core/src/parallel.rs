@@ -50,6 +50,69 @@ pub fn vertex_task_len(m: usize) -> usize {
     m.div_ceil(8).next_multiple_of(4).clamp(64, 2048)
 }
 
+/// Rows below which the per-row passes of a step ([`row_tasks2`], [`copy_rows`], [`all_rows`]) run on the
+/// calling thread: there a parallel region (about a microsecond on this project's benchmark machine; `fepr
+/// bench` reports it) costs more than the pass. Measured there (two threads), symplectic Euler's base step
+/// with its kick and drift and the step's copies and checks of the state: the 1k box (343 vertices) took
+/// 3.4-3.5 us with all of them serial, 5.6 with the kick and drift in tasks, 7.5-7.7 with everything in
+/// tasks; the armadillo (1,446) 14.7-14.8 us in tasks, 16.1-17.2 with the copies and checks serial.
+pub const SERIAL_ROWS: usize = 1024;
+
+/// `f(first, a_rows, b_rows)` over the vertex tasks of [`vertex_task_len`] of two slices of `n` rows each
+/// (`first`: the index of the task's first row), in parallel from [`SERIAL_ROWS`] rows on, else in task order
+/// on the calling thread.
+pub fn row_tasks2<A: Send, B: Send>(
+    a: &mut [A],
+    b: &mut [B],
+    f: impl Fn(usize, &mut [A], &mut [B]) + Sync,
+) {
+    let n = a.len();
+    assert_eq!(b.len(), n, "one row of each per vertex");
+    let len = vertex_task_len(n);
+    if n < SERIAL_ROWS {
+        for (c, (a, b)) in a.chunks_mut(len).zip(b.chunks_mut(len)).enumerate() {
+            f(c * len, a, b);
+        }
+        return;
+    }
+    for_each_chunk_mut2(a, len, b, len, |c, a, b| f(c * len, a, b));
+}
+
+/// `dst` becomes a copy of `src` (resized to its length: no allocation once it has grown), in the vertex
+/// tasks of [`vertex_task_len`] from [`SERIAL_ROWS`] rows on. Why in those tasks: a step's copies of the
+/// state (the start of step kept for an undo, an offered gradient's positions) were serial passes, a third of
+/// a symplectic Euler step's base time on the elephant; in the tasks, each thread copies the rows that it
+/// wrote, from its own cache.
+pub fn copy_rows<T: Copy + Default + Send + Sync>(src: &[T], dst: &mut Vec<T>) {
+    let n = src.len();
+    dst.resize(n, T::default());
+    if n < SERIAL_ROWS {
+        dst.copy_from_slice(src);
+        return;
+    }
+    let len = vertex_task_len(n);
+    for_each_chunk_mut(dst, len, |c, out| {
+        out.copy_from_slice(&src[c * len..c * len + out.len()])
+    });
+}
+
+/// Whether `check(range)` holds for every task's range of rows `0..n` (the vertex tasks of
+/// [`vertex_task_len`], on the calling thread below [`SERIAL_ROWS`] rows). Every task is checked (no early
+/// exit across threads): for the checks of a step that nearly always hold.
+pub fn all_rows(n: usize, check: impl Fn(Range<usize>) -> bool + Sync) -> bool {
+    if n < SERIAL_ROWS {
+        return check(0..n);
+    }
+    let len = vertex_task_len(n);
+    let all = std::sync::atomic::AtomicBool::new(true);
+    for_each_task(n.div_ceil(len), |t| {
+        if !check(t * len..((t + 1) * len).min(n)) {
+            all.store(false, Ordering::Relaxed);
+        }
+    });
+    all.into_inner()
+}
+
 /// Reduce `0..n` by `map` over fixed chunks and `combine` in chunk order. The chunk results are collected
 /// in `parts` (reused: no allocation once it has grown to the chunk count).
 pub fn reduce_chunks<A, M, C>(
@@ -614,6 +677,42 @@ mod tests {
             );
         } else {
             assert!(floor.round_trip_s.is_nan());
+        }
+    }
+
+    /// The step's row passes, serial below `SERIAL_ROWS` and in tasks above, on pools of 1-3 threads: a copy
+    /// is exact, a failed check in any one task (first, middle, last row) is seen, and `row_tasks2` hands
+    /// every row to `f` once with its index.
+    #[test]
+    fn row_passes_copy_check_and_visit_every_row_on_any_pool() {
+        for threads in [1, 2, 3] {
+            on_pool(threads, move || {
+                for n in [0, 1, 300, SERIAL_ROWS - 1, SERIAL_ROWS, 5000] {
+                    let src: Vec<[f64; 3]> = (0..n).map(|i| [i as f64, -(i as f64), 0.5]).collect();
+                    let mut dst = vec![[9.0; 3]; 7];
+                    copy_rows(&src, &mut dst);
+                    assert_eq!(dst, src, "copy of {n} rows, {threads} threads");
+                    assert!(all_rows(n, |r| r.into_iter().all(|i| src[i][2] == 0.5)));
+                    for bad in [0, n / 2, n.saturating_sub(1)]
+                        .into_iter()
+                        .filter(|_| n > 0)
+                    {
+                        let seen = all_rows(n, |r| r.into_iter().all(|i| i != bad));
+                        assert!(
+                            !seen,
+                            "row {bad} of {n} failed its check, {threads} threads"
+                        );
+                    }
+                    let (mut a, mut b) = (vec![0usize; n], vec![0usize; n]);
+                    row_tasks2(&mut a, &mut b, |first, a, b| {
+                        for (k, (x, y)) in a.iter_mut().zip(b.iter_mut()).enumerate() {
+                            (*x, *y) = (*x + first + k, *y + 1);
+                        }
+                    });
+                    assert!(a.iter().enumerate().all(|(i, &x)| x == i), "{n} rows");
+                    assert!(b.iter().all(|&y| y == 1), "every row once, {n} rows");
+                }
+            });
         }
     }
 

@@ -9,6 +9,7 @@ use crate::invariants::{center_of_mass, measure, Invariants};
 use crate::linalg::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, State};
 use crate::obstacles::{max_penetration, near_obstacles, resolve_contacts, Obstacle};
+use crate::parallel::copy_rows;
 use crate::projection::{ProjectionReport, Projector, Targets};
 use crate::world::{Drag, KinematicPins, Work, World};
 
@@ -343,8 +344,10 @@ impl Simulation {
             let (x, v) = (&mut self.state.x, &mut self.state.v);
             self.world.place_pins(x, v, t_next);
         }
-        // External forces: a kick h f / m before the base step.
-        self.x_start.clone_from(&self.state.x);
+        // External forces: a kick h f / m before the base step (their work needs the start positions).
+        if self.world.has_forces() {
+            copy_rows(&self.state.x, &mut self.x_start);
+        }
         let (mut force_impulse, mut force_torque) = ([0.0; 3], [0.0; 3]);
         let has_forces = match self.world.step_forces(&self.model, &self.state.x) {
             Some(f) => {
@@ -384,7 +387,7 @@ impl Simulation {
         }
         let mut contacts = 0;
         let mut max_depth = 0.0;
-        if self.state.is_finite() {
+        if is_finite(&self.state) {
             let (dw, imp, ang) = self.world.damp(&self.model, &mut self.state, h)?;
             work.damping += dw;
             report.impulse = add(report.impulse, imp);
@@ -429,13 +432,13 @@ impl Simulation {
         // A step enters 6-30 parallel regions with sequential work between them: keep the other threads
         // polling for work meanwhile instead of parking and waking them for each region (`KeepAwake`).
         let _awake = crate::parallel::KeepAwake::new();
-        self.previous.clone_from(&self.state);
+        copy_state(&self.state, &mut self.previous);
         let h = self.dt;
         let t0 = Instant::now();
         self.contact_vertices.clear();
         let mut adv = self.advance(h)?;
         let limit = IMPACT_DEPTH_FRACTION * self.mean_edge;
-        if adv.max_depth > limit && self.state.is_finite() {
+        if adv.max_depth > limit && is_finite(&self.state) {
             let k = ((adv.max_depth / limit).ceil() as usize).clamp(2, MAX_IMPACT_SUBSTEPS);
             self.state.clone_from(&self.previous);
             self.contact_vertices.clear();
@@ -443,7 +446,7 @@ impl Simulation {
             for _ in 0..k {
                 let a = self.advance(h / k as f64)?;
                 total.add(&a);
-                if !self.state.is_finite() {
+                if !is_finite(&self.state) {
                     break;
                 }
             }
@@ -453,7 +456,8 @@ impl Simulation {
         }
         self.contact_vertices.sort_unstable();
         self.contact_vertices.dedup();
-        if self.state.is_finite() {
+        let finite = is_finite(&self.state);
+        if finite {
             near_obstacles(
                 &self.world.obstacles,
                 &self.model,
@@ -472,7 +476,7 @@ impl Simulation {
         report.energy_budget = work.total();
         let base_ms = t0.elapsed().as_secs_f64() * 1e3;
         let step = self.num_steps() + 1;
-        if !self.state.is_finite() {
+        if !finite {
             std::mem::swap(&mut self.state, &mut self.previous);
             return Err(FeprError::Simulation(format!(
                 "the state became non-finite in step {step} (t = {:.6} s): the {} step of dt = {} s is unstable for \
@@ -600,4 +604,19 @@ impl Simulation {
         });
         Ok(self.history.last().expect("just pushed"))
     }
+}
+
+/// [`State::is_finite`] over the vertex tasks of the step's other passes ([`crate::parallel::all_rows`]).
+fn is_finite(state: &State) -> bool {
+    let finite = |rows: &[Vec3]| rows.iter().all(|p| p.iter().all(|c| c.is_finite()));
+    let n = state.x.len();
+    state.x.len() == state.v.len()
+        && crate::parallel::all_rows(n, |r| finite(&state.x[r.clone()]) && finite(&state.v[r]))
+}
+
+/// `dst` becomes a copy of `src` ([`copy_rows`] for its rows).
+fn copy_state(src: &State, dst: &mut State) {
+    copy_rows(&src.x, &mut dst.x);
+    copy_rows(&src.v, &mut dst.v);
+    dst.time = src.time;
 }

@@ -400,10 +400,15 @@ impl World {
         }
     }
 
+    /// Whether [`World::step_forces`] has forces to give (external forces or a drag).
+    pub(crate) fn has_forces(&self) -> bool {
+        !self.forces.is_empty() || self.drag.is_some()
+    }
+
     /// This step's external force per vertex (constant field plus the drag spring at the start positions),
     /// or None when there is none.
     pub(crate) fn step_forces(&mut self, model: &Model, x: &[Vec3]) -> Option<&[Vec3]> {
-        if self.forces.is_empty() && self.drag.is_none() {
+        if !self.has_forces() {
             return None;
         }
         let m = model.num_vertices();

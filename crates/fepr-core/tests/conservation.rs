@@ -213,15 +213,28 @@ fn damping_budget_is_honoured_by_the_projection() {
     );
 }
 
+/// 343 vertices (the step's row passes on the calling thread) and 1,728 (in vertex tasks: above
+/// `parallel::SERIAL_ROWS`).
 #[test]
 fn projected_run_is_bit_identical_for_any_thread_count() {
+    for cells in [6, 11] {
+        projected_run_is_bit_identical_for_any_thread_count_on(cells);
+    }
+}
+
+fn projected_run_is_bit_identical_for_any_thread_count_on(cells: i64) {
     let run = |threads: usize| {
         in_pool(threads, || {
             let big = cubes_mesh(
-                &(0..6)
-                    .flat_map(|i| (0..6).flat_map(move |j| (0..6).map(move |k| [i, j, k])))
+                &(0..cells)
+                    .flat_map(|i| (0..cells).flat_map(move |j| (0..cells).map(move |k| [i, j, k])))
                     .collect::<Vec<_>>(),
                 0.1,
+            );
+            assert!(
+                cells < 10 || big.num_vertices() > fepr_core::parallel::SERIAL_ROWS,
+                "{} vertices",
+                big.num_vertices()
             );
             let model = model(big, neo_hookean(1e4, 0.3), 0.01, [0.0, 0.0, -9.81]);
             let mut state = State::at_rest(&model);
