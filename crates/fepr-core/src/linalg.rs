@@ -168,7 +168,10 @@ pub fn solve_symmetric_psd_into(
 }
 
 /// Factor `l` (n x n, row-major, lower triangle used) in place by Cholesky and solve `L L^T y = b` in `y`
-/// (holding `b` on entry); false if the matrix is not positive definite in floating point.
+/// (holding `b` on entry); false if the matrix is not positive definite in floating point. The factor's
+/// diagonal holds the reciprocals `1 / L_ii`, so that the substitutions multiply where they divided: the
+/// divisions sat in their dependency chains, and the projection substitutes several times per iteration (its
+/// serial small solve on the 1k box: 2.1 -> 1.8 us, temporary timers).
 fn cholesky_solve_in_place(l: &mut [f64], y: &mut [f64], n: usize) -> bool {
     // In-place lower Cholesky factor.
     for j in 0..n {
@@ -179,9 +182,8 @@ fn cholesky_solve_in_place(l: &mut [f64], y: &mut [f64], n: usize) -> bool {
         if d <= 0.0 || !d.is_finite() {
             return false;
         }
-        let d = d.sqrt();
-        l[j * n + j] = d;
-        let inv_d = 1.0 / d;
+        let inv_d = 1.0 / d.sqrt();
+        l[j * n + j] = inv_d;
         for i in (j + 1)..n {
             let mut s = l[i * n + j];
             for k in 0..j {
@@ -195,20 +197,20 @@ fn cholesky_solve_in_place(l: &mut [f64], y: &mut [f64], n: usize) -> bool {
 }
 
 /// Solve `L L^T y = b` in `y` (holding `b` on entry) with the lower Cholesky factor `L` that a successful
-/// [`solve_symmetric_psd_into`] (one that returned false) left in its scratch `l`: another right-hand side
-/// of the same (shifted) matrix, without factoring it again.
+/// [`solve_symmetric_psd_into`] (one that returned false) left in its scratch `l` (its diagonal holding
+/// `1 / L_ii`): another right-hand side of the same (shifted) matrix, without factoring it again.
 pub fn cholesky_substitute(l: &[f64], y: &mut [f64], n: usize) {
     for i in 0..n {
         for k in 0..i {
             y[i] -= l[i * n + k] * y[k];
         }
-        y[i] /= l[i * n + i];
+        y[i] *= l[i * n + i];
     }
     for i in (0..n).rev() {
         for k in (i + 1)..n {
             y[i] -= l[k * n + i] * y[k];
         }
-        y[i] /= l[i * n + i];
+        y[i] *= l[i * n + i];
     }
 }
 
@@ -343,6 +345,35 @@ mod tests {
             let r: f64 = (0..3).map(|j| a[i * 3 + j] * x[j]).sum::<f64>() - b[i];
             assert!(r.abs() < 1e-13);
             assert!((x[i] - y[i]).abs() < 1e-12);
+        }
+    }
+
+    /// The factor that `solve_symmetric_psd_into` leaves (reciprocal diagonal) solves another right-hand side
+    /// with `cholesky_substitute`: a 10 x 10 system like the projection's.
+    #[test]
+    fn the_factor_left_solves_another_right_hand_side() {
+        let n = 10;
+        let a: Vec<f64> = (0..n * n)
+            .map(|k| {
+                let (i, j) = (k / n, k % n);
+                if i == j {
+                    2.0 + i as f64
+                } else {
+                    0.3 / (1.0 + (i as f64 - j as f64).abs())
+                }
+            })
+            .collect();
+        let (mut l, mut x) = (vec![0.0; n * n], vec![0.0; n]);
+        let b: Vec<f64> = (0..n).map(|i| 1.0 - 0.2 * i as f64).collect();
+        assert!(!solve_symmetric_psd_into(&a, &b, n, 0.0, &mut l, &mut x));
+        let mut y: Vec<f64> = (0..n).map(|i| (i as f64).sin()).collect();
+        let c = y.clone();
+        cholesky_substitute(&l, &mut y, n);
+        for (sol, rhs) in [(&x, &b), (&y, &c)] {
+            for i in 0..n {
+                let r: f64 = (0..n).map(|j| a[i * n + j] * sol[j]).sum::<f64>() - rhs[i];
+                assert!(r.abs() < 1e-13, "row {i}: residual {r}");
+            }
         }
     }
 }
