@@ -79,10 +79,11 @@ pub trait Integrator: Send + Sync {
 pub struct SymplecticEuler {
     grad: Vec<Vec3>,
     ws: ElasticWorkspace,
-    /// Positions of a gradient offered by the projection (see [`Integrator::offer_elastic_gradient`]);
-    /// empty when there is no offer. The gradient itself is then in `grad`.
+    /// Positions of a gradient offered by the projection (see [`Integrator::offer_elastic_gradient`]), valid
+    /// while `offered_key` is set (the buffer keeps its length between offers: no fill before each copy). The
+    /// gradient itself is then in `grad`.
     offered_x: Vec<Vec3>,
-    /// [`Model::elastic_key`] of the model the offered gradient belongs to.
+    /// [`Model::elastic_key`] of the model the offered gradient belongs to; `None` when there is no offer.
     offered_key: Option<ModelKey>,
     /// Steps that reused an offered gradient instead of evaluating it (for tests and benchmarks).
     pub reused_gradients: usize,
@@ -107,20 +108,17 @@ impl Integrator for SymplecticEuler {
         let m = model.num_vertices();
         // The projection's last evaluation is usually at exactly these positions (fepr-spec: symplectic Euler
         // + FEPR would otherwise evaluate the gradient at x_{n+1} twice); reuse it only when every bit agrees.
-        let offered = std::mem::take(&mut self.offered_x);
         let offered_key = self.offered_key.take();
-        if offered.len() == m
+        if offered_key == Some(model.elastic_key())
+            && self.offered_x.len() == m
             && self.grad.len() == m
-            && same_bits(&offered, &state.x)
-            && offered_key == Some(model.elastic_key())
+            && same_bits(&self.offered_x, &state.x)
         {
             self.reused_gradients += 1;
         } else {
             self.grad.resize(m, [0.0; 3]);
             elastic_energy_gradient(model, &state.x, &mut self.ws, &mut self.grad);
         }
-        self.offered_x = offered;
-        self.offered_x.clear();
         let g = model.gravity;
         let mut report = StepReport {
             impulse: scale(g, h * model.free_mass()),
