@@ -553,25 +553,10 @@ struct MetricRows {
 }
 
 impl<'a> Problem<'a> {
-    /// The problem of one projection with the metric factors `metric_factor` (its per-vertex rows derived
-    /// into `rows`, a reused buffer), slack directions and row scales not yet set (zero and one).
-    #[cfg(test)]
+    /// The problem of one projection with the metric factors `metric_factor` and their per-vertex rows `rows`
+    /// (a reused buffer: derived from the factors already, kept from the last projection, or to be derived by
+    /// [`Problem::with_fresh_rows`]), slack directions and row scales not yet set (zero and one).
     fn new(
-        model: &'a Model,
-        h: f64,
-        targets: &'a Targets,
-        metric_factor: Vec<f64>,
-        rows: MetricRows,
-        active: [bool; ROWS],
-        eps: f64,
-    ) -> Self {
-        let mut pb = Self::with_rows(model, h, targets, metric_factor, rows, active, eps);
-        pb.refresh_rows();
-        pb
-    }
-
-    /// [`Problem::new`] with `rows` already derived from `metric_factor` (kept from the last projection).
-    fn with_rows(
         model: &'a Model,
         h: f64,
         targets: &'a Targets,
@@ -592,6 +577,13 @@ impl<'a> Problem<'a> {
             metric_factor,
             rows,
         }
+    }
+
+    /// The problem with its rows derived from its metric factors ([`Problem::refresh_rows`]).
+    #[cfg(test)]
+    fn with_fresh_rows(mut self) -> Self {
+        self.refresh_rows();
+        self
     }
 
     /// `rows` from `metric_factor`, the masses and the pins.
@@ -757,7 +749,7 @@ impl Projector {
         let fresh_metric = self.prepare_metric(model, h);
         // The slack directions are set from the first evaluation below (at s = t = 0 they do not enter the
         // constraints), the row scales after it.
-        let mut pb = Problem::with_rows(
+        let mut pb = Problem::new(
             model,
             h,
             targets,
@@ -2434,7 +2426,8 @@ mod tests {
                 MetricRows::default(),
                 [true; ROWS],
                 0.7,
-            );
+            )
+            .with_fresh_rows();
             pb.dp_star = [0.3, -0.1, 0.2];
             pb.dl_star = [-0.2, 0.4, 0.1];
             let (s0, t0) = (0.1, -0.2);
@@ -2619,7 +2612,8 @@ mod tests {
             );
             let eps = proj.settings.c_eps * model.total_mass * model.length_scale.powi(2);
             let (factors, rows) = (proj.metric_factor.clone(), MetricRows::default());
-            let pb = Problem::new(&model, h, &targets, factors, rows, [true; ROWS], eps);
+            let pb = Problem::new(&model, h, &targets, factors, rows, [true; ROWS], eps)
+                .with_fresh_rows();
             let pass = d_norm(
                 &pb,
                 &out.x,
@@ -2684,7 +2678,8 @@ mod tests {
             MetricRows::default(),
             [true; ROWS],
             eps,
-        );
+        )
+        .with_fresh_rows();
         let mut grad = vec![[0.0; 3]; m];
         evaluate(&pb, x, v, 0.0, 0.0, &mut EvalScratch::default(), &mut grad);
         let lambda = [0.3, -0.2, 0.1, 0.05, 0.02, -0.04, 0.03, 0.2, -0.1, 0.07];
@@ -2808,7 +2803,8 @@ mod tests {
         }
         // The equations themselves, at the start: S lambda = c + d with d_H and d_L the terms at lambda.
         let (factors, rows) = (vec![1.0; m], MetricRows::default());
-        let mut pb = Problem::new(&model, h, &targets, factors, rows, [true; ROWS], 1.0);
+        let mut pb =
+            Problem::new(&model, h, &targets, factors, rows, [true; ROWS], 1.0).with_fresh_rows();
         pb.row_scale[0] = targets.energy;
         for a in 0..3 {
             pb.row_scale[1 + a] = model.total_mass * model.length_scale / h;

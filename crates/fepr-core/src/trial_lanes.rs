@@ -555,9 +555,37 @@ mod avx2 {
 mod tests {
     use super::*;
 
+    /// A task's rows: `x`, `v`, `grad`, then the base state's `x`, `v`; masses, factors, `a / m`; pins.
+    struct Task {
+        arrays: [Vec<Vec3>; 5],
+        per_row: [Vec<f64>; 3],
+        pinned: Vec<bool>,
+    }
+
+    impl Task {
+        fn rows(&self) -> IterateRows<'_> {
+            let [x, v, grad, ..] = &self.arrays;
+            let [mass, factor, a_over_m] = &self.per_row;
+            IterateRows {
+                x,
+                v,
+                grad,
+                mass,
+                factor,
+                a_over_m,
+                pinned: &self.pinned,
+            }
+        }
+
+        fn base(&self, h2: f64) -> BaseRows<'_> {
+            let [.., xb, vb] = &self.arrays;
+            BaseRows { x: xb, v: vb, h2 }
+        }
+    }
+
     /// A task's rows with every kind of value: unequal masses, pinned rows, frozen positions (factor 0),
     /// varied factors, a gradient that does not cancel gravity; and a base state near them.
-    fn task(n: usize, seed: u64) -> ([Vec<Vec3>; 5], [Vec<f64>; 3], Vec<bool>) {
+    fn task(n: usize, seed: u64) -> Task {
         let mut s = seed;
         let mut rnd = || {
             s = s
@@ -583,7 +611,11 @@ mod tests {
             .collect();
         let a_over_m = factor.iter().zip(&mass).map(|(a, m)| a / m).collect();
         let pinned = (0..n).map(|i| i % 7 == 3).collect();
-        (arrays, [mass, factor, a_over_m], pinned)
+        Task {
+            arrays,
+            per_row: [mass, factor, a_over_m],
+            pinned,
+        }
     }
 
     fn step() -> StepCoefficients {
@@ -611,22 +643,9 @@ mod tests {
         }
         // Lengths with every tail (0..3 padding lanes), one row, several groups.
         for n in [1, 2, 3, 4, 5, 6, 7, 8, 61, 64, 65, 130] {
-            let (arrays, [mass, factor, a_over_m], pinned) = task(n, n as u64);
-            let [x, v, grad, xb, vb] = &arrays;
-            let rows = IterateRows {
-                x,
-                v,
-                grad,
-                mass: &mass,
-                factor: &factor,
-                a_over_m: &a_over_m,
-                pinned: &pinned,
-            };
-            let base = BaseRows {
-                x: xb,
-                v: vb,
-                h2: 1e-6,
-            };
+            let t = task(n, n as u64);
+            let (rows, base) = (t.rows(), t.base(1e-6));
+            let (x, v, mass, factor) = (rows.x, rows.v, rows.mass, rows.factor);
             for (with_base, constraints) in [(true, true), (true, false), (false, true)] {
                 let b = with_base.then_some(base);
                 let mut out = [vec![[0.0; 3]; n], vec![[0.0; 3]; n]];
@@ -647,8 +666,8 @@ mod tests {
                 assert_eq!(got.correction.is_some(), with_base);
             }
             // SAFETY: as above.
-            let c = unsafe { avx2::correction_lanes(x, v, base, &mass, &factor) };
-            let c_ref = portable::correction_lanes(x, v, base, &mass, &factor);
+            let c = unsafe { avx2::correction_lanes(x, v, base, mass, factor) };
+            let c_ref = portable::correction_lanes(x, v, base, mass, factor);
             assert_eq!(bits(c), bits(c_ref), "D-norm lanes, {n} rows");
         }
     }
@@ -657,19 +676,11 @@ mod tests {
     #[test]
     fn the_trial_rows_and_sums_are_the_documented_ones() {
         let n = 23;
-        let (arrays, [mass, factor, a_over_m], pinned) = task(n, 9);
-        let [x, v, grad, xb, vb] = &arrays;
-        let rows = IterateRows {
-            x,
-            v,
-            grad,
-            mass: &mass,
-            factor: &factor,
-            a_over_m: &a_over_m,
-            pinned: &pinned,
-        };
+        let t = task(n, 9);
         let h2 = 1e-6;
-        let base = BaseRows { x: xb, v: vb, h2 };
+        let (rows, base) = (t.rows(), t.base(h2));
+        let (x, v, grad, xb, vb) = (rows.x, rows.v, rows.grad, base.x, base.v);
+        let (mass, factor, pinned) = (rows.mass, rows.factor, rows.pinned);
         let c = step();
         let (mut xo, mut vo) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
         let sums = write_trial(&c, &rows, Some(base), true, &mut xo, &mut vo);
@@ -710,7 +721,7 @@ mod tests {
         );
         close(lane_sum(&sums.correction.expect("a base")), correction);
         close(
-            lane_sum(&correction_lanes(&xo, &vo, base, &mass, &factor)),
+            lane_sum(&correction_lanes(&xo, &vo, base, mass, factor)),
             correction,
         );
     }

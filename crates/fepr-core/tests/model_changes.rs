@@ -63,6 +63,18 @@ fn pin(m: &mut Model, s: &mut State, vertices: &[usize], on: bool) {
     }
 }
 
+/// A projection's targets: the measured state's momenta and centre of mass, its energy times `factor`.
+fn targets_above(inv: &fepr_core::invariants::Invariants, factor: f64) -> Targets {
+    Targets {
+        energy: factor * inv.total,
+        momentum: inv.momentum,
+        angular_momentum: inv.angular_momentum,
+        center_of_mass: inv.center_of_mass,
+        energy_scale: inv.kinetic + inv.elastic.abs(),
+        uncertain_impulses: false,
+    }
+}
+
 /// Step `used` (which has stepped with an earlier model) and a new integrator from `state` on `m`: the same bits.
 fn compare_with_new(
     used: &mut dyn Integrator,
@@ -264,14 +276,7 @@ fn stiffness_metric_is_recomputed_after_a_material_change() {
     // A base step's state and targets 10% above its energy, momenta as they are.
     let state = moving_state(&stiff);
     let inv = measure(&stiff, &state);
-    let targets = Targets {
-        energy: 1.1 * inv.total,
-        momentum: inv.momentum,
-        angular_momentum: inv.angular_momentum,
-        center_of_mass: inv.center_of_mass,
-        energy_scale: inv.kinetic + inv.elastic.abs(),
-        uncertain_impulses: false,
-    };
+    let targets = targets_above(&inv, 1.1);
     let mut used = Projector::new(settings).unwrap();
     let mut first = moving_state(&soft);
     let inv_soft = measure(&soft, &first);
@@ -303,14 +308,7 @@ fn projection_metric_rows_follow_a_mass_pin_or_step_size_change() {
         let project = |p: &mut Projector, m: &Model, h: f64| {
             let mut s = moving_state(m);
             let inv = measure(m, &s);
-            let targets = Targets {
-                energy: 1.05 * inv.total,
-                momentum: inv.momentum,
-                angular_momentum: inv.angular_momentum,
-                center_of_mass: inv.center_of_mass,
-                energy_scale: inv.kinetic + inv.elastic.abs(),
-                uncertain_impulses: false,
-            };
+            let targets = targets_above(&inv, 1.05);
             let (report, _) = p.project(m, &mut s, h, &targets);
             assert!(report.converged, "{metric:?}: {report:?}");
             s
