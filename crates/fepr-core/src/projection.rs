@@ -2195,6 +2195,8 @@ struct Step<'a> {
     model: &'a Model,
     metric_factor: &'a [f64],
     a_over_m: &'a [f64],
+    /// The metric rows are unit ([`MetricRows::unit`]).
+    unit: bool,
     x: &'a [Vec3],
     v: &'a [Vec3],
     /// The elastic gradient at `x`.
@@ -2224,6 +2226,7 @@ impl<'a> Step<'a> {
             model: pb.model,
             metric_factor: &pb.metric_factor,
             a_over_m: &pb.rows.a_over_m,
+            unit: pb.rows.unit,
             x,
             v,
             grad,
@@ -2281,6 +2284,7 @@ impl<'a> Step<'a> {
                 factor,
                 a_over_m: &self.a_over_m[r.clone()],
                 pinned: &model.pinned[r],
+                unit: self.unit,
             };
             return tl::write_trial(&self.coefficients, &rows, base, constraints, x_out, v_out);
         };

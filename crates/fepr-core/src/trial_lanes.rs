@@ -59,6 +59,9 @@ pub(crate) struct IterateRows<'a> {
     pub a_over_m: &'a [f64],
     /// Pinned vertices keep their rows.
     pub pinned: &'a [bool],
+    /// No row is pinned and every factor is 1 (the mass metric on a free body without frozen positions): the
+    /// kernel then neither multiplies by the factors, nor divides by them, nor keeps pinned rows (the same bits).
+    pub unit: bool,
 }
 
 /// The rows of the state that the D-norm distance is measured from (q~), and `h^2` (s^2).
@@ -104,6 +107,10 @@ pub(crate) fn write_trial(
         .iter()
         .all(|&k| k == n),
         "one row per vertex"
+    );
+    debug_assert!(
+        !rows.unit || (!rows.pinned.contains(&true) && rows.factor.iter().all(|&a| a == 1.0)),
+        "unit rows are free with a unit factor"
     );
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
@@ -289,11 +296,15 @@ mod avx2 {
         _mm256_castsi256_pd(_mm256_cmpeq_epi64(flags, _mm256_setzero_si256()))
     }
 
-    /// The group of rows `start .. start + VL` (all present).
+    /// The group of rows `start .. start + VL` (all present); with `UNIT`, every lane free.
     #[inline]
     #[target_feature(enable = "avx2")]
-    unsafe fn group(rows: &IterateRows, start: usize) -> Group {
-        let p = &rows.pinned[start..start + VL];
+    unsafe fn group<const UNIT: bool>(rows: &IterateRows, start: usize) -> Group {
+        let p = if UNIT {
+            &[false; VL][..]
+        } else {
+            &rows.pinned[start..start + VL]
+        };
         // SAFETY (caller): start + VL <= n rows of every slice (asserted by write_trial).
         unsafe {
             Group {
@@ -321,32 +332,41 @@ mod avx2 {
         h2: __m256d,
     }
 
-    /// The trial rows of a group (a pinned row's lanes keep their rows): [`trial_row`] lane by lane.
+    /// The trial rows of a group (a pinned row's lanes keep their rows): [`trial_row`] lane by lane. `UNIT`
+    /// (every lane free with `a = 1`): the same bits without the factor's products (`1 x = x`) and the blends.
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn trial_group(c: &Splat, gr: &Group) -> ([__m256d; 3], [__m256d; 3]) {
+    fn trial_group<const UNIT: bool>(c: &Splat, gr: &Group) -> ([__m256d; 3], [__m256d; 3]) {
         let r: [__m256d; 3] = std::array::from_fn(|k| sub(gr.x[k], c.center[k]));
         let (mut xo, mut vo) = ([_mm256_setzero_pd(); 3], [_mm256_setzero_pd(); 3]);
         for k in 0..3 {
             let vxl = cross_at(&gr.v, &c.ll, k);
             let lxr = cross_at(&c.ll, &r, k);
             let gi = sub(gr.grad[k], mul(gr.m, c.g[k]));
-            let dx = add(
-                mul(mul(c.lh, gi), gr.a_over_m),
-                mul(gr.a, add(vxl, c.lc[k])),
-            );
+            let rigid = add(vxl, c.lc[k]);
+            let rigid = if UNIT { rigid } else { mul(gr.a, rigid) };
+            let dx = add(mul(mul(c.lh, gi), gr.a_over_m), rigid);
             let dv = mul(add(add(mul(c.lh, gr.v[k]), c.lp[k]), lxr), c.inv_h2);
+            let (x_new, v_new) = (
+                sub(gr.x[k], mul(c.alpha, dx)),
+                sub(gr.v[k], mul(c.alpha, dv)),
+            );
+            if UNIT {
+                (xo[k], vo[k]) = (x_new, v_new);
+                continue;
+            }
             // blendv takes the second operand where the mask's sign bit is set: the new row on a free lane.
-            xo[k] = _mm256_blendv_pd(gr.x[k], sub(gr.x[k], mul(c.alpha, dx)), gr.free);
-            vo[k] = _mm256_blendv_pd(gr.v[k], sub(gr.v[k], mul(c.alpha, dv)), gr.free);
+            xo[k] = _mm256_blendv_pd(gr.x[k], x_new, gr.free);
+            vo[k] = _mm256_blendv_pd(gr.v[k], v_new, gr.free);
         }
         (xo, vo)
     }
 
     /// A group's terms of the D-norm distance from `(xb, vb)`: the portable `correction_term` lane by lane.
+    /// `UNIT` (`a = 1` on every lane): the same bits without the division (`y / 1 = y`).
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn correction_group(
+    fn correction_group<const UNIT: bool>(
         x: &[__m256d; 3],
         v: &[__m256d; 3],
         xb: &[__m256d; 3],
@@ -358,8 +378,12 @@ mod avx2 {
         let dx: [__m256d; 3] = std::array::from_fn(|k| sub(x[k], xb[k]));
         let dv: [__m256d; 3] = std::array::from_fn(|k| sub(v[k], vb[k]));
         // dx^2 / a where a > 0, else 0 (the and clears the lanes of a frozen position, 0/0 included).
-        let positive = _mm256_cmp_pd::<_CMP_GT_OQ>(a, _mm256_setzero_pd());
-        let dx2 = _mm256_and_pd(_mm256_div_pd(norm2(&dx), a), positive);
+        let dx2 = if UNIT {
+            norm2(&dx)
+        } else {
+            let positive = _mm256_cmp_pd::<_CMP_GT_OQ>(a, _mm256_setzero_pd());
+            _mm256_and_pd(_mm256_div_pd(norm2(&dx), a), positive)
+        };
         mul(m, add(dx2, mul(h2, norm2(&dv))))
     }
 
@@ -418,6 +442,27 @@ mod avx2 {
         x_out: &mut [Vec3],
         v_out: &mut [Vec3],
     ) -> TrialSums {
+        // SAFETY: as here (by the caller).
+        unsafe {
+            if rows.unit {
+                write_trial_of::<true>(step, rows, base, constraints, x_out, v_out)
+            } else {
+                write_trial_of::<false>(step, rows, base, constraints, x_out, v_out)
+            }
+        }
+    }
+
+    /// [`write_trial`] with `UNIT == rows.unit` for the full groups (the padded last group takes the general
+    /// path: its padding lanes are pinned).
+    #[target_feature(enable = "avx2")]
+    unsafe fn write_trial_of<const UNIT: bool>(
+        step: &StepCoefficients,
+        rows: &IterateRows,
+        base: Option<BaseRows>,
+        constraints: bool,
+        x_out: &mut [Vec3],
+        v_out: &mut [Vec3],
+    ) -> TrialSums {
         let n = rows.x.len();
         let c = Splat {
             lh: _mm256_set1_pd(step.lh),
@@ -440,7 +485,7 @@ mod avx2 {
                 // SAFETY: start + VL <= n rows of every slice (asserted by the caller).
                 None => unsafe {
                     (
-                        group(rows, start),
+                        group::<UNIT>(rows, start),
                         base.map(|b| load_rows(b.x.as_ptr().add(start).cast())),
                         base.map(|b| load_rows(b.v.as_ptr().add(start).cast())),
                     )
@@ -462,7 +507,11 @@ mod avx2 {
                     )
                 },
             };
-            let (xo, vo) = trial_group(&c, &gr);
+            let (xo, vo) = if full {
+                trial_group::<UNIT>(&c, &gr)
+            } else {
+                trial_group::<false>(&c, &gr)
+            };
             if full {
                 // SAFETY: rows start .. start + VL exist in x_out and v_out (asserted by the caller).
                 unsafe {
@@ -486,7 +535,11 @@ mod avx2 {
                 constraint_group(&mut sums, &xo, &vo, gr.m, &c.g, &c.center);
             }
             if let (Some(xb), Some(vb)) = (xb, vb) {
-                let term = correction_group(&xo, &vo, &xb, &vb, gr.m, gr.a, c.h2);
+                let term = if full {
+                    correction_group::<UNIT>(&xo, &vo, &xb, &vb, gr.m, gr.a, c.h2)
+                } else {
+                    correction_group::<false>(&xo, &vo, &xb, &vb, gr.m, gr.a, c.h2)
+                };
                 correction = add(correction, term);
             }
             start += VL;
@@ -517,7 +570,7 @@ mod avx2 {
                 // SAFETY: rows start .. start + VL exist in every slice (asserted by the caller).
                 unsafe {
                     let ld = |s: &[Vec3]| load_rows(s.as_ptr().add(start).cast());
-                    correction_group(
+                    correction_group::<false>(
                         &ld(x),
                         &ld(v),
                         &ld(base.x),
@@ -541,7 +594,7 @@ mod avx2 {
                 unsafe {
                     let [px, pv, pxb, pvb] = p.map(|b| load_rows(b.as_ptr()));
                     let (m, a) = (_mm256_loadu_pd(m.as_ptr()), _mm256_loadu_pd(a.as_ptr()));
-                    correction_group(&px, &pv, &pxb, &pvb, m, a, h2)
+                    correction_group::<false>(&px, &pv, &pxb, &pvb, m, a, h2)
                 }
             };
             acc = add(acc, term);
@@ -575,6 +628,7 @@ mod tests {
                 factor,
                 a_over_m,
                 pinned: &self.pinned,
+                unit: false,
             }
         }
 
@@ -670,6 +724,46 @@ mod tests {
             let c = unsafe { avx2::correction_lanes(x, v, base, mass, factor) };
             let c_ref = portable::correction_lanes(x, v, base, mass, factor);
             assert_eq!(bits(c), bits(c_ref), "D-norm lanes, {n} rows");
+        }
+    }
+
+    /// On unit rows (no pins, every factor 1), the kernel that skips the factors' products, the division and
+    /// the blends gives the portable rows and sums bit for bit, padded last groups included.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn avx2_trial_on_unit_rows_keeps_every_bit() {
+        if !std::arch::is_x86_feature_detected!("avx2") {
+            return;
+        }
+        for n in [1, 3, 4, 5, 8, 61, 64, 65, 130] {
+            let mut t = task(n, 40 + n as u64);
+            t.pinned.fill(false);
+            let [mass, factor, a_over_m] = &mut t.per_row;
+            factor.fill(1.0);
+            for (aom, m) in a_over_m.iter_mut().zip(mass.iter()) {
+                *aom = 1.0 / m;
+            }
+            let plain = t.rows();
+            let unit = IterateRows {
+                unit: true,
+                ..plain
+            };
+            for b in [Some(t.base(1e-6)), None] {
+                let mut out = [vec![[0.0; 3]; n], vec![[0.0; 3]; n]];
+                let mut want = out.clone();
+                let [xo, vo] = &mut out;
+                // SAFETY: AVX2 is present (checked above); every slice has n rows.
+                let got = unsafe { avx2::write_trial(&step(), &unit, b, true, xo, vo) };
+                let [xw, vw] = &mut want;
+                let reference = portable::write_trial(&step(), &plain, b, true, xw, vw);
+                let flat = |a: &[Vec<Vec3>; 2]| bits(a.iter().flatten().flatten().copied());
+                assert_eq!(flat(&out), flat(&want), "unit rows, {n} rows");
+                let lanes = |s: &TrialSums| {
+                    let c = s.constraints.iter().flatten().flatten().copied();
+                    bits(c.chain(s.correction.iter().flatten().copied()))
+                };
+                assert_eq!(lanes(&got), lanes(&reference), "unit sums, {n} rows");
+            }
         }
     }
 
