@@ -690,6 +690,38 @@ mod tests {
         values.into_iter().map(f64::to_bits).collect()
     }
 
+    /// The AVX2 kernel on `rows` against the portable reference on `reference_rows` (the same rows, perhaps
+    /// without the `unit` hint): the same rows and lane sums, bit for bit. Returns the kernel's sums.
+    #[cfg(target_arch = "x86_64")]
+    fn avx2_against_portable(
+        rows: &IterateRows,
+        reference_rows: &IterateRows,
+        base: Option<BaseRows>,
+        constraints: bool,
+    ) -> TrialSums {
+        let n = rows.x.len();
+        let mut out = [vec![[0.0; 3]; n], vec![[0.0; 3]; n]];
+        let mut want = out.clone();
+        let [xo, vo] = &mut out;
+        // SAFETY: the callers checked that AVX2 is present; every slice has n rows.
+        let got = unsafe { avx2::write_trial(&step(), rows, base, constraints, xo, vo) };
+        let [xw, vw] = &mut want;
+        let reference = portable::write_trial(&step(), reference_rows, base, constraints, xw, vw);
+        let flat = |a: &[Vec<Vec3>; 2]| bits(a.iter().flatten().flatten().copied());
+        let unit = rows.unit;
+        assert_eq!(flat(&out), flat(&want), "rows, {n} rows, unit {unit}");
+        let lanes = |s: &TrialSums| {
+            let c = s.constraints.iter().flatten().flatten().copied();
+            bits(c.chain(s.correction.iter().flatten().copied()))
+        };
+        assert_eq!(
+            lanes(&got),
+            lanes(&reference),
+            "sums, {n} rows, unit {unit}"
+        );
+        got
+    }
+
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn avx2_trial_matches_the_portable_rows_and_sums_bit_for_bit() {
@@ -702,21 +734,8 @@ mod tests {
             let (rows, base) = (t.rows(), t.base(1e-6));
             let (x, v, mass, factor) = (rows.x, rows.v, rows.mass, rows.factor);
             for (with_base, constraints) in [(true, true), (true, false), (false, true)] {
-                let b = with_base.then_some(base);
-                let mut out = [vec![[0.0; 3]; n], vec![[0.0; 3]; n]];
-                let mut want = out.clone();
-                let [xo, vo] = &mut out;
-                // SAFETY: AVX2 is present (checked above); every slice has n rows.
-                let got = unsafe { avx2::write_trial(&step(), &rows, b, constraints, xo, vo) };
-                let [xw, vw] = &mut want;
-                let reference = portable::write_trial(&step(), &rows, b, constraints, xw, vw);
-                let flat = |a: &[Vec<Vec3>; 2]| bits(a.iter().flatten().flatten().copied());
-                assert_eq!(flat(&out), flat(&want), "rows, {n} rows");
-                let lanes = |s: &TrialSums| {
-                    let c = s.constraints.iter().flatten().flatten().copied();
-                    bits(c.chain(s.correction.iter().flatten().copied()))
-                };
-                assert_eq!(lanes(&got), lanes(&reference), "sums, {n} rows");
+                let got =
+                    avx2_against_portable(&rows, &rows, with_base.then_some(base), constraints);
                 assert_eq!(got.constraints.is_some(), constraints);
                 assert_eq!(got.correction.is_some(), with_base);
             }
@@ -749,20 +768,7 @@ mod tests {
                 ..plain
             };
             for b in [Some(t.base(1e-6)), None] {
-                let mut out = [vec![[0.0; 3]; n], vec![[0.0; 3]; n]];
-                let mut want = out.clone();
-                let [xo, vo] = &mut out;
-                // SAFETY: AVX2 is present (checked above); every slice has n rows.
-                let got = unsafe { avx2::write_trial(&step(), &unit, b, true, xo, vo) };
-                let [xw, vw] = &mut want;
-                let reference = portable::write_trial(&step(), &plain, b, true, xw, vw);
-                let flat = |a: &[Vec<Vec3>; 2]| bits(a.iter().flatten().flatten().copied());
-                assert_eq!(flat(&out), flat(&want), "unit rows, {n} rows");
-                let lanes = |s: &TrialSums| {
-                    let c = s.constraints.iter().flatten().flatten().copied();
-                    bits(c.chain(s.correction.iter().flatten().copied()))
-                };
-                assert_eq!(lanes(&got), lanes(&reference), "unit sums, {n} rows");
+                avx2_against_portable(&unit, &plain, b, true);
             }
         }
     }
