@@ -399,11 +399,13 @@ impl State {
             time: 0.0,
         }
     }
-    /// True when every coordinate and velocity is finite.
+    /// True when every coordinate and velocity is finite (and there are as many velocities as positions). In
+    /// the vertex tasks of [`crate::parallel::all_rows`]: a step checks its state after the base step.
     pub fn is_finite(&self) -> bool {
-        self.x
-            .iter()
-            .chain(&self.v)
-            .all(|p| p.iter().all(|c| c.is_finite()))
+        let finite = |rows: &[Vec3]| rows.iter().all(|p| p.iter().all(|c| c.is_finite()));
+        self.x.len() == self.v.len()
+            && crate::parallel::all_rows(self.x.len(), |r| {
+                finite(&self.x[r.clone()]) && finite(&self.v[r])
+            })
     }
 }

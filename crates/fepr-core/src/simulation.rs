@@ -387,7 +387,7 @@ impl Simulation {
         }
         let mut contacts = 0;
         let mut max_depth = 0.0;
-        if is_finite(&self.state) {
+        if self.state.is_finite() {
             let (dw, imp, ang) = self.world.damp(&self.model, &mut self.state, h)?;
             work.damping += dw;
             report.impulse = add(report.impulse, imp);
@@ -438,7 +438,7 @@ impl Simulation {
         self.contact_vertices.clear();
         let mut adv = self.advance(h)?;
         let limit = IMPACT_DEPTH_FRACTION * self.mean_edge;
-        if adv.max_depth > limit && is_finite(&self.state) {
+        if adv.max_depth > limit && self.state.is_finite() {
             let k = ((adv.max_depth / limit).ceil() as usize).clamp(2, MAX_IMPACT_SUBSTEPS);
             self.state.clone_from(&self.previous);
             self.contact_vertices.clear();
@@ -446,7 +446,7 @@ impl Simulation {
             for _ in 0..k {
                 let a = self.advance(h / k as f64)?;
                 total.add(&a);
-                if !is_finite(&self.state) {
+                if !self.state.is_finite() {
                     break;
                 }
             }
@@ -456,7 +456,7 @@ impl Simulation {
         }
         self.contact_vertices.sort_unstable();
         self.contact_vertices.dedup();
-        let finite = is_finite(&self.state);
+        let finite = self.state.is_finite();
         if finite {
             near_obstacles(
                 &self.world.obstacles,
@@ -604,14 +604,6 @@ impl Simulation {
         });
         Ok(self.history.last().expect("just pushed"))
     }
-}
-
-/// [`State::is_finite`] over the vertex tasks of the step's other passes ([`crate::parallel::all_rows`]).
-fn is_finite(state: &State) -> bool {
-    let finite = |rows: &[Vec3]| rows.iter().all(|p| p.iter().all(|c| c.is_finite()));
-    let n = state.x.len();
-    state.x.len() == state.v.len()
-        && crate::parallel::all_rows(n, |r| finite(&state.x[r.clone()]) && finite(&state.v[r]))
 }
 
 /// `dst` becomes a copy of `src` ([`copy_rows`] for its rows).
