@@ -57,6 +57,18 @@ pub trait Integrator: Send + Sync {
     /// [`Model::elastic_key`] (mesh and material) is still the one of `model` (so the result is the same bits
     /// either way). Default: ignore the offer.
     fn offer_elastic_gradient(&mut self, _model: &Model, _x: &[Vec3], _grad: &mut Vec<Vec3>) {}
+    /// [`Integrator::offer_elastic_gradient`] with `x_copy`, a buffer that holds `x` bit for bit (shape (m, 3)):
+    /// an integrator that keeps the offer's positions may take it by a swap instead of copying `x`. Default:
+    /// the offer without it.
+    fn offer_elastic_gradient_with_positions(
+        &mut self,
+        model: &Model,
+        x: &[Vec3],
+        _x_copy: &mut Vec<Vec3>,
+        grad: &mut Vec<Vec3>,
+    ) {
+        self.offer_elastic_gradient(model, x, grad);
+    }
     /// The elastic energy summary and gradient (J/m, shape (m, 3)) that the last [`Integrator::step`]
     /// evaluated at the positions it ended on, with those positions, if it did (backward Euler's converged
     /// Newton iterate): the projection that follows may take the buffer (swap it) and skip its first elastic
@@ -192,6 +204,25 @@ impl Integrator for SymplecticEuler {
         }
         std::mem::swap(&mut self.grad, grad);
         crate::parallel::copy_rows(x, &mut self.offered_x);
+        self.offered_key = Some(model.elastic_key());
+    }
+
+    fn offer_elastic_gradient_with_positions(
+        &mut self,
+        model: &Model,
+        x: &[Vec3],
+        x_copy: &mut Vec<Vec3>,
+        grad: &mut Vec<Vec3>,
+    ) {
+        if x_copy.len() != x.len() {
+            return self.offer_elastic_gradient(model, x, grad);
+        }
+        if x.len() != grad.len() {
+            return;
+        }
+        debug_assert!(same_bits(x, x_copy), "the offered copy holds x bit for bit");
+        std::mem::swap(&mut self.grad, grad);
+        std::mem::swap(&mut self.offered_x, x_copy);
         self.offered_key = Some(model.elastic_key());
     }
 }

@@ -247,6 +247,36 @@ pub fn for_each_chunk_mut3<A: Send, B: Send, C: Send>(
     for_each_task(a.count, |k| unsafe { f(k, a.get(k), b.get(k), c.get(k)) });
 }
 
+/// [`for_each_chunk_mut3`] over four slices cut into the same number of chunks: `f(k, a_chunk, b_chunk,
+/// c_chunk, d_chunk)`.
+#[allow(clippy::too_many_arguments)]
+pub fn for_each_chunk_mut4<A: Send, B: Send, C: Send, D: Send>(
+    a: &mut [A],
+    len_a: usize,
+    b: &mut [B],
+    len_b: usize,
+    c: &mut [C],
+    len_c: usize,
+    d: &mut [D],
+    len_d: usize,
+    f: impl Fn(usize, &mut [A], &mut [B], &mut [C], &mut [D]) + Sync,
+) {
+    let (a, b, c, d) = (
+        DisjointChunks::new(a, len_a),
+        DisjointChunks::new(b, len_b),
+        DisjointChunks::new(c, len_c),
+        DisjointChunks::new(d, len_d),
+    );
+    assert!(
+        a.count == b.count && b.count == c.count && c.count == d.count,
+        "the same number of chunks"
+    );
+    // SAFETY: as in for_each_chunk_mut, for each slice.
+    for_each_task(a.count, |k| unsafe {
+        f(k, a.get(k), b.get(k), c.get(k), d.get(k))
+    });
+}
+
 /// A mutable slice cut into chunks that tasks on different threads take one each, by index.
 struct DisjointChunks<'a, T> {
     ptr: *mut T,

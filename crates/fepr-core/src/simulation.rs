@@ -513,9 +513,20 @@ impl Simulation {
                 let system = self.integrator.system_metric();
                 let (rep, inv) =
                     p.project_with(&self.model, &mut self.state, self.dt, &targets, system);
-                if let Some(grad) = p.take_final_gradient() {
-                    self.integrator
-                        .offer_elastic_gradient(&self.model, &self.state.x, grad);
+                match p.take_final_hand_over() {
+                    Some((grad, Some(x_copy))) => {
+                        self.integrator.offer_elastic_gradient_with_positions(
+                            &self.model,
+                            &self.state.x,
+                            x_copy,
+                            grad,
+                        )
+                    }
+                    Some((grad, None)) => {
+                        self.integrator
+                            .offer_elastic_gradient(&self.model, &self.state.x, grad)
+                    }
+                    None => {}
                 }
                 (Some(rep), inv, rep.base_energy)
             }

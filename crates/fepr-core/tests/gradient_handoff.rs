@@ -7,6 +7,7 @@ mod common;
 use common::*;
 use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
 use fepr_core::integrators::{Integrator, StepReport, SymplecticEuler};
+use fepr_core::mesh::TetMesh;
 use fepr_core::model::{Model, State};
 use fepr_core::projection::{ProjectionSettings, Projector};
 use fepr_core::simulation::Simulation;
@@ -42,6 +43,40 @@ impl Integrator for Counting {
     }
 }
 
+/// Symplectic Euler that takes offers with the projection's copy of their positions too, and publishes how many
+/// steps reused an offer and how many offers came with a copy.
+struct CountingCopies(SymplecticEuler, Arc<[AtomicUsize; 2]>);
+
+impl Integrator for CountingCopies {
+    fn name(&self) -> &'static str {
+        self.0.name()
+    }
+    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport {
+        let r = self.0.step(model, state, dt);
+        self.1[0].store(self.0.reused_gradients, Ordering::Relaxed);
+        r
+    }
+    fn offer_elastic_gradient(&mut self, model: &Model, x: &[[f64; 3]], grad: &mut Vec<[f64; 3]>) {
+        self.0.offer_elastic_gradient(model, x, grad);
+    }
+    fn offer_elastic_gradient_with_positions(
+        &mut self,
+        model: &Model,
+        x: &[[f64; 3]],
+        x_copy: &mut Vec<[f64; 3]>,
+        grad: &mut Vec<[f64; 3]>,
+    ) {
+        // The copy is x's, bit for bit (the projection's own debug check asserts the same).
+        assert!(x
+            .iter()
+            .zip(x_copy.iter())
+            .all(|(p, q)| (0..3).all(|k| p[k].to_bits() == q[k].to_bits())));
+        self.1[1].fetch_add(1, Ordering::Relaxed);
+        self.0
+            .offer_elastic_gradient_with_positions(model, x, x_copy, grad);
+    }
+}
+
 /// Backward Euler that keeps its last gradient to itself (the trait's default), so the projection
 /// evaluates it again.
 struct BackwardWithoutHandoff(ImplicitEuler);
@@ -64,7 +99,16 @@ fn run(integrator: Box<dyn Integrator>, steps: usize) -> Vec<State> {
 
 /// The states after each step, and the projection's elastic evaluations in each.
 fn run_with_evaluations(integrator: Box<dyn Integrator>, steps: usize) -> (Vec<State>, Vec<usize>) {
-    let model = model(ell_mesh(), neo_hookean(1e3, 0.3), 5.0, [0.0, 0.0, -9.81]);
+    run_on(ell_mesh(), integrator, steps)
+}
+
+/// [`run_with_evaluations`] on `mesh`.
+fn run_on(
+    mesh: TetMesh,
+    integrator: Box<dyn Integrator>,
+    steps: usize,
+) -> (Vec<State>, Vec<usize>) {
+    let model = model(mesh, neo_hookean(1e3, 0.3), 5.0, [0.0, 0.0, -9.81]);
     let mut state = State::at_rest(&model);
     scaled(&mut state, 1.3, [0.0; 3]);
     for (i, v) in state.v.iter_mut().enumerate() {
@@ -101,6 +145,39 @@ fn gradient_handoff_leaves_the_projected_trajectory_bit_identical() {
     assert_eq!(reused.load(Ordering::Relaxed), 39);
     let without = run(Box::new(WithoutHandoff(SymplecticEuler::new())), 40);
     assert_same_bits(&with, &without);
+}
+
+/// The projection's trial pass writes a copy of the positions it returns, which symplectic Euler takes by a swap
+/// instead of copying them after every projection (from `parallel::SERIAL_ROWS` vertices: a 10^3 block of
+/// cubes, 1,331): every offer but the first comes with it, every step after the first still reuses the offered
+/// gradient, and the trajectory keeps its bits. On a mesh below that size no offer comes with a copy.
+#[test]
+fn projected_positions_copy_is_handed_over_and_leaves_the_trajectory_bit_identical() {
+    let cells: Vec<[i64; 3]> = (0..1000).map(|c| [c % 10, c / 10 % 10, c / 100]).collect();
+    let block = || cubes_mesh(&cells, 0.1);
+    assert!(block().num_vertices() >= fepr_core::parallel::SERIAL_ROWS);
+    let steps = 12;
+    let counts = Arc::new([AtomicUsize::new(0), AtomicUsize::new(0)]);
+    let counting = CountingCopies(SymplecticEuler::new(), counts.clone());
+    let (with, _) = run_on(block(), Box::new(counting), steps);
+    assert_eq!(counts[0].load(Ordering::Relaxed), steps - 1);
+    // The first projection has no copy (the caller had not asked for one yet); the later ones return their
+    // accepted trial point here.
+    assert_eq!(counts[1].load(Ordering::Relaxed), steps - 1);
+    let (without, _) = run_on(
+        block(),
+        Box::new(WithoutHandoff(SymplecticEuler::new())),
+        steps,
+    );
+    assert_same_bits(&with, &without);
+
+    let small = Arc::new([AtomicUsize::new(0), AtomicUsize::new(0)]);
+    run(
+        Box::new(CountingCopies(SymplecticEuler::new(), small.clone())),
+        10,
+    );
+    assert_eq!(small[0].load(Ordering::Relaxed), 9);
+    assert_eq!(small[1].load(Ordering::Relaxed), 0);
 }
 
 #[test]
