@@ -234,17 +234,19 @@ pub fn for_each_chunk_mut3<A: Send, B: Send, C: Send>(
     len_c: usize,
     f: impl Fn(usize, &mut [A], &mut [B], &mut [C]) + Sync,
 ) {
-    let (a, b, c) = (
-        DisjointChunks::new(a, len_a),
-        DisjointChunks::new(b, len_b),
-        DisjointChunks::new(c, len_c),
+    // A fourth slice of zero-sized slots, one per chunk (no allocation).
+    let mut slots = vec![(); a.len().div_ceil(len_a.max(1))];
+    for_each_chunk_mut4(
+        a,
+        len_a,
+        b,
+        len_b,
+        c,
+        len_c,
+        &mut slots,
+        1,
+        |k, a, b, c, _| f(k, a, b, c),
     );
-    assert!(
-        a.count == b.count && b.count == c.count,
-        "the same number of chunks"
-    );
-    // SAFETY: as in for_each_chunk_mut, for each slice.
-    for_each_task(a.count, |k| unsafe { f(k, a.get(k), b.get(k), c.get(k)) });
 }
 
 /// [`for_each_chunk_mut3`] over four slices cut into the same number of chunks: `f(k, a_chunk, b_chunk,
