@@ -240,7 +240,7 @@ def chromium():
 def test_view_page_draws_the_scene_and_the_projection_toggle_reaches_the_server(chromium, tmp_path):
     port = _free_port()
     server = subprocess.Popen(
-        [sys.executable, "-m", "fepr", "view", str(SCENE), "--port", str(port), "--max-seconds", "90"],
+        [sys.executable, "-m", "fepr", "view", str(SCENE), "--port", str(port), "--max-seconds", "240"],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -293,6 +293,19 @@ def test_view_page_draws_the_scene_and_the_projection_toggle_reaches_the_server(
         (tmp_path / "view.png").write_bytes(base64.b64decode(devtools.call("Page.captureScreenshot")["data"]))
         assert img.std() > 10  # not a blank page
 
+        # Pause first: without projection this scene (the seed's demo 3 at dt = 1/30 s) blows up within a few
+        # steps, and on a loaded machine the first frame drawn after the toggle could show the body already flung
+        # out of the viewport (CI failed that way once, 30 s after the server had logged the toggle). Paused, the
+        # toggle rebuilds the run at the same state, so the body is redrawn where it is, in the new colour.
+        pause = """(() => {
+            for (const b of document.querySelectorAll('button')) {
+                if (b.textContent.trim() === 'Pause') { b.click(); return true; }
+            }
+            return false;
+        })()"""
+        paused = devtools.call("Runtime.evaluate", expression=pause, returnByValue=True)["result"]["value"]
+        assert paused, "no 'Pause' button on the page"
+        _wait_for(lambda: any("running: no" in ln for ln in lines) or None, 20, "the server to log 'running: no'")
         click = """(() => {
             for (const input of document.querySelectorAll('input[type=checkbox]')) {
                 let e = input;
