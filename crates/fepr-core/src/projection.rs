@@ -2193,7 +2193,13 @@ fn solve_multipliers(pb: &Problem, e: &Eval, delta: f64) -> Multipliers {
         let residual = |y: &[f64; ROWS]| -> ([f64; ROWS], f64) {
             let mut r = [0.0; ROWS];
             for p in 0..n {
-                r[p] = rhs[p] - (0..n).map(|q| a[p * n + q] * y[q]).sum::<f64>();
+                let row = &a[p * n..p * n + n];
+                r[p] = rhs[p]
+                    - row
+                        .iter()
+                        .zip(&y[..n])
+                        .map(|(apq, yq)| apq * yq)
+                        .sum::<f64>();
             }
             let size = r.iter().map(|v| v * v).sum::<f64>();
             (r, size)
