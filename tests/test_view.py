@@ -295,8 +295,9 @@ def test_view_page_draws_the_scene_and_the_projection_toggle_reaches_the_server(
 
         # Pause first: without projection this scene (the seed's demo 3 at dt = 1/30 s) blows up within a few
         # steps, and on a loaded machine the first frame drawn after the toggle could show the body already flung
-        # out of the viewport (CI failed that way once, 30 s after the server had logged the toggle). Paused, the
-        # toggle rebuilds the run at the same state, so the body is redrawn where it is, in the new colour.
+        # out of the viewport (a plausible cause of one CI failure: no blue body 30 s after the server had logged
+        # the toggle; not reproduced). Paused, the toggle rebuilds the run at the same state, so the body is
+        # redrawn where it is, in the new colour.
         pause = """(() => {
             for (const b of document.querySelectorAll('button')) {
                 if (b.textContent.trim() === 'Pause') { b.click(); return true; }

@@ -214,11 +214,8 @@ impl Integrator for SymplecticEuler {
         x_copy: &mut Vec<Vec3>,
         grad: &mut Vec<Vec3>,
     ) {
-        if x_copy.len() != x.len() {
+        if x_copy.len() != x.len() || grad.len() != x.len() {
             return self.offer_elastic_gradient(model, x, grad);
-        }
-        if x.len() != grad.len() {
-            return;
         }
         debug_assert!(same_bits(x, x_copy), "the offered copy holds x bit for bit");
         std::mem::swap(&mut self.grad, grad);

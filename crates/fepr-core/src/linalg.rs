@@ -173,8 +173,8 @@ pub fn solve_symmetric_psd_into(
 /// divisions sat in their dependency chains, and the projection substitutes several times per iteration (its
 /// serial small solve on the 1k box: 2.1 -> 1.8 us, temporary timers).
 fn cholesky_solve_in_place(l: &mut [f64], y: &mut [f64], n: usize) -> bool {
-    // In-place lower Cholesky factor.
-    // Rows sliced so that the inner loops run without bounds checks (the same operations in the same order).
+    // In-place lower Cholesky factor, its rows sliced so that the inner loops run without bounds checks (the same
+    // operations in the same order as indexing them).
     let l = &mut l[..n * n];
     for j in 0..n {
         let (upper, lower) = l.split_at_mut((j + 1) * n);
