@@ -177,6 +177,23 @@ pub fn for_each_task(n: usize, task: impl Fn(usize) + Sync) {
     start_workers(workers, &worker);
 }
 
+/// Runs `f` on a thread of a rayon pool: at once on the calling thread when that is one of a pool's threads
+/// (inside `ThreadPool::install`, or a task), else on a thread of the global pool while the caller waits.
+///
+/// Why: every parallel region that a thread outside the pools enters is sent to the global pool as a job, and
+/// the caller sleeps until it is done. A step enters 6-30 regions; with the pool's threads kept polling
+/// ([`KeepAwake`]), the caller then also competes with them for the CPUs. On the benchmark machine (two vCPUs),
+/// symplectic Euler + FEPR steps taken from Python's thread without a pool of their own took 117-149 us on the
+/// 1k box and 260-366 us on the armadillo, against 50-63 and 144-193 us inside a two-thread pool (and 66-89
+/// and 195-330 on one thread). Entered once per step (or once per batch of steps), the hop costs one hand-over.
+pub fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    if rayon::current_thread_index().is_some() {
+        f()
+    } else {
+        rayon::scope(|_| f())
+    }
+}
+
 /// The most home ranges of [`for_each_task`] (threads beyond share them).
 const MAX_HOME_RANGES: usize = 16;
 

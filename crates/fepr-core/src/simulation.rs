@@ -428,7 +428,16 @@ impl Simulation {
     /// edge length (a large step hitting an obstacle fast), the push-out would strain the contact layer hard
     /// (spikes of elastic energy with implicit integrators at large steps). The step is then redone from its
     /// start in substeps small enough for the depth, up to 16; the projection runs once, at the end.
+    ///
+    /// Called from a thread outside every rayon pool (a program's main thread, Python's), the step runs on a
+    /// thread of the global pool ([`crate::parallel::on_pool`]), as it does inside `ThreadPool::install`.
     pub fn step(&mut self) -> Result<&StepDiagnostics> {
+        crate::parallel::on_pool(|| self.step_on_pool())?;
+        Ok(self.history.last().expect("a step pushes its diagnostics"))
+    }
+
+    /// [`Simulation::step`], on a thread of a rayon pool.
+    fn step_on_pool(&mut self) -> Result<()> {
         // A step enters 6-30 parallel regions with sequential work between them: keep the other threads
         // polling for work meanwhile instead of parking and waking them for each region (`KeepAwake`).
         let _awake = crate::parallel::KeepAwake::new();
@@ -613,7 +622,7 @@ impl Simulation {
             runaway: (base_energy_error.is_nan() || base_energy_error > 1.0)
                 && !projection.is_some_and(|p| p.converged),
         });
-        Ok(self.history.last().expect("just pushed"))
+        Ok(())
     }
 }
 

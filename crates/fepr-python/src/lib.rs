@@ -499,7 +499,7 @@ impl Simulation {
     fn step(&mut self, py: Python<'_>, n: usize) -> PyResult<usize> {
         let Self { inner, pool, .. } = self;
         let result = py.detach(|| {
-            let mut run = || -> Result<usize, FeprError> {
+            let run = || -> Result<usize, FeprError> {
                 for _ in 0..n {
                     inner.step()?;
                 }
@@ -507,7 +507,8 @@ impl Simulation {
             };
             match pool {
                 Some(p) => p.install(run),
-                None => run(),
+                // The global pool, entered once for all `n` steps (`parallel::on_pool`).
+                None => fepr_core::parallel::on_pool(run),
             }
         });
         result.map_err(|e| PyRuntimeError::new_err(e.to_string()))
