@@ -184,7 +184,7 @@ pub fn for_each_task(n: usize, task: impl Fn(usize) + Sync) {
 /// the caller sleeps until it is done. A step enters 6-30 regions; with the pool's threads kept polling
 /// ([`KeepAwake`]), the caller then also competes with them for the CPUs. On the benchmark machine (two vCPUs),
 /// symplectic Euler + FEPR steps taken from Python's thread without a pool of their own took 117-149 us on the
-/// 1k box and 260-366 us on the armadillo, against 50-63 and 144-193 us inside a two-thread pool (and 66-89
+/// 1k box and 260-366 us on the armadillo, against 50-63 and 144-193 us inside a two-thread pool (and 55-89
 /// and 195-330 on one thread). Entered once per step (or once per batch of steps), the hop costs one hand-over.
 pub fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
     if rayon::current_thread_index().is_some() {
@@ -233,10 +233,12 @@ pub fn for_each_chunk_mut2<A: Send, B: Send>(
     len_b: usize,
     f: impl Fn(usize, &mut [A], &mut [B]) + Sync,
 ) {
-    let (a, b) = (DisjointChunks::new(a, len_a), DisjointChunks::new(b, len_b));
-    assert_eq!(a.count, b.count, "the same number of chunks");
-    // SAFETY: as in for_each_chunk_mut, for each slice.
-    for_each_task(a.count, |c| f(c, unsafe { a.get(c) }, unsafe { b.get(c) }));
+    // Two more slices of zero-sized slots, one per chunk (no allocation).
+    let chunks = a.len().div_ceil(len_a.max(1));
+    let (mut c, mut d) = (vec![(); chunks], vec![(); chunks]);
+    for_each_chunk_mut4(a, len_a, b, len_b, &mut c, 1, &mut d, 1, |k, a, b, _, _| {
+        f(k, a, b)
+    });
 }
 
 /// [`for_each_chunk_mut2`] over three slices cut into the same number of chunks: `f(c, a_chunk, b_chunk,

@@ -44,6 +44,13 @@ pub fn cubes_mesh(cells: &[[i64; 3]], size: f64) -> TetMesh {
 }
 
 /// The seed's "L": 2x2 footprint minus one corner, height 1, plus a 1x1x2 column on top.
+/// The cells of an `n` x `n` x `n` block of unit cubes (for [`cubes_mesh`]).
+pub fn block_cells(n: i64) -> Vec<[i64; 3]> {
+    (0..n)
+        .flat_map(|i| (0..n).flat_map(move |j| (0..n).map(move |k| [i, j, k])))
+        .collect()
+}
+
 pub fn ell_mesh() -> TetMesh {
     cubes_mesh(
         &[[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 2]],

@@ -225,12 +225,7 @@ fn projected_run_is_bit_identical_for_any_thread_count() {
 fn projected_run_is_bit_identical_for_any_thread_count_on(cells: i64) {
     let run = |threads: usize| {
         in_pool(threads, || {
-            let big = cubes_mesh(
-                &(0..cells)
-                    .flat_map(|i| (0..cells).flat_map(move |j| (0..cells).map(move |k| [i, j, k])))
-                    .collect::<Vec<_>>(),
-                0.1,
-            );
+            let big = cubes_mesh(&block_cells(cells), 0.1);
             assert!(
                 cells < 10 || big.num_vertices() > fepr_core::parallel::SERIAL_ROWS,
                 "{} vertices",

@@ -108,9 +108,7 @@ fn newton_iteration_cost_breakdown() {
     use fepr_core::sparse::SparseCholesky;
     use std::time::Instant;
     let n = 16;
-    let cells: Vec<[i64; 3]> = (0..n)
-        .flat_map(|i| (0..n).flat_map(move |j| (0..n).map(move |k| [i, j, k])))
-        .collect();
+    let cells = block_cells(n);
     let model = model(
         cubes_mesh(&cells, 0.5 / n as f64),
         neo_hookean(1e5, 0.3),
@@ -146,9 +144,7 @@ fn newton_iteration_cost_breakdown() {
 fn implicit_euler_is_bit_identical_for_any_thread_count() {
     let run = |threads: usize| {
         in_pool(threads, || {
-            let cells: Vec<[i64; 3]> = (0..8)
-                .flat_map(|i| (0..8).flat_map(move |j| (0..8).map(move |k| [i, j, k])))
-                .collect();
+            let cells = block_cells(8);
             let model = model(
                 cubes_mesh(&cells, 0.05),
                 neo_hookean(1e5, 0.3),

@@ -26,11 +26,8 @@ impl Integrator for Recording {
 }
 
 fn recorded_simulation() -> (Simulation, Arc<Mutex<Vec<Option<usize>>>>) {
-    let cells: Vec<[i64; 3]> = (0..3)
-        .flat_map(|i| (0..3).flat_map(move |j| (0..3).map(move |k| [i, j, k])))
-        .collect();
     let model = model(
-        cubes_mesh(&cells, 0.1),
+        cubes_mesh(&block_cells(3), 0.1),
         neo_hookean(1e3, 0.3),
         0.05,
         [0.0; 3],
