@@ -16,8 +16,8 @@ def test_run_scene_reports_every_field_and_bit_identical_energy_gradient():
     r = bench.run_scene("box_1k", quick=True, budget_s=0.01)
     assert r["tets"] == 1296 and r["vertices"] == 343
     eg = r["energy_gradient"]
-    for key in ("ns_per_tet_1_thread", "ns_per_tet_all_threads", "speedup"):
-        assert eg[key] > 0
+    for key in ("ns_per_tet_1_thread", "ns_per_tet_all_threads", "speedup", "ceiling", "speedup_of_ceiling"):
+        assert 0 < eg[key] < math.inf
     assert eg["bit_identical"] is True
     names = [s["integrator"] for s in r["integrators"]]
     assert names == ["symplectic_euler", "projective_dynamics", "implicit_euler"]
@@ -26,6 +26,18 @@ def test_run_scene_reports_every_field_and_bit_identical_energy_gradient():
         assert 0 <= s["proj_share"] <= 1
         assert s["proj_converged"] == 1.0
     assert r["memory"]["peak_rss_mb"] > 0
+
+
+def test_energy_gradient_apart_times_every_copy_and_rejects_nonsense():
+    import fepr
+
+    material = fepr.NeoHookean(youngs_modulus=1e3, poisson_ratio=0.3)
+    sim = fepr.Simulation(fepr.meshes.box(resolution=(3, 3, 3)), material=material, node_mass=0.05, dt=1e-3)
+    # Three copies on however many CPUs there are: each copy runs on its own thread and is timed.
+    assert 0 < sim._sim.bench_energy_gradient_apart(4, 3) < math.inf
+    for repeats, copies in ((0, 2), (4, 0)):
+        with pytest.raises(ValueError, match="at least 1"):
+            sim._sim.bench_energy_gradient_apart(repeats, copies)
 
 
 def test_missing_mesh_is_skipped_with_a_reason(tmp_path):

@@ -173,6 +173,12 @@ class Simulation:
         batch's mean); with ``awake`` the pool's threads poll between evaluations, as in a step: (seconds per
         evaluation, the energy's bits, a checksum of the gradient's bits)."""
 
+    def bench_energy_gradient_apart(self, repeats: int, copies: int) -> float:
+        """The same evaluation run by ``copies`` threads at once, each on its own one-thread pool and workspace,
+        ``repeats`` evaluations each in up to ten batches started together: seconds per evaluation of the
+        slowest copy in the best batch (``copies`` times one copy alone over this: the machine's ceiling over the
+        speed-up)."""
+
     def last_projection(self) -> Optional[_ProjectionReportDict]:
         """The last step's projection report, or None (no projection, or no step yet)."""
 

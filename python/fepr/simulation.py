@@ -362,7 +362,8 @@ class Simulation:
         The seed's velocity damping factor per step, ``v <- (1 - damping) v``, in [0, 1); the energy it
         removes enters the step's energy budget, so the projection does not undo it.
     threads : int, optional
-        Worker threads (default: all cores). Results are bit-identical for any thread count.
+        Worker threads (default: all cores). Results are bit-identical for any thread count. With 1, the steps
+        run on the calling thread itself, without a thread pool (no thread to wake for each ``step`` call).
     obstacles : sequence of Plane, Sphere, Box or Capsule, optional
         Static obstacles the free vertices collide with (restitution and Coulomb friction per obstacle). The
         kinetic energy a contact removes enters the step's budget, its impulses the momentum targets, and the

@@ -9,8 +9,6 @@
 //! per-tet scatter positions are computed once, element matrices are computed in parallel and scattered in
 //! tet order (deterministic).
 
-use rayon::prelude::*;
-
 use crate::elasticity::deformation_gradient;
 use crate::linalg::{symmetric_eigen_fixed, Vec3};
 use crate::material::{Hyperelastic, StressDerivative};
@@ -216,10 +214,13 @@ impl HessianAssembler {
         values.clear();
         values.resize(self.pattern.nnz(), 0.0);
         self.elements.resize(model.num_tets(), [0.0; 144]);
-        self.elements
-            .par_iter_mut()
-            .enumerate()
-            .for_each(|(e, h)| *h = element_hessian(model, x, e, psd));
+        // Fixed chunks of elements ([`crate::parallel::for_each_chunk_mut`], so that `parallel::serial` holds).
+        const ELEMENTS: usize = 64;
+        crate::parallel::for_each_chunk_mut(&mut self.elements, ELEMENTS, |c, hs| {
+            for (k, h) in hs.iter_mut().enumerate() {
+                *h = element_hessian(model, x, c * ELEMENTS + k, psd);
+            }
+        });
         for (e, h) in self.elements.iter().enumerate() {
             let positions = &self.scatter[144 * e..144 * (e + 1)];
             for (k, &pos) in positions.iter().enumerate() {

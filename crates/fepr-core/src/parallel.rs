@@ -152,7 +152,7 @@ where
 /// them in index order are bit-identical for any thread count. `task` may use rayon itself (a worker that
 /// waits there may pick up another worker of this call, which only claims more tasks).
 pub fn for_each_task(n: usize, task: impl Fn(usize) + Sync) {
-    let workers = rayon::current_num_threads().min(MAX_HOME_RANGES).min(n);
+    let workers = current_threads().min(MAX_HOME_RANGES).min(n);
     if workers <= 1 {
         (0..n).for_each(task);
         return;
@@ -186,11 +186,53 @@ pub fn for_each_task(n: usize, task: impl Fn(usize) + Sync) {
 /// symplectic Euler + FEPR steps taken from Python's thread without a pool of their own took 117-149 us on the
 /// 1k box and 260-366 us on the armadillo, against 50-63 and 144-193 us inside a two-thread pool (and 55-89
 /// and 195-330 on one thread). Entered once per step (or once per batch of steps), the hop costs one hand-over.
+///
+/// Inside [`serial`], at once on the calling thread (no pool is used there).
 pub fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
-    if rayon::current_thread_index().is_some() {
+    if rayon::current_thread_index().is_some() || is_serial() {
         f()
     } else {
         rayon::scope(|_| f())
+    }
+}
+
+thread_local! {
+    /// Whether this thread is inside [`serial`].
+    static SERIAL: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Runs `f` on the calling thread with every parallel pass of this crate in it run there too, in task order,
+/// without any thread pool: [`current_threads`] reads 1, [`on_pool`] and [`KeepAwake`] do nothing.
+///
+/// Why: a pool of one thread runs the same work on its own thread, which the caller must wake (and which
+/// parks again after the call). A one-thread simulation stepped once per call from Python paid that twice per
+/// call: symplectic Euler + FEPR on the 1k box took 115 us per `step(1)` against 56-58 us per step in batches
+/// (bunny2: 1,318-1,382 against 1,209-1,217 us). The results keep their bits (the tasks are the same fixed
+/// chunks, in order).
+pub fn serial<R>(f: impl FnOnce() -> R) -> R {
+    /// Restores the flag when `f` returns or unwinds.
+    struct Restore(bool);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            SERIAL.with(|s| s.set(self.0));
+        }
+    }
+    let _restore = Restore(SERIAL.with(|s| s.replace(true)));
+    f()
+}
+
+/// Whether the calling thread is inside [`serial`].
+fn is_serial() -> bool {
+    SERIAL.with(|s| s.get())
+}
+
+/// The threads that this crate's parallel passes use from the calling thread: the current rayon pool's (the
+/// global pool's outside every pool), or 1 inside [`serial`].
+pub fn current_threads() -> usize {
+    if is_serial() {
+        1
+    } else {
+        rayon::current_num_threads()
     }
 }
 
@@ -357,6 +399,9 @@ impl KeepAwake {
     pub fn new() -> Self {
         use std::sync::atomic::{AtomicBool, Ordering};
         let stop = std::sync::Arc::new(AtomicBool::new(false));
+        if is_serial() {
+            return Self { stop };
+        }
         let own = rayon::current_thread_index();
         let others = rayon::current_num_threads().saturating_sub(own.is_some() as usize);
         for _ in 0..others {

@@ -26,7 +26,7 @@ use crate::ordering::nested_dissection;
 
 /// faer parallelism for the current rayon pool.
 fn parallelism() -> Par {
-    match rayon::current_num_threads() {
+    match crate::parallel::current_threads() {
         0 | 1 => Par::Seq,
         n => Par::rayon(n),
     }
@@ -756,7 +756,7 @@ fn for_each_task<F>(tasks: &[Task], y: &mut [Row], ws: &mut [Row], f: &F)
 where
     F: Fn(&Task, &mut [Row], &mut [Row]) + Sync,
 {
-    let threads = rayon::current_num_threads();
+    let threads = crate::parallel::current_threads();
     if threads < 2 {
         let mut queue = TaskQueue::new(tasks, y, ws);
         while let Some((t, y, w)) = queue.pop() {

@@ -10,8 +10,6 @@
 //! tets of one colour share no vertex): within a colour the tets are solved in parallel, which is exactly the
 //! sequential Gauss-Seidel result, so the step is bit-identical for any number of threads.
 
-use rayon::prelude::*;
-
 use crate::error::{invalid, Result};
 use crate::hessian::shape_gradients;
 use crate::integrators::{Integrator, StepReport};
@@ -392,33 +390,37 @@ impl Integrator for Xpbd {
                     let lambdas = &self.lambdas;
                     self.updates
                         .resize(colour.len(), ([[0.0; 3]; 4], [0.0; 2], 0));
-                    self.updates
-                        .par_iter_mut()
-                        .zip(colour.par_iter())
-                        .for_each(|(out, &e)| {
-                            let t = &tets[e];
-                            let p0 = [x[t[0]], x[t[1]], x[t[2]], x[t[3]]];
-                            let mut p = p0;
-                            let w = t.map(|v| pre.inv_mass[v]);
-                            let gr = &pre.grads[e];
-                            let mut lam = lambdas[e];
-                            let halved = project_tet(
-                                &mut p,
-                                &w,
-                                gr,
-                                mat.alpha,
-                                [
-                                    pre.compliance[e][0] * inv_hs2,
-                                    pre.compliance[e][1] * inv_hs2,
-                                ],
-                                &mut lam,
-                                true,
-                            );
-                            let d = [0, 1, 2, 3].map(|k| {
-                                [p[k][0] - p0[k][0], p[k][1] - p0[k][1], p[k][2] - p0[k][2]]
-                            });
-                            *out = (d, lam, halved);
-                        });
+                    // Fixed chunks of the colour (`parallel::for_each_chunk_mut`, so that `parallel::serial`
+                    // holds).
+                    const TETS: usize = 64;
+                    let solve = |out: &mut ([Vec3; 4], [f64; 2], usize), e: usize| {
+                        let t = &tets[e];
+                        let p0 = [x[t[0]], x[t[1]], x[t[2]], x[t[3]]];
+                        let mut p = p0;
+                        let w = t.map(|v| pre.inv_mass[v]);
+                        let gr = &pre.grads[e];
+                        let mut lam = lambdas[e];
+                        let halved = project_tet(
+                            &mut p,
+                            &w,
+                            gr,
+                            mat.alpha,
+                            [
+                                pre.compliance[e][0] * inv_hs2,
+                                pre.compliance[e][1] * inv_hs2,
+                            ],
+                            &mut lam,
+                            true,
+                        );
+                        let d = [0, 1, 2, 3]
+                            .map(|k| [p[k][0] - p0[k][0], p[k][1] - p0[k][1], p[k][2] - p0[k][2]]);
+                        *out = (d, lam, halved);
+                    };
+                    crate::parallel::for_each_chunk_mut(&mut self.updates, TETS, |c, outs| {
+                        for (k, out) in outs.iter_mut().enumerate() {
+                            solve(out, colour[c * TETS + k]);
+                        }
+                    });
                     for (&e, (d, lam, halved)) in colour.iter().zip(&self.updates) {
                         halvings += halved;
                         self.lambdas[e] = *lam;

@@ -198,11 +198,49 @@ fn material_eval<'py>(
 #[pyclass(module = "fepr._core")]
 struct Simulation {
     inner: CoreSimulation,
-    pool: Option<rayon::ThreadPool>,
+    threads: Threads,
     /// The core runs on the mesh renumbered in a locality order (`fepr_core::renumber`: two threads share
     /// their cores' caches better); every per-vertex array crossing this boundary is translated, so Python
     /// sees the user's numbering.
     order: VertexOrder,
+}
+
+/// Where a simulation's steps run (its `threads` argument).
+enum Threads {
+    /// No count given: the global pool (all cores), entered once per `step(n)` call (`parallel::on_pool`).
+    Global,
+    /// One thread: the calling thread itself, without a pool (`parallel::serial`): a pool's only thread would
+    /// be woken for every call and park after it.
+    Serial,
+    /// Two or more: a pool of its own.
+    Pool(rayon::ThreadPool),
+}
+
+impl Threads {
+    fn new(threads: Option<usize>) -> PyResult<Self> {
+        Ok(match threads {
+            None => Self::Global,
+            Some(0) => return Err(PyValueError::new_err("threads: must be at least 1")),
+            Some(1) => Self::Serial,
+            Some(n) => Self::Pool(
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(n)
+                    .build()
+                    .map_err(|e| {
+                        PyRuntimeError::new_err(format!("cannot start {n} threads: {e}"))
+                    })?,
+            ),
+        })
+    }
+
+    /// `f()` on these threads.
+    fn run<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        match self {
+            Self::Global => fepr_core::parallel::on_pool(f),
+            Self::Serial => fepr_core::parallel::serial(f),
+            Self::Pool(pool) => pool.install(f),
+        }
+    }
 }
 
 fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py, PyDict>> {
@@ -477,39 +515,28 @@ impl Simulation {
         } else {
             None
         };
-        let pool = match threads {
-            Some(0) => return Err(PyValueError::new_err("threads: must be at least 1")),
-            Some(n) => Some(
-                rayon::ThreadPoolBuilder::new()
-                    .num_threads(n)
-                    .build()
-                    .map_err(|e| {
-                        PyRuntimeError::new_err(format!("cannot start {n} threads: {e}"))
-                    })?,
-            ),
-            None => None,
-        };
+        let threads = Threads::new(threads)?;
         let state = State::at_rest(&model);
         let inner = CoreSimulation::new(model, state, integ, dt, projector).map_err(value_error)?;
-        Ok(Self { inner, pool, order })
+        Ok(Self {
+            inner,
+            threads,
+            order,
+        })
     }
 
     /// Take `n` steps with the GIL released. Raises RuntimeError (naming the step) on a runaway to a non-finite state.
     /// Returns the number of steps taken.
     fn step(&mut self, py: Python<'_>, n: usize) -> PyResult<usize> {
-        let Self { inner, pool, .. } = self;
+        let Self { inner, threads, .. } = self;
+        // Once for all `n` steps.
         let result = py.detach(|| {
-            let run = || -> Result<usize, FeprError> {
+            threads.run(|| -> Result<usize, FeprError> {
                 for _ in 0..n {
                     inner.step()?;
                 }
                 Ok(n)
-            };
-            match pool {
-                Some(p) => p.install(run),
-                // The global pool, entered once for all `n` steps (`parallel::on_pool`).
-                None => fepr_core::parallel::on_pool(run),
-            }
+            })
         });
         result.map_err(|e| PyRuntimeError::new_err(e.to_string()))
     }
@@ -610,6 +637,85 @@ impl Simulation {
             &mut grad,
         );
         Ok((s.energy, from_vec3_user(py, &self.order, &grad)))
+    }
+    /// Benchmark helper: the same elastic energy + gradient evaluation run by `copies` threads at once, each
+    /// on a one-thread pool of its own with its own workspace and gradient (they share only the read-only model
+    /// and positions), `repeats` evaluations each in up to ten batches that all copies start together. Returns
+    /// seconds per evaluation: the slowest copy's time in the best batch. Against one copy alone
+    /// (`bench_energy_gradient(repeats, 1)`), `copies` times that ratio is the machine's throughput gain for
+    /// this evaluation with nothing to synchronise: the ceiling over the `copies`-thread speed-up. On a virtual
+    /// machine whose virtual CPUs share their host's cores with other guests it is below `copies` (measured
+    /// on two threads here: 1.92-2.03 in calm spells, 1.2-1.4 in busy ones).
+    fn bench_energy_gradient_apart(
+        &self,
+        py: Python<'_>,
+        repeats: usize,
+        copies: usize,
+    ) -> PyResult<f64> {
+        if repeats == 0 || copies == 0 {
+            return Err(PyValueError::new_err(
+                "repeats and copies must be at least 1",
+            ));
+        }
+        let pools = (0..copies)
+            .map(|_| rayon::ThreadPoolBuilder::new().num_threads(1).build())
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| PyRuntimeError::new_err(format!("cannot start {copies} threads: {e}")))?;
+        let (model, x) = (&self.inner.model, &self.inner.state.x);
+        let batches = repeats.min(10);
+        // One spinning start line per batch (a sleeping barrier wakes its threads tens of microseconds apart on
+        // a virtual machine, a good part of a small mesh's batch, in which one copy would run alone).
+        let start: Vec<std::sync::atomic::AtomicUsize> = (0..batches)
+            .map(|_| std::sync::atomic::AtomicUsize::new(0))
+            .collect();
+        let per_copy: Vec<Vec<f64>> = py.detach(|| {
+            std::thread::scope(|scope| {
+                let handles: Vec<_> = pools
+                    .iter()
+                    .map(|pool| {
+                        let start = &start;
+                        scope.spawn(move || {
+                            pool.install(|| {
+                                let mut grad = vec![[0.0; 3]; x.len()];
+                                let mut ws = ElasticWorkspace::default();
+                                let warm = std::time::Instant::now();
+                                while warm.elapsed().as_secs_f64() < 0.02 {
+                                    elastic_energy_gradient(model, x, &mut ws, &mut grad);
+                                }
+                                (0..batches)
+                                    .map(|b| {
+                                        let n =
+                                            repeats / batches + usize::from(b < repeats % batches);
+                                        use std::sync::atomic::Ordering::{AcqRel, Acquire};
+                                        start[b].fetch_add(1, AcqRel);
+                                        let mut spins = 0u32;
+                                        while start[b].load(Acquire) < copies {
+                                            spins += 1;
+                                            if spins < 100_000 {
+                                                std::hint::spin_loop();
+                                            } else {
+                                                std::thread::yield_now();
+                                            }
+                                        }
+                                        let t0 = std::time::Instant::now();
+                                        for _ in 0..n {
+                                            elastic_energy_gradient(model, x, &mut ws, &mut grad);
+                                        }
+                                        t0.elapsed().as_secs_f64() / n as f64
+                                    })
+                                    .collect()
+                            })
+                        })
+                    })
+                    .collect();
+                handles
+                    .into_iter()
+                    .map(|h| h.join().expect("a copy panicked"))
+                    .collect()
+            })
+        });
+        let slowest = |b: usize| per_copy.iter().map(|c| c[b]).fold(0.0, f64::max);
+        Ok((0..batches).map(slowest).fold(f64::INFINITY, f64::min))
     }
     /// Benchmark helper: time `repeats` elastic energy + gradient evaluations at the current positions on
     /// `threads` worker threads (GIL released, workspace reused, after one warm-up evaluation), in up to ten
