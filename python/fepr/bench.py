@@ -382,7 +382,7 @@ def _ceiling(sim, repeats: int, threads: int, speedup: float) -> Dict[str, Any]:
     against one copy alone; each the best of three alternated rounds, as the speed-up.
 
     On a virtual machine whose CPUs share their host's cores that gain is below the thread count and changes
-    from minute to minute (two threads here: 1.92-2.03 in calm spells, 1.2-1.4 in busy ones), and no parallel
+    from minute to minute (two threads here: 1.9-2.1 in calm spells, 1.2-1.4 in busy ones), and no parallel
     code can beat it; so the speed-up is reported beside it (``speedup_of_ceiling``: its share)."""
     alone = apart = math.inf
     for _ in range(3):

@@ -645,7 +645,7 @@ impl Simulation {
     /// (`bench_energy_gradient(repeats, 1)`), `copies` times that ratio is the machine's throughput gain for
     /// this evaluation with nothing to synchronise: the ceiling over the `copies`-thread speed-up. On a virtual
     /// machine whose virtual CPUs share their host's cores with other guests it is below `copies` (measured
-    /// on two threads here: 1.92-2.03 in calm spells, 1.2-1.4 in busy ones).
+    /// on two threads here: 1.9-2.1 in calm spells, 1.2-1.4 in busy ones).
     fn bench_energy_gradient_apart(
         &self,
         py: Python<'_>,
