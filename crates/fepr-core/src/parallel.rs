@@ -206,9 +206,9 @@ thread_local! {
 ///
 /// Why: a pool of one thread runs the same work on its own thread, which the caller must wake (and which
 /// parks again after the call). A one-thread simulation stepped once per call from Python paid that twice per
-/// call: symplectic Euler + FEPR on the 1k box took 115 us per `step(1)` against 56-58 us per step in batches
-/// (bunny2: 1,318-1,382 against 1,209-1,217 us). The results keep their bits (the tasks are the same fixed
-/// chunks, in order).
+/// call: symplectic Euler + FEPR on the 1k box took 114-152 us per `step(1)` against 54-74 us per step in
+/// batches, and 56-58 us per call here (bunny2: 1,311-1,441 us, and 1,209-1,237 here). The results keep their
+/// bits (the tasks are the same fixed chunks, in order).
 pub fn serial<R>(f: impl FnOnce() -> R) -> R {
     /// Restores the flag when `f` returns or unwinds.
     struct Restore(bool);
