@@ -28,6 +28,13 @@ def test_run_scene_reports_every_field_and_bit_identical_energy_gradient():
     assert r["memory"]["peak_rss_mb"] > 0
 
 
+def test_one_thread_has_a_ceiling_of_one_without_measuring_it():
+    r = bench.run_scene("box_1k", quick=True, budget_s=0.01, threads=1)
+    eg = r["energy_gradient"]
+    assert eg["ceiling"] == 1.0 and eg["speedup_of_ceiling"] == eg["speedup"]
+    assert math.isnan(eg["ms_per_copy_apart"])
+
+
 def test_energy_gradient_apart_times_every_copy_and_rejects_nonsense():
     import fepr
 

@@ -384,6 +384,9 @@ def _ceiling(sim, repeats: int, threads: int, speedup: float) -> Dict[str, Any]:
     On a virtual machine whose CPUs share their host's cores that gain is below the thread count and changes
     from minute to minute (two threads here: 1.9-2.1 in calm spells, 1.2-1.4 in busy ones), and no parallel
     code can beat it; so the speed-up is reported beside it (``speedup_of_ceiling``: its share)."""
+    if threads == 1:
+        # Nothing to bound: one copy alone is the measurement itself.
+        return {"ms_per_copy_apart": float("nan"), "ceiling": 1.0, "speedup_of_ceiling": speedup}
     alone = apart = math.inf
     for _ in range(3):
         alone = min(alone, sim._sim.bench_energy_gradient(repeats, 1)[0])
