@@ -600,6 +600,24 @@ def test_thread_count_does_not_change_results(integrator, resolution, dt, steps)
     np.testing.assert_array_equal(out[0][2], out[1][2])
 
 
+def test_measurements_run_on_the_simulations_threads_with_the_same_bits():
+    # One thread measures on the calling thread, two on the simulation's own pool, the default on the global
+    # pool: the energies, momenta and gradient keep their bits (fixed chunks, combined in order).
+    out = []
+    for threads in (None, 1, 2):
+        mesh = fepr.meshes.box(resolution=13)
+        sim = fepr.Simulation(mesh, material=SOFT, node_mass=1.0, dt=1e-3, gravity=(0, 0, -9.81), threads=threads)
+        sim.positions = 1.1 * sim.rest_positions
+        sim.velocities = np.tile([0.1, -0.2, 0.3], (mesh.num_vertices, 1))
+        energy, gradient = sim.elastic_energy_gradient()
+        measured = (sim.energy(), sim.linear_momentum(), sim.angular_momentum(), sim.min_volume_ratio())
+        out.append((tuple(measured[0]), *measured[1:], energy, gradient))
+    for other in out[1:]:
+        assert other[0] == out[0][0] and other[3] == out[0][3] and other[4] == out[0][4]
+        for a, b in zip(other[1:3] + other[5:], out[0][1:3] + out[0][5:]):
+            np.testing.assert_array_equal(a, b)
+
+
 # ----------------------------------------------------------------------------------------------------
 # runaway
 

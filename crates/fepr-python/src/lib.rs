@@ -606,8 +606,8 @@ impl Simulation {
     }
 
     /// (kinetic, elastic, gravitational, total, min_j, inverted) of the current state.
-    fn measure(&self) -> (f64, f64, f64, f64, f64, usize) {
-        let i = measure(&self.inner.model, &self.inner.state);
+    fn measure(&self, py: Python<'_>) -> (f64, f64, f64, f64, f64, usize) {
+        let i = self.measured(py);
         (
             i.kinetic,
             i.elastic,
@@ -618,8 +618,8 @@ impl Simulation {
         )
     }
     /// (P, L about the centre of mass, centre of mass), each a 3-tuple.
-    fn momenta(&self) -> ([f64; 3], [f64; 3], [f64; 3]) {
-        let i = measure(&self.inner.model, &self.inner.state);
+    fn momenta(&self, py: Python<'_>) -> ([f64; 3], [f64; 3], [f64; 3]) {
+        let i = self.measured(py);
         (i.momentum, i.angular_momentum, i.center_of_mass)
     }
     /// Elastic energy (J) and its gradient (m, 3) J/m at positions `x` (m, 3).
@@ -630,12 +630,12 @@ impl Simulation {
     ) -> PyResult<(f64, Bound<'py, PyArray2<f64>>)> {
         let x = self.checked_state_array(&x, "x")?;
         let mut grad = vec![[0.0; 3]; x.len()];
-        let s = elastic_energy_gradient(
-            &self.inner.model,
-            &x,
-            &mut ElasticWorkspace::default(),
-            &mut grad,
-        );
+        let (model, threads) = (&self.inner.model, &self.threads);
+        let s = py.detach(|| {
+            threads.run(|| {
+                elastic_energy_gradient(model, &x, &mut ElasticWorkspace::default(), &mut grad)
+            })
+        });
         Ok((s.energy, from_vec3_user(py, &self.order, &grad)))
     }
     /// Benchmark helper: the same elastic energy + gradient evaluation run by `copies` threads at once, each
@@ -913,6 +913,13 @@ impl Simulation {
 }
 
 impl Simulation {
+    /// The invariants of the current state, measured on the simulation's threads (its `threads`: the calling
+    /// thread alone for one, its own pool for more, the global pool by default) with the GIL released.
+    fn measured(&self, py: Python<'_>) -> fepr_core::invariants::Invariants {
+        let (inner, threads) = (&self.inner, &self.threads);
+        py.detach(|| threads.run(|| measure(&inner.model, &inner.state)))
+    }
+
     /// A user's (m, 3) per-vertex array, checked (shape, finite rows, named by the user's row), in the internal
     /// numbering.
     fn checked_state_array(
