@@ -205,7 +205,7 @@ struct Simulation {
     order: VertexOrder,
 }
 
-/// Where a simulation's steps run (its `threads` argument).
+/// Where a simulation's steps and measurements run (its `threads` argument).
 enum Threads {
     /// No count given: the global pool (all cores), entered once per `step(n)` call (`parallel::on_pool`).
     Global,
