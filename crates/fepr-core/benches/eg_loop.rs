@@ -6,6 +6,9 @@
 //! one symplectic Euler step (dt = 1 ms) from the same set-up, the same input every call: ms per call (best
 //! and median), iterations, and the energy + gradient in the same pool for the ratio.
 //! `EG_AWAKE=1` (with `eg` and `proj`): hold `parallel::KeepAwake` around the timed loop, as a step does.
+//! `cargo bench -p fepr-core --bench eg_loop -- sim STEM THREADS STEPS`: symplectic Euler + FEPR steps of a
+//! `Simulation` (`EG_BATCH=1`: one `KeepAwake` held around all of them, as the Python binding's `step(n)` does).
+//! `cargo bench -p fepr-core --bench eg_loop -- sync`: `parallel::measure_sync_floor` on two threads, five times.
 //! `cargo bench -p fepr-core --bench eg_loop -- becold STEM [THREADS]`: the projection right after a backward
 //! Euler step (caches cold) against the same projection again at once, per elastic evaluation.
 //! `cargo bench -p fepr-core --bench eg_loop -- small` times the small dense kernels instead (polar
@@ -452,6 +455,22 @@ fn main() {
         );
         return;
     }
+    if raw.first().map(String::as_str) == Some("sync") {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
+        for _ in 0..5 {
+            let budget = std::time::Duration::from_millis(100);
+            let f = pool.install(|| fepr_core::parallel::measure_sync_floor(budget));
+            println!(
+                "region {:.3} us, round trip {:.1} ns",
+                f.region_s * 1e6,
+                f.round_trip_s * 1e9
+            );
+        }
+        return;
+    }
     if raw.first().map(String::as_str) == Some("proj") {
         let num =
             |i: usize, default: usize| raw.get(i).and_then(|s| s.parse().ok()).unwrap_or(default);
@@ -581,9 +600,13 @@ fn time_simulation(mesh: TetMesh, threads: usize, steps: usize) {
             sim.step().unwrap();
         }
         let n0 = sim.num_steps();
+        let batch = std::env::var("EG_BATCH")
+            .is_ok()
+            .then(fepr_core::parallel::KeepAwake::new);
         for _ in 0..steps {
             sim.step().unwrap();
         }
+        drop(batch);
         let h = &sim.history()[n0 + 1..];
         let mean = |f: &dyn Fn(&fepr_core::simulation::StepDiagnostics) -> f64| {
             h.iter().map(f).sum::<f64>() / h.len() as f64

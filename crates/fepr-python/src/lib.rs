@@ -529,9 +529,11 @@ impl Simulation {
     /// Returns the number of steps taken.
     fn step(&mut self, py: Python<'_>, n: usize) -> PyResult<usize> {
         let Self { inner, threads, .. } = self;
-        // Once for all `n` steps.
+        // Once for all `n` steps, with the pool's other threads kept polling across them (each step's own
+        // guard then keeps this one's team: `parallel::KeepAwake`).
         let result = py.detach(|| {
             threads.run(|| -> Result<usize, FeprError> {
+                let _awake = (n > 1).then(fepr_core::parallel::KeepAwake::new);
                 for _ in 0..n {
                     inner.step()?;
                 }
