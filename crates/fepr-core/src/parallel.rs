@@ -292,7 +292,10 @@ impl Team {
         if IN_REGION.get() || n as u64 > INDEX / 2 {
             return false;
         }
-        TEAM.with_borrow(|team| team.as_ref().is_some_and(|t| t.run(n, workers, task)))
+        TEAM.with_borrow(|team| {
+            team.as_ref()
+                .is_some_and(|t| !t.stop.load(Ordering::Relaxed) && t.run(n, workers, task))
+        })
     }
 
     fn run(self: &Arc<Self>, n: usize, workers: usize, task: &(dyn Fn(usize) + Sync)) -> bool {
@@ -712,10 +715,9 @@ impl<'a, T> DisjointChunks<'a, T> {
 /// work): a batch of steps keeps one team, each step holding its own guard inside it.
 pub struct KeepAwake {
     stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
-    /// The team whose regions this guard's thread posts (`None` in [`serial`]).
+    /// The team whose regions this guard's thread posts (`None` in [`serial`], outside the pools, and for a
+    /// guard nested in another).
     team: Option<std::sync::Arc<Team>>,
-    /// The team of the guard that this thread held before (restored when this one drops).
-    previous: Option<std::sync::Arc<Team>>,
 }
 
 impl KeepAwake {
@@ -724,11 +726,7 @@ impl KeepAwake {
     pub fn new() -> Self {
         use std::sync::atomic::{AtomicBool, Ordering};
         let stop = std::sync::Arc::new(AtomicBool::new(false));
-        let quiet = |stop| Self {
-            stop,
-            team: None,
-            previous: None,
-        };
+        let quiet = |stop| Self { stop, team: None };
         if is_serial() {
             return quiet(stop);
         }
@@ -753,15 +751,11 @@ impl KeepAwake {
         if others > 0 {
             poll(Arc::clone(&stop), team.clone(), own);
         }
-        let previous = match &team {
-            Some(team) => TEAM.replace(Some(Arc::clone(team))),
-            None => None,
-        };
-        Self {
-            stop,
-            team,
-            previous,
+        if let Some(team) = &team {
+            // Replaces only a team whose guard has dropped (a live one would have made this guard quiet).
+            TEAM.set(Some(Arc::clone(team)));
         }
+        Self { stop, team }
     }
 }
 
@@ -845,10 +839,10 @@ impl Drop for KeepAwake {
         self.stop.store(true, std::sync::atomic::Ordering::Release);
         if let Some(team) = &self.team {
             // Only where this guard's team is this thread's (a guard dropped on another thread leaves its owner's
-            // entry, whose members are gone: `present` reads 0 there and regions go through rayon).
+            // entry, stopped: regions there go through rayon until the next guard replaces it).
             TEAM.with_borrow_mut(|t| {
                 if t.as_ref().is_some_and(|t| std::sync::Arc::ptr_eq(t, team)) {
-                    *t = self.previous.take();
+                    *t = None;
                 }
             });
         }
