@@ -263,12 +263,19 @@ mod tests {
         (tets, k + 4)
     }
 
-    #[test]
-    fn sums_follow_the_documented_order_for_any_thread_count() {
+    /// A strip of several chunks in a scrambled placement (position p holds tet (p * 5) mod k): its tets, its
+    /// vertex count and the placement.
+    fn scrambled_strip() -> (Vec<[usize; 4]>, usize, Vec<u32>) {
         let k = 3 * TET_CHUNK + 77;
         let (tets, m) = strip(k);
-        // A scrambled placement: position p holds tet (p * 5) mod k.
-        let tet_at: Vec<u32> = (0..k).map(|p| ((p * 5) % k) as u32).collect();
+        let tet_at = (0..k).map(|p| ((p * 5) % k) as u32).collect();
+        (tets, m, tet_at)
+    }
+
+    #[test]
+    fn sums_follow_the_documented_order_for_any_thread_count() {
+        let (tets, m, tet_at) = scrambled_strip();
+        let k = tets.len();
         let (sums, local) = CornerSums::new(&tets, &tet_at, m);
         let chunk = sums.chunk();
         assert!(k.div_ceil(chunk) > 4, "several chunks");
@@ -307,13 +314,12 @@ mod tests {
             assert_eq!(bits(&got), bits(&want), "{threads} threads");
         }
     }
+
     /// Each chunk numbers its vertices in ascending vertex order, so that a vertex task reads each chunk's
     /// partial sums as one contiguous run (fewer cache lines from the other core than in first-seen order).
     #[test]
     fn chunk_vertices_ascend_so_vertex_tasks_read_runs() {
-        let k = 3 * TET_CHUNK + 77;
-        let (tets, m) = strip(k);
-        let tet_at: Vec<u32> = (0..k).map(|p| ((p * 5) % k) as u32).collect();
+        let (tets, m, tet_at) = scrambled_strip();
         let (sums, _) = CornerSums::new(&tets, &tet_at, m);
         for (c, &count) in sums.count.iter().enumerate() {
             let first = c * sums.stride;
