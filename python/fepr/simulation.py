@@ -71,7 +71,20 @@ class Projection:
         velocities and the smooth modes) or ``"auto"`` (default: stiffness after an implicit base integrator,
         mass after symplectic Euler; after Projective Dynamics, where the energy is the only row (pinned bodies)
         and no vertex is in contact, PD's own prefactored matrix, W = M + h^2 L, which moves the positions as a
-        global step would).
+        global step would). Under ``"auto"``, a projection in the diagonal stiffness metric that stalls (its
+        residual does not halve in an iteration after the first, as when a falling body needs a rigid
+        correction) restarts from the base step's state in the mass metric (``metric_switched`` in the report).
+    quality_guard : bool
+        The quality guard (default on): restoring energy the base step lost may not move any tet's volume
+        ratio J = det F, at the end of the step or one step ahead at the new velocities (``x + dt v``), by more
+        than ``quality_margin`` from what the base step gave it, nor invert a tet. Where restoring the whole
+        deficit would, the projection restores the largest fraction that keeps within it and books the rest
+        as unresolved energy (history ``work_unresolved``, part of ``budget_total``): at a large time step the
+        modes the step cannot resolve (the breathing of a stiff body, sliver tets) lose their energy instead
+        of inverting the mesh. ``False``: restore everything (the model's own dynamics; on meshes with sliver
+        tets at large steps that inverts them).
+    quality_margin : float
+        The largest change of a tet's volume ratio the restoration may cause (default 0.05), in (0, 1].
     """
 
     tolerance: float = 1e-10
@@ -84,6 +97,8 @@ class Projection:
     slack: str = "auto"
     warm_start: Union[float, str, None] = "auto"
     metric: str = "auto"
+    quality_guard: bool = True
+    quality_margin: float = 0.05
 
     def __post_init__(self):
         real(self.tolerance, "projection tolerance", lo=0, hi=1, lo_open=True, hi_open=True)
@@ -103,6 +118,9 @@ class Projection:
             raise ConfigError(f"projection metric must be one of {', '.join(METRICS)}, got {self.metric!r}")
         if self.slack not in ("auto", "on", "off"):
             raise ConfigError(f"projection slack must be 'auto', 'on' or 'off', got {self.slack!r}")
+        if not isinstance(self.quality_guard, bool):
+            raise ConfigError(f"projection quality_guard must be true or false, got {self.quality_guard!r}")
+        real(self.quality_margin, "projection quality_margin", lo=0, hi=1, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -238,6 +256,11 @@ class ProjectionReport:
     restarts: int
     frozen_vertices: int
     evaluations: int
+    restored: float = 1.0
+    unresolved: float = 0.0
+    trials: int = 1
+    metric_switched: bool = False
+    quality_excess: float = 0.0
 
 
 class History:
@@ -264,6 +287,8 @@ class History:
             "proj_warm_start",
             "proj_frozen",
             "proj_evaluations",
+            "proj_trials",
+            "proj_metric_switched",
             "inverted",
             "runaway",
             "contacts",
@@ -508,6 +533,7 @@ class Simulation:
                 metric=p.metric,
                 xpbd_substeps=int(xpbd.substeps),
                 xpbd_iterations=int(xpbd.iterations),
+                quality_margin=float(p.quality_margin) if p.quality_guard else None,
             )
         except ValueError as exc:
             raise ConfigError(str(exc)) from None

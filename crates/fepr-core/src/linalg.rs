@@ -126,7 +126,8 @@ pub fn ddot(a: &Mat3, b: &Mat3) -> f64 {
 
 /// Solve a small dense symmetric positive semi-definite system `a x = b` (`a` row-major n x n) robustly.
 ///
-/// Adds `delta * trace/n` to the diagonal and tries a Cholesky factorisation; if that
+/// Adds `delta * a_ii` to each diagonal entry (`delta * trace/n` to an entry that is not positive) and tries a
+/// Cholesky factorisation; if that
 /// fails (not positive definite in floating point) or yields a non-finite result, it falls back to the
 /// minimum-norm least-squares solution from a Jacobi eigen-decomposition (rank-revealing, cut-off relative
 /// to the largest eigenvalue). Returns the solution and whether the fallback was used.
@@ -148,8 +149,11 @@ pub fn solve_symmetric_psd_into(
     x: &mut [f64],
 ) -> bool {
     debug_assert_eq!(a.len(), n * n);
+    // Relative to each row's own diagonal, not to the trace: where one row's diagonal dwarfs the others (the
+    // energy row of a fast body, whose kinetic energy is nearly a combination of the momentum rows), a shift of
+    // the trace's size would swamp the small rows and leave their residuals unsolved.
     let trace: f64 = (0..n).map(|i| a[i * n + i]).sum();
-    let shift = if trace > 0.0 {
+    let floor = if trace > 0.0 {
         delta * trace / n as f64
     } else {
         0.0
@@ -157,7 +161,8 @@ pub fn solve_symmetric_psd_into(
     let (l, x) = (&mut l[..n * n], &mut x[..n]);
     l.copy_from_slice(a);
     for i in 0..n {
-        l[i * n + i] += shift;
+        let d = a[i * n + i];
+        l[i * n + i] += if d > 0.0 { delta * d } else { floor };
     }
     x.copy_from_slice(&b[..n]);
     if cholesky_solve_in_place(l, x, n) && x.iter().all(|v| v.is_finite()) {

@@ -32,6 +32,8 @@ use crate::model::{Model, ModelKey, State};
 use crate::moment_lanes::{self as ml, q, UPPER, VL};
 use crate::trial_lanes as tl;
 
+mod restoration;
+
 /// Which constraint rows the projection enforces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ActiveRows {
@@ -77,6 +79,15 @@ impl ActiveRows {
 /// Number of constraint rows in total.
 pub const ROWS: usize = 10;
 
+/// Units in the last place that a row's tolerance is never below (with [`rounding_terms`]): a sum of `m`
+/// float64 terms of size `S` is only known to about `sqrt(m) eps S`, whatever the tolerance asks.
+pub const ROUNDING_ULPS: f64 = 8.0;
+
+/// The growth of the rounding error of a sum over `m` vertices (summed in four lanes): `sqrt(m / 4 + 1)`.
+pub fn rounding_terms(m: usize) -> f64 {
+    (m as f64 / 4.0 + 1.0).sqrt()
+}
+
 /// Attempts per projection (the first plus restarts with frozen vertices, see [`ProjectionReport::restarts`]).
 const MAX_ATTEMPTS: usize = 3;
 
@@ -89,7 +100,7 @@ pub struct ProjectionSettings {
     pub max_iterations: usize,
     /// `eps = c_eps m_tot r^2` weights the slack variables s and t (default 0.01).
     pub c_eps: f64,
-    /// Diagonal regularisation `delta * trace(S)/rows` of the scaled small system (default 1e-12).
+    /// Diagonal regularisation of the scaled small system: `delta` times each row's diagonal (default 1e-12).
     pub regularization: f64,
     /// Maximum step halvings per iteration (default 4).
     pub max_halvings: usize,
@@ -107,6 +118,13 @@ pub struct ProjectionSettings {
     pub warm_start_threshold: f64,
     /// The position block of the metric D (default `Auto`, see [`Metric`]).
     pub metric: Metric,
+    /// The quality guard (fepr-spec section 5b; default `Some(0.05)`): restoring an energy deficit may not move
+    /// any tet's volume ratio `J`, at the end of the step or one step ahead at the new velocities, by more than
+    /// this from what the base step gave it, nor invert a tet the base step left upright. The projection then
+    /// restores the largest fraction of the deficit it can within that, and books the rest as unresolved
+    /// energy ([`ProjectionReport::unresolved`]). `None`: restore everything (the model's own dynamics, which
+    /// on sliver tets at large steps inverts them).
+    pub quality_margin: Option<f64>,
 }
 
 /// The position block of the projection's metric `D = diag(W, h^2 M, eps, eps)`.
@@ -195,9 +213,13 @@ impl Default for ProjectionSettings {
             slack: Slack::Auto,
             warm_start_threshold: f64::INFINITY,
             metric: Metric::Auto,
+            quality_margin: Some(DEFAULT_QUALITY_MARGIN),
         }
     }
 }
+
+/// The default [`ProjectionSettings::quality_margin`]: a twentieth of the rest volume ratio.
+pub const DEFAULT_QUALITY_MARGIN: f64 = 0.05;
 
 impl ProjectionSettings {
     pub fn validate(&self) -> Result<()> {
@@ -245,6 +267,14 @@ impl ProjectionSettings {
                 ));
             }
         }
+        if let Some(q) = self.quality_margin {
+            if !(q.is_finite() && q > 0.0 && q <= 1.0) {
+                return Err(invalid(
+                    "quality_margin",
+                    format!("must satisfy 0 < quality_margin <= 1 (a change of the volume ratio J), got {q}"),
+                ));
+            }
+        }
         Ok(())
     }
 }
@@ -260,8 +290,10 @@ pub struct Targets {
     pub angular_momentum: Vec3,
     /// `C_target`, m.
     pub center_of_mass: Vec3,
-    /// Energy scale of the start-of-step state, J: `K + |E_el| + |E_grav|` (or a larger physical floor).
-    /// With `|H_target|` it sets the energy row's tolerance scale, so a wild base step cannot loosen it.
+    /// The energy row's scale, J: its tolerance is `tolerance * energy_scale`. The simulation measures it on
+    /// scales that do not grow with the distance fallen or the time run, and from the start of the step, not
+    /// from the base step's result (so a wild base step cannot loosen it): see
+    /// [`crate::simulation::Simulation`]'s energy scale.
     pub energy_scale: f64,
     /// The step's impulses are known only approximately (an impulsive event): enables the slack in `Auto`.
     pub uncertain_impulses: bool,
@@ -310,6 +342,24 @@ pub struct ProjectionReport {
     /// base step handed it over ([`Projector::offer_base_gradient`]: backward Euler): an iteration evaluates
     /// its trial point, and a second one where the full step overshoots.
     pub evaluations: usize,
+    /// Fraction of the step's energy deficit `H_target - H(x*, v*)` that the projection restored (1 when the
+    /// base step lost nothing, gained energy, or the whole deficit was restored; below 1 where the quality
+    /// guard or convergence limited it, see [`ProjectionSettings::quality_margin`]).
+    pub restored: f64,
+    /// Energy the projection did not restore, J (`-(1 - restored) * deficit`, so 0 or negative): booked as the
+    /// step's unresolved energy, a budget source of its own, so that `H = H_0 + budget_total` still holds.
+    pub unresolved: f64,
+    /// Projections tried in this step (1, plus one per restored fraction tried and per metric switch).
+    pub trials: usize,
+    /// The diagonal stiffness metric stalled (the scaled residual did not halve in an iteration after the
+    /// first) and the projection restarted from the base state in the mass metric (see [`Metric::Auto`]).
+    pub metric_switched: bool,
+    /// The body was translated onto the centre-of-mass target before iterating (the closest point of those rows
+    /// alone; see [`Projector::project_with`]).
+    pub translated: bool,
+    /// Largest change of a tet's volume ratio against the base step (at the end of the step or one step
+    /// ahead), as a fraction of the quality margin, at the returned state; 0 where the guard did not run.
+    pub quality_excess: f64,
 }
 
 /// Everything an evaluation of `c(q)` produces.
@@ -492,6 +542,15 @@ pub struct Projector {
     mirror_wanted: bool,
     /// This projection's trial passes write `x_mirror`.
     mirror_rows: bool,
+    /// The metric of the current attempt where it differs from the settings' (the mass metric after the
+    /// stiffness metric stalled; see [`Projector::project_with`]).
+    metric_override: Option<Metric>,
+    /// The current attempt stops when the diagonal stiffness metric stalls (`Metric::Auto` only).
+    switch_on_stall: bool,
+    /// The quality guard's buffers (see [`restoration`]).
+    restoration: restoration::Restoration,
+    /// The last attempt stopped because the stiffness metric stalled (see `switch_on_stall`).
+    stalled: bool,
 }
 
 /// Which positions [`Projector`]'s `x_mirror` holds a bit-for-bit copy of. Symplectic Euler keeps the positions
@@ -663,7 +722,7 @@ impl Projector {
 
     /// The position metric that [`Metric::Auto`] resolves to here.
     pub fn uses_stiffness_metric(&self) -> bool {
-        match self.settings.metric {
+        match self.metric_override.unwrap_or(self.settings.metric) {
             Metric::Mass => false,
             Metric::Stiffness => true,
             Metric::Auto => self.implicit_base,
@@ -742,16 +801,16 @@ impl Projector {
         self.project_with(model, state, h, targets, None)
     }
 
-    /// [`Projector::project`] with the base integrator's factorised position metric, if it offers one
-    /// ([`crate::integrators::Integrator::system_metric`]): used under [`Metric::Auto`] where the energy is the
-    /// only active row and no position is frozen (see [`SystemMetric`]).
-    pub fn project_with(
+    /// One projection of `state` onto `targets` (the iteration of fepr-spec section 3, with its restarts), in
+    /// the metric of the settings or of `metric_override`; the quality guard and the metric switch are
+    /// [`Projector::project_with`]'s.
+    fn project_once<'d>(
         &mut self,
         model: &Model,
         state: &mut State,
         h: f64,
         targets: &Targets,
-        system: Option<&mut dyn SystemMetric>,
+        system: Option<&mut (dyn SystemMetric + 'd)>,
     ) -> (ProjectionReport, Invariants) {
         let m = model.num_vertices();
         self.grad_is_final = false;
@@ -800,7 +859,10 @@ impl Projector {
         }
         let energy_only = pb.active[0] && pb.active[1..].iter().all(|&a| !a);
         let mut system = system.filter(|_| {
-            self.settings.metric == Metric::Auto && energy_only && self.frozen_positions.is_empty()
+            self.settings.metric == Metric::Auto
+                && self.metric_override.is_none()
+                && energy_only
+                && self.frozen_positions.is_empty()
         });
         if system.is_some() {
             self.system_rhs.resize(m, [0.0; 3]);
@@ -833,12 +895,18 @@ impl Projector {
         }
         // Row scales (fepr-spec section 3), from the targets and the start-of-step state, not from the base
         // step's result: a wild base step must not loosen the energy tolerance.
-        let h_scale = targets.energy.abs().max(targets.energy_scale).max(1e-300);
-        pb.row_scale[0] = h_scale;
+        pb.row_scale[0] = targets.energy_scale.max(1e-300);
+        // Far from the origin (a body that has fallen for minutes) the positions themselves carry less than
+        // tolerance * r: the centre of mass's scale is at least the rounding of its sum.
+        let com_floor = ROUNDING_ULPS
+            * rounding_terms(m)
+            * f64::EPSILON
+            * crate::linalg::norm(targets.center_of_mass)
+            / self.settings.tolerance;
         for a in 0..3 {
             pb.row_scale[1 + a] = mt * r / h;
             pb.row_scale[4 + a] = mt * r * r / h;
-            pb.row_scale[7 + a] = r;
+            pb.row_scale[7 + a] = r.max(com_floor);
         }
         let tol = self.settings.tolerance;
         let base_inverted = cur.el.inverted;
@@ -869,7 +937,46 @@ impl Projector {
         // velocities stay free) and restart from q~. fepr-spec section 6, pitfall 5: the projection must not
         // create inverted elements.
         let mut attempt = 0;
+        let stall_exit = self.switch_on_stall && report.stiffness_metric;
+        let mut stalled = false;
         loop {
+            // The centre-of-mass rows alone have a rigid closest point: translate the body onto C_target (the
+            // mass metric's first step would; the diagonal stiffness metric cannot move a body rigidly, and its
+            // iterates would deform a falling body to meet these rows). A translation changes neither the
+            // elastic energy nor its gradient.
+            if base_finite
+                && pb.active[7..10].iter().all(|&a| a)
+                && rigid_translation_allowed(model, &self.frozen_positions)
+            {
+                let d = sub(targets.center_of_mass, cur.com);
+                if (0..3).any(|a| (d[a] / pb.row_scale[7 + a]).abs() > tol) {
+                    self.leave_base();
+                    for_each_chunk_mut(&mut self.x, vertex_chunk(m), |_, xs| {
+                        for xi in xs.iter_mut() {
+                            *xi = [xi[0] + d[0], xi[1] + d[1], xi[2] + d[2]];
+                        }
+                    });
+                    let grad = grad_at_x.then_some(&self.grad[..]);
+                    cur = evaluate_with_elastic(
+                        &pb,
+                        &self.x,
+                        &self.v,
+                        s,
+                        t,
+                        cur.el,
+                        grad,
+                        &mut self.scratch.parts,
+                    );
+                    cur_norm = norm_scaled(&pb, &cur.c);
+                    report.translated = true;
+                    if cur_norm < best_norm && cur.c.iter().all(|c| c.is_finite()) {
+                        best_norm = cur_norm;
+                        best_is_base = false;
+                        best_eval = cur;
+                        best_in_x = true;
+                    }
+                }
+            }
             // Opt-in warm start for large energy errors (a dissipative base step at a large dt can lose most of H
             // in one step): scale the deformational velocities, which meets the energy row and keeps P and L; the
             // iterations then fix the rest from nearby instead of linearising a stiff position correction far
@@ -1016,7 +1123,7 @@ impl Projector {
                     // (`best_in_x` implies the iterate was in x/v, never q~: see `leave_base`.)
                     self.at_base = false;
                     cur = trial;
-                    cur_norm = n;
+                    let previous_norm = std::mem::replace(&mut cur_norm, n);
                     s = s_new;
                     t = t_new;
                     if n < best_norm && cur.el.inverted <= base_inverted {
@@ -1032,6 +1139,18 @@ impl Projector {
                         std::mem::swap(&mut self.v_trial, &mut self.v_best);
                         best_in_x = false;
                     }
+                    // The diagonal stiffness metric cannot move the body rigidly (its position directions are
+                    // scaled per vertex), so where the rows need a rigid correction (a body in free fall: the
+                    // centre-of-mass rows) its iterates deform the body and the energy row stalls near 1e-8.
+                    // Under `Metric::Auto` the caller then restarts in the mass metric (`stalled`).
+                    if stall_exit
+                        && report.iterations >= 2
+                        && n > 0.5 * previous_norm
+                        && max_scaled(&pb, &cur.c) > tol
+                    {
+                        stalled = true;
+                        break;
+                    }
                 }
                 if !report.converged
                     && max_scaled(&pb, &cur.c) <= tol
@@ -1042,6 +1161,7 @@ impl Projector {
             }
             attempt += 1;
             if report.converged
+                || stalled
                 || !base_finite
                 || attempt >= MAX_ATTEMPTS
                 || cur.el.inverted <= base_inverted
@@ -1249,6 +1369,7 @@ impl Projector {
         self.metric_factor = std::mem::take(&mut pb.metric_factor);
         self.metric_rows = std::mem::take(&mut pb.rows);
         self.expected_iterations = report.iterations;
+        self.stalled = stalled;
         (report, inv)
     }
 }
@@ -1286,6 +1407,13 @@ impl Projector {
     pub fn offer_base_gradient(&mut self, summary: ElasticSummary, grad: &mut Vec<Vec3>) {
         std::mem::swap(&mut self.grad, grad);
         self.base_elastic = Some(summary);
+    }
+
+    /// Forget the gradient and positions the last projection would hand over: the state no longer holds the
+    /// positions it returned.
+    fn invalidate_hand_over(&mut self) {
+        self.grad_is_final = false;
+        self.mirror = Mirror::None;
     }
 
     /// Give the current iterate buffers of its own (`x`/`v`, a copy of q~) if it is still q~ itself.
@@ -1597,6 +1725,11 @@ fn rest_stiffness_ratio(model: &Model) -> Vec<f64> {
         .zip(&model.masses)
         .map(|(k, m)| if *m > 0.0 { (k / m).max(0.0) } else { 0.0 })
         .collect()
+}
+
+/// Whether the projection may translate the whole body (no vertex pinned, none held in contact).
+fn rigid_translation_allowed(model: &Model, frozen_positions: &[u32]) -> bool {
+    frozen_positions.is_empty() && model.num_pinned() == 0
 }
 
 /// Set `a_i = 0` (freeze the position) for every not yet frozen vertex of a tet that is inverted (`J <= 0`) at

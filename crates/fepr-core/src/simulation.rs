@@ -43,6 +43,7 @@ impl Advance {
         self.work.damping += a.work.damping;
         self.work.pins += a.work.pins;
         self.work.forces += a.work.forces;
+        self.work.unresolved += a.work.unresolved;
         self.contacts += a.contacts;
         self.max_depth = self.max_depth.max(a.max_depth);
         self.has_forces |= a.has_forces;
@@ -84,6 +85,10 @@ pub struct StepDiagnostics {
     /// Runaway detected: the base step's energy error exceeded 100% of the energy scale (an unstable step)
     /// and the projection (if any) did not converge back onto the targets.
     pub runaway: bool,
+    /// The running references after the step (fepr-spec section 2): the initial values advanced by every
+    /// budget and impulse so far. `references.momentum` is what P should be (`P_0` plus the external impulses:
+    /// gravity, contact, forces, damping), `references.energy` what H should be (`H_0 + budget_total`).
+    pub references: References,
 }
 
 /// Mean length of the tets' edges in the rest shape, m (each edge counted once per tet).
@@ -126,8 +131,10 @@ pub struct Simulation {
     projector: Option<Projector>,
     dt: f64,
     references: References,
-    /// Energy scale of the initial state, `K + |E_el| + |E_grav|` (for runaway detection).
+    /// Energy scale of the initial state, `K + |E_el|` (J; see [`Simulation::step_energy_scale`]).
     energy_scale: f64,
+    /// Gravitational energy of the initial state, J: energies are measured from this potential.
+    initial_potential: f64,
     history: Vec<StepDiagnostics>,
     previous: State,
     world: World,
@@ -197,6 +204,7 @@ impl Simulation {
                 center_of_mass: [0.0; 3],
             },
             energy_scale: 0.0,
+            initial_potential: 0.0,
             history: Vec::new(),
             previous,
             world: World::default(),
@@ -223,6 +231,7 @@ impl Simulation {
             proj_ms: 0.0,
             base_energy_error: 0.0,
             runaway: false,
+            references: sim.references,
         });
         Ok(sim)
     }
@@ -231,12 +240,13 @@ impl Simulation {
     pub fn reset_references(&mut self) {
         let inv = measure(&self.model, &self.state);
         self.references = References::measured(&inv);
-        self.energy_scale =
-            (inv.kinetic + inv.elastic.abs() + inv.gravitational.abs()).max(f64::MIN_POSITIVE);
+        self.energy_scale = (inv.kinetic + inv.elastic.abs()).max(f64::MIN_POSITIVE);
+        self.initial_potential = inv.gravitational;
         // Before the first step, row 0 must describe the state the run starts from.
         if let [only] = self.history.as_mut_slice() {
             only.invariants = inv;
             only.time = self.state.time;
+            only.references = self.references;
         }
         // Kinematic pins follow their path from where the state now has them.
         self.world.anchor_pins(&self.state);
@@ -290,18 +300,46 @@ impl Simulation {
         self.history.last().map_or(0, |d| d.step)
     }
 
-    /// Energy scale of a step (J), for the energy row's tolerance and for runaway detection: the largest of
-    /// the initial state's and the start-of-step state's `K + |E_el| + |E_grav|`, and `m_tot |g| r` (the
-    /// potential energy of lifting the body by its size), so that a body starting with zero energy (at rest,
-    /// centre of mass at the origin) still has a physical scale.
-    fn step_energy_scale(&self) -> f64 {
+    /// Energy scale of a step with energy target `target` (J), for the energy row's tolerance and for runaway
+    /// detection, on scales that do not grow with the distance fallen or the time run (fepr-spec section 5b):
+    /// energies measured from the initial state's potential. The largest of
+    /// - the target measured from that potential, `|H_target - E_grav,0|` (the initial `K + E_el` plus the
+    ///   budget so far);
+    /// - the initial state's `K + |E_el|`;
+    /// - the start-of-step state's internal energy `K - |P|^2 / (2 m_tot) + |E_el|` (the kinetic energy in the
+    ///   centre-of-mass frame: a falling body's growing `K` and `|E_grav|` do not count);
+    /// - `m_tot |g| r`, the energy of lifting the body by its size (a body starting at rest has a scale);
+    /// - the rounding of the start-of-step energies, `8 sqrt(m/4 + 1) eps (K + |E_el| + |E_grav|) / tolerance`:
+    ///   far from the origin H itself is known no better than that.
+    ///
+    /// Measured from the start of the step and the targets, not from the base step's result: a wild base step
+    /// cannot loosen it.
+    fn step_energy_scale(&self, target: f64) -> f64 {
+        let mt = self.model.total_mass;
         let last = self.history.last().map(|d| d.invariants);
-        let current = last.map_or(0.0, |i| i.kinetic + i.elastic.abs() + i.gravitational.abs());
+        let internal = last.map_or(0.0, |i| {
+            let p2 = dot(i.momentum, i.momentum);
+            (i.kinetic - 0.5 * p2 / mt).max(0.0) + i.elastic.abs()
+        });
         let g = crate::linalg::norm(self.model.gravity);
-        let lift = self.model.total_mass * g * self.model.length_scale;
-        self.energy_scale
-            .max(current)
+        let lift = mt * g * self.model.length_scale;
+        let tolerance = self
+            .projector
+            .as_ref()
+            .map_or(1e-10, |p| p.settings.tolerance);
+        let rounding = last.map_or(0.0, |i| {
+            crate::projection::ROUNDING_ULPS
+                * crate::projection::rounding_terms(self.model.num_vertices())
+                * f64::EPSILON
+                * (i.kinetic + i.elastic.abs() + i.gravitational.abs())
+                / tolerance
+        });
+        (target - self.initial_potential)
+            .abs()
+            .max(self.energy_scale)
+            .max(internal)
             .max(lift)
+            .max(rounding)
             .max(f64::MIN_POSITIVE)
     }
 
@@ -318,10 +356,11 @@ impl Simulation {
                 scale(add(r.momentum, scale(report.impulse, 0.5)), h / mt),
             )
         };
+        let energy = r.energy + report.energy_budget;
         Targets {
-            energy_scale: self.step_energy_scale(),
+            energy_scale: self.step_energy_scale(energy),
             uncertain_impulses: report.impulsive,
-            energy: r.energy + report.energy_budget,
+            energy,
             momentum: add(r.momentum, report.impulse),
             angular_momentum: add(r.angular_momentum, report.angular_impulse),
             center_of_mass: com,
@@ -566,8 +605,15 @@ impl Simulation {
         } else {
             0.0
         };
-        let scale_h = targets.energy.abs().max(targets.energy_scale);
+        let scale_h = targets.energy_scale;
         let base_energy_error = (base_total - targets.energy).abs() / scale_h;
+        if let Some(p) = projection {
+            // What the projection could not restore within its quality guard is the step's unresolved energy:
+            // booked, so that the references (and the books) follow the energy the state really has.
+            work.unresolved = p.unresolved;
+            report.energy_budget += p.unresolved;
+            targets.energy += p.unresolved;
+        }
         if contacts > 0 && projection.is_some_and(|p| !p.converged) {
             let residual = inv.total - targets.energy;
             let resting = residual.abs() <= RESTING_CONTACT_RESIDUAL * scale_h
@@ -621,6 +667,7 @@ impl Simulation {
             // rescued the step.
             runaway: (base_energy_error.is_nan() || base_energy_error > 1.0)
                 && !projection.is_some_and(|p| p.converged),
+            references: self.references,
         });
         Ok(())
     }

@@ -177,11 +177,15 @@ pub struct Work {
     pub pins: f64,
     /// External forces and the drag spring.
     pub forces: f64,
+    /// Energy the projection did not restore (0 or negative; see
+    /// [`crate::projection::ProjectionReport::unresolved`]): what the time step could not carry within the
+    /// projection's quality guard.
+    pub unresolved: f64,
 }
 
 impl Work {
     pub fn total(&self) -> f64 {
-        self.contact + self.damping + self.pins + self.forces
+        self.contact + self.damping + self.pins + self.forces + self.unresolved
     }
 }
 

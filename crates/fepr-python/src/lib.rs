@@ -264,6 +264,11 @@ fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py
     d.set_item("restarts", r.restarts)?;
     d.set_item("frozen_vertices", r.frozen_vertices)?;
     d.set_item("evaluations", r.evaluations)?;
+    d.set_item("restored", r.restored)?;
+    d.set_item("unresolved", r.unresolved)?;
+    d.set_item("trials", r.trials)?;
+    d.set_item("metric_switched", r.metric_switched)?;
+    d.set_item("quality_excess", r.quality_excess)?;
     Ok(d)
 }
 
@@ -314,9 +319,20 @@ const HISTORY_COLUMNS: &[&str] = &[
     "proj_frozen",
     "base_substeps",
     "proj_evaluations",
+    "work_unresolved",
+    "proj_restored",
+    "proj_trials",
+    "proj_metric_switched",
+    "proj_quality_excess",
+    "px_target",
+    "py_target",
+    "pz_target",
+    "lx_target",
+    "ly_target",
+    "lz_target",
 ];
 
-fn history_row(d: &StepDiagnostics) -> [f64; 45] {
+fn history_row(d: &StepDiagnostics) -> [f64; 56] {
     let i = &d.invariants;
     let p = d.projection.unwrap_or_default();
     let has = d.projection.is_some();
@@ -367,6 +383,21 @@ fn history_row(d: &StepDiagnostics) -> [f64; 45] {
         if has { p.frozen_vertices as f64 } else { 0.0 },
         d.base.substeps as f64,
         if has { p.evaluations as f64 } else { 0.0 },
+        d.work.unresolved,
+        nan_if(p.restored),
+        if has { p.trials as f64 } else { 0.0 },
+        if has {
+            p.metric_switched as u8 as f64
+        } else {
+            0.0
+        },
+        nan_if(p.quality_excess),
+        d.references.momentum[0],
+        d.references.momentum[1],
+        d.references.momentum[2],
+        d.references.angular_momentum[0],
+        d.references.angular_momentum[1],
+        d.references.angular_momentum[2],
     ]
 }
 
@@ -378,7 +409,8 @@ impl Simulation {
         integrator, dt, projection, tolerance, max_iterations, rows, c_eps, regularization, max_halvings,
         impact_bound, gravity, pinned, damping, threads, slack = "auto", newton_tolerance = 1e-6,
         newton_max_iterations = 20, pd_iterations = 10, warm_start_threshold = f64::INFINITY,
-        metric = "auto", xpbd_substeps = 20, xpbd_iterations = 1
+        metric = "auto", xpbd_substeps = 20, xpbd_iterations = 1,
+        quality_margin = Some(fepr_core::projection::DEFAULT_QUALITY_MARGIN)
     ))]
     #[allow(clippy::too_many_arguments)]
     fn new(
@@ -413,6 +445,7 @@ impl Simulation {
         metric: &str,
         xpbd_substeps: usize,
         xpbd_iterations: usize,
+        quality_margin: Option<f64>,
     ) -> PyResult<Self> {
         let (user_mesh, _) = build_mesh(&vertices, &tets)?;
         let mat = make_material(material, youngs_modulus, poisson_ratio, j0)?;
@@ -510,6 +543,7 @@ impl Simulation {
                         "slack: unknown '{slack}' (known: auto, on, off)"
                     ))
                 })?,
+                quality_margin,
             };
             Some(Projector::new(settings).map_err(value_error)?)
         } else {
