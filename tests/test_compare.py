@@ -18,7 +18,7 @@ import pytest
 from fepr.cli import EXIT_INVALID, EXIT_OK, main
 from fepr.report.metrics import compute_metrics
 from fepr.report.runs import frame_steps
-from fepr.report.summary import COLUMNS, format_cell
+from fepr.report.summary import COLUMNS
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "examples" / "seed_demo3_stretch.toml"
@@ -109,17 +109,45 @@ def test_summary_numbers_equal_the_diagnostics(compared):
             projection=run["projection"],
             runaway_step=run["runaway_step"],
         )
-        assert m.max_dh == pytest.approx(run["max_dh"], rel=1e-12)
-        for key, header in COLUMNS[4:]:
-            assert row[header] == format_cell(key, getattr(m, key)), header
-        # and against the raw columns directly
+        assert m.energy_error == pytest.approx(run["energy_error"], rel=1e-12)
+        assert m.unresolved == pytest.approx(run["unresolved"], rel=1e-12, abs=1e-300)
+        assert (m.inverted, m.final_inverted, m.unconverged) == (
+            run["inverted"],
+            run["final_inverted"],
+            run["unconverged"],
+        )
+        assert run["summary"] == m.summary_line(row["run"])
+        for key, header in COLUMNS[3:]:
+            assert row[header] == m.cell(key), header
+        # and against the raw columns directly: the energy against the books, the momentum against its targets
         h = diag["total"]
-        assert float(row["final H/H0"]) == pytest.approx(h[-1] / h[0], rel=1e-3)
+        books = np.abs(h - h[0] - diag["budget_total"]) / abs(h[0])
+        books = np.where(np.isfinite(books), books, np.inf)
+        assert run["energy_error"] == pytest.approx(books.max(), rel=1e-12)
+        assert float(row["energy error"]) == pytest.approx(books.max(), rel=1e-2)
+        assert run["unresolved"] == pytest.approx(-diag["work_unresolved"][1:].sum() / abs(h[0]), rel=1e-12, abs=1e-300)
+        P = np.stack([diag["px"], diag["py"], diag["pz"]], axis=1)
+        target = np.stack([diag["px_target"], diag["py_target"], diag["pz_target"]], axis=1)
+        mass = float(state["masses"].sum())
+        p_scale = max(
+            np.linalg.norm(P[0]),
+            np.linalg.norm(target, axis=1).max(),
+            np.sqrt(2 * mass * (diag["kinetic"][0] + abs(diag["elastic"][0]))),
+        )
+        assert run["p_drift"] == pytest.approx(np.linalg.norm(P - target, axis=1).max() / p_scale, rel=1e-12)
         assert float(row["min J"]) == pytest.approx(diag["min_j"].min(), rel=1e-3)
+        assert run["final_inverted"] == int(diag["inverted"][-1])
         if run["projection"]:
-            assert float(row["mean proj. iters"]) == pytest.approx(diag["proj_iterations"][1:].mean(), abs=5e-3)
+            assert float(row["iters"]) == pytest.approx(diag["proj_iterations"][1:].mean(), abs=5e-3)
+            assert run["unconverged"] == int(np.sum(diag["proj_converged"][1:] == 0))
+        else:
+            assert run["unconverged"] is None and row["unconverged"] == "-"
     fepr_on, plain = info["runs"]
-    assert fepr_on["max_dh"] < 1e-8 and plain["runaway_step"] is not None  # the seed scene runs away without FEPR
+    assert fepr_on["energy_error"] < 1e-8 and plain["runaway_step"] is not None  # the seed scene runs away without FEPR
+    assert "runaway at step" in plain["summary"] and plain["problems"]
+    # Without gravity, contact or damping the only budget is the unresolved energy (what the projection's quality
+    # guard could not restore): H falls by exactly that share.
+    assert fepr_on["final_h_ratio"] - 1.0 == pytest.approx(-fepr_on["unresolved"], abs=1e-8)
 
 
 def test_bad_input_is_a_clear_error_with_exit_2(tmp_path, capsys):

@@ -514,7 +514,10 @@ def test_force_on_a_single_body_gives_the_exact_momentum_and_energy_budget():
     force = [0.5, 0.0, 0.0]
     d = with_world(force=force)
     d["initial"] = {"angular_velocity": [0.0, 0.0, 1.0]}
-    result = run_scene(scene_from_dict(d, ".", source="push.toml"), steps=40)
+    # a stable step for symplectic Euler (at the default 1/30 s this box's steps are unstable and some projections
+    # need more than 20 iterations)
+    d["integrator"] = {"dt": 0.01}
+    result = run_scene(scene_from_dict(d, ".", source="push.toml"), steps=120)
     assert result.momentum_error < 1e-10 and result.angular_momentum_error < 1e-10
     assert result.final_energy_error < 1e-9  # measured against H0 + budget_total
     h = result.simulation.history
@@ -530,7 +533,9 @@ def test_air_damping_takes_energy_out_and_the_budget_accounts_for_it():
     assert h["kinetic"][-1] < 0.5 * h["kinetic"][0]
     assert np.all(h["work_damping"][1:] < 0.0)
     assert result.final_energy_error < 1e-9
-    assert result.momentum_error is None  # air drag exchanges momentum with the surroundings
+    # air drag takes momentum out: its impulses are in the momentum targets, so the drift is measured against them
+    assert result.metrics.momentum_reference == "targets"
+    assert result.momentum_error < 1e-10 and result.angular_momentum_error < 1e-10
 
 
 def test_dropped_box_never_penetrates_the_ground():

@@ -60,6 +60,13 @@ class _ProjectionReportDict(TypedDict):
     restarts: int
     frozen_vertices: int
     evaluations: int
+    restored: float
+    unresolved: float
+    gap: float
+    translated: bool
+    trials: int
+    metric_switched: bool
+    quality_excess: float
 
 class Simulation:
     """The simulation: model, state, integrator and projection (see ``fepr.Simulation`` for the documented
@@ -100,9 +107,11 @@ class Simulation:
         metric: str = "auto",
         xpbd_substeps: int = 20,
         xpbd_iterations: int = 1,
+        quality_margin: Optional[float] = 0.05,
     ) -> None:
         """``mass_kind``: "density" (``mass_value`` kg/m^3) or "node_mass" (``mass_value`` kg per vertex, or
-        ``node_masses`` (m,) kg). ``warm_start_threshold`` defaults to infinity (no warm start)."""
+        ``node_masses`` (m,) kg). ``warm_start_threshold`` defaults to infinity (no warm start);
+        ``quality_margin`` None turns the projection's quality guard off."""
 
     def step(self, n: int) -> int:
         """Take ``n`` steps with the GIL released; returns the number taken. Raises RuntimeError (naming the
@@ -184,6 +193,17 @@ class Simulation:
 
     def first_runaway(self, start: int) -> Optional[int]:
         """First step at or after ``start`` whose ``runaway`` flag is set, or None."""
+
+    def first_unconverged(self, start: int) -> Optional[int]:
+        """First step at or after ``start`` whose projection did not converge, or None."""
+
+    def unresolved_energy(self) -> Tuple[float, float, float]:
+        """(unresolved, lost, scale), J: the energy booked as unresolved so far, the energy the base steps lost
+        against their targets, and the run's initial energy scale."""
+
+    def resolving_time_step(self) -> float:
+        """A time step that resolves the body's fast elastic modes, s (a tenth of a pressure wave's crossing
+        time)."""
 
     def set_obstacles(self, obstacles: Sequence[Tuple[str, Sequence[float], float, float]]) -> None:
         """Obstacles as ``(kind, params, restitution, friction)``: "plane" [point (3), normal (3)], "sphere"

@@ -2,16 +2,24 @@
 
 Commands::
 
-    fepr run SCENE.toml [--steps N] [--out DIR] [--no-projection] [--export FORMATS] [--export-every K] [--quiet]
-    fepr demo [--steps N] [--out DIR] [--frames F] [--size WxH] [--no-video] [--quiet]
-    fepr compare SCENE.toml --out DIR [--integrators a,b] [--steps N] [--frames F] [--size WxH] [--no-video] [--quiet]
+    fepr run SCENE.toml [--steps N] [--out DIR] [--no-projection] [--export FORMATS] [--export-every K] [--strict]
+                        [--quiet]
+    fepr demo [--steps N] [--out DIR] [--frames F] [--size WxH] [--no-video] [--strict] [--quiet]
+    fepr compare SCENE.toml --out DIR [--integrators a,b] [--steps N] [--frames F] [--size WxH] [--no-video]
+                            [--strict] [--quiet]
     fepr view SCENE.toml | MESH [--host ADDR] [--port P] [--integrator NAME] [--dt S] [--no-browser-hint]
     fepr mesh INPUT [-o OUTPUT] [--max-volume V | --edge-length L] [--quality Q] [--mesher M] [--info]
     fepr bench [--quick] [--json PATH] [--scenes LIST] [--threads N] [--meshes DIR]
     fepr --version | --help
 
 Exit status: 0 success; 1 an output file could not be written; 2 invalid command line, scene or mesh;
-3 the simulation ran away (the state became non-finite; the diagnostics up to that step are still written).
+3 the simulation ran away (the state became non-finite; the diagnostics up to that step are still written), or,
+with ``--strict``, the run has a problem (:meth:`fepr.report.metrics.RunMetrics.problems`: a runaway, inverted
+tets at the end, unconverged projections, unresolved energy above 1e-3 of the energy scale; for ``compare`` and
+``demo``, in a run with FEPR).
+
+Every command prints the same summary (:mod:`fepr.report.metrics`): energy error against the books, unresolved
+energy, P and L drift against the momentum targets, min J, inverted tets, unconverged projections, substeps.
 """
 
 from __future__ import annotations
@@ -19,18 +27,31 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Optional, Sequence
 
 from .bench import add_bench_parser, cmd_bench
 from .errors import FeprError
 
-__all__ = ["EXIT_ERROR", "EXIT_INVALID", "EXIT_OK", "EXIT_RUNAWAY", "build_parser", "main"]
+__all__ = ["EXIT_ERROR", "EXIT_INVALID", "EXIT_OK", "EXIT_RUNAWAY", "EXIT_STRICT", "build_parser", "main"]
 
 EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_INVALID = 2
 EXIT_RUNAWAY = 3
+#: ``--strict`` and the run has a problem (the same status as a runaway, which is one).
+EXIT_STRICT = 3
+
+_STRICT_HELP = (
+    "exit with status 3 when the run has a problem: a runaway, inverted tets at the end, unconverged "
+    "projections, or unresolved energy above 1e-3 of the energy scale (tets inverted only during the run are "
+    "reported but do not fail)"
+)
+_STRICT_FEPR_HELP = (
+    "exit with status 3 when a run with FEPR has a problem: a runaway, inverted tets at the end, unconverged "
+    "projections, or unresolved energy above 1e-3 of the energy scale (the runs without FEPR are not checked)"
+)
 
 
 def _version() -> str:
@@ -73,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="fepr",
         description="FEPR: tetrahedral FEM with energy- and momentum-conserving projection.",
-        epilog="Exit status: 0 ok, 1 write error, 2 invalid input, 3 runaway simulation.",
+        epilog="Exit status: 0 ok, 1 write error, 2 invalid input, 3 runaway simulation (or, with --strict, a run "
+        "with inverted tets at the end, unconverged projections or unresolved energy above 1e-3).",
     )
     parser.add_argument("--version", action="version", version=f"fepr {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -83,7 +105,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="run a scene file and write diagnostics.csv and final_state.npz",
         description="Run a scene file (TOML). Writes DIR/diagnostics.csv (one row per step plus the initial "
         "state; the totals for a scene with [[bodies]], plus DIR/diagnostics_<body>.csv per body) and "
-        "DIR/final_state.npz, and prints a one-line summary.",
+        "DIR/final_state.npz, and prints a one-line summary: energy error against the books (H0 plus the energy "
+        "budget), unresolved energy, P and L drift against the momentum targets (P0, L0 plus the external "
+        "impulses), min J, inverted tets, unconverged projections, substeps, and the run's problems. Exit "
+        "status 3: the run ran away, or with --strict it has a problem.",
     )
     run.add_argument("scene", metavar="SCENE.toml", help="scene file")
     run.add_argument(
@@ -119,6 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="K",
         help="export every K-th step (default: [export] every, or 1)",
     )
+    run.add_argument("--strict", action="store_true", help=_STRICT_HELP)
     run.add_argument("--quiet", "-q", action="store_true", help="print only the final summary line")
 
     demo = sub.add_parser(
@@ -141,6 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--frames", type=_frames, default=None, metavar="F", help="video frames per scene (default 30)")
     demo.add_argument("--size", default=None, metavar="WxH", help="video panel size in pixels (default 480x352)")
     demo.add_argument("--no-video", action="store_true", help="skip the videos (plots, summaries and report only)")
+    demo.add_argument("--strict", action="store_true", help=_STRICT_FEPR_HELP)
     _add_mesh_parser(sub)
     _add_compare_parser(sub)
     _add_view_parser(sub)
@@ -180,6 +207,7 @@ def _add_compare_parser(sub) -> None:
     cmp.add_argument("--size", default="640x480", metavar="WxH", help="panel size in pixels (default 640x480)")
     cmp.add_argument("--fps", type=_positive_float, default=24.0, help="video frame rate (default 24)")
     cmp.add_argument("--no-video", action="store_true", help="skip the videos")
+    cmp.add_argument("--strict", action="store_true", help=_STRICT_FEPR_HELP)
     cmp.add_argument("--quiet", "-q", action="store_true", help="no progress bars; print only the summary line")
 
 
@@ -246,6 +274,7 @@ def _err(msg: str) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from .report.metrics import RunProblemWarning
     from .scene import load_scene, run_scene
 
     scene = load_scene(args.scene)
@@ -272,15 +301,18 @@ def _cmd_run(args: argparse.Namespace) -> int:
             last[0] = now
             print(f"  step {done}/{total}  t={float(sim.time):.4g} s", flush=True)
 
-    result = run_scene(
-        scene,
-        steps=steps,
-        out_dir=out,
-        projection=projection,
-        progress=progress,
-        export=args.export,
-        export_every=args.export_every,
-    )
+    with warnings.catch_warnings():
+        # the end-of-run warning is in result.warnings, printed below with the others
+        warnings.simplefilter("ignore", RunProblemWarning)
+        result = run_scene(
+            scene,
+            steps=steps,
+            out_dir=out,
+            projection=projection,
+            progress=progress,
+            export=args.export,
+            export_every=args.export_every,
+        )
     if not args.quiet:
         for w in result.warnings:
             _err(f"warning: {w}")
@@ -298,7 +330,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 f"{result.export_fps:.6g} frames per simulated second, to {result.export_dir}",
                 flush=True,
             )
-    return EXIT_RUNAWAY if result.runaway else EXIT_OK
+    if result.runaway:
+        return EXIT_RUNAWAY
+    if args.strict and result.problems:
+        _err(f"--strict: {'; '.join(result.problems)}")
+        return EXIT_STRICT
+    return EXIT_OK
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:
@@ -346,7 +383,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     size = demo.DEMO_SIZE if args.size is None else parse_size(args.size)
     frames = demo.DEMO_FRAMES if args.frames is None else args.frames
     return demo.main(
-        steps=args.steps, out_dir=args.out, quiet=args.quiet, frames=frames, size=size, video=not args.no_video
+        steps=args.steps,
+        out_dir=args.out,
+        quiet=args.quiet,
+        frames=frames,
+        size=size,
+        video=not args.no_video,
+        strict=args.strict,
     )
 
 
@@ -376,15 +419,13 @@ def _cmd_compare(args: argparse.Namespace) -> int:
         if note:
             _err(f"note: {note}")
     if not args.quiet:
-        width = max(len(r["run"]) for r in result.rows)
-        for r in result.rows:
-            print(
-                f"  {r['run'].ljust(width)}  steps {r['steps']}  max |dH|/H0 {r['max_dh']}  "
-                f"P drift {r['p_drift']}  L drift {r['l_drift']}  min J {r['min_j']}  "
-                f"iters {r['mean_iterations']}  {r['ms_per_step']} ms/step",
-                flush=True,
-            )
+        for line in result.run_lines():
+            print(f"  {line}", flush=True)
     print(f"fepr compare {result.summary_line()}", flush=True)
+    problems = result.problems()
+    if args.strict and problems:
+        _err(f"--strict: {'; '.join(problems)}")
+        return EXIT_STRICT
     return EXIT_OK
 
 

@@ -4,7 +4,9 @@
 
     energy.png, momentum.png        plots, one curve per run (matplotlib)
     side_by_side.mp4, .gif          the runs next to each other, same camera (polyscope off-screen on EGL)
-    summary.md, summary.json        the table: final H/H0, max |dH|/H0, P and L drift, min J, iterations, ms/step
+    summary.md, summary.json        the table (fepr.report.metrics): energy error against the books, unresolved
+                                    energy, P and L drift against the targets, min J, inverted tets,
+                                    unconverged projections, substeps, iterations, ms/step; each run's problems
     report.html                     all of the above on one page
     fepr/, plain/, <integrator>-fepr/, ...   each run's diagnostics.csv and final_state.npz
 
@@ -26,7 +28,7 @@ import numpy as np
 
 from .errors import ConfigError, MissingDependencyError
 from .progress import progress_bar
-from .report.metrics import RunMetrics, compute_metrics, length_scale
+from .report.metrics import RunMetrics, compute_metrics, format_value, length_scale
 from .report.runs import RecordedRun, RunSpec, available_integrators, frame_steps, record_run
 
 __all__ = ["CompareResult", "compare", "parse_size"]
@@ -71,15 +73,35 @@ class CompareResult:
     def report(self) -> Path:
         return self.out_dir / "report.html"
 
+    def run_lines(self) -> List[str]:
+        """One summary line per run (:meth:`fepr.report.metrics.RunMetrics.summary_line`, labelled by run)."""
+        return [m.summary_line(r.spec.label) for r, m in zip(self.runs, self.metrics)]
+
+    def problems(self, projected_only: bool = True) -> List[str]:
+        """``"label: problem"`` for every problem of the runs with FEPR (of every run with
+        ``projected_only=False``): what ``--strict`` fails on. The runs without FEPR are there to show what
+        goes wrong without it."""
+        return [
+            f"{r.spec.label}: {p}"
+            for r, m in zip(self.runs, self.metrics)
+            if r.spec.projection or not projected_only
+            for p in m.problems()
+        ]
+
     def summary_line(self) -> str:
-        """One line: the scene, the runs, the energy error with and without FEPR, the time, the report."""
-        on = [m.max_dh for r, m in zip(self.runs, self.metrics) if r.spec.projection]
-        off = [m.max_dh for r, m in zip(self.runs, self.metrics) if not r.spec.projection]
+        """One line: the scene, the runs, the largest energy error (against the books) with and without FEPR,
+        the problems of the runs with FEPR, the time, the report."""
+        on = [m.energy_error for r, m in zip(self.runs, self.metrics) if r.spec.projection]
+        off = [m.energy_error for r, m in zip(self.runs, self.metrics) if not r.spec.projection]
         parts = [f"{self.scene}: {len(self.runs)} runs"]
         if on:
-            parts.append(f"max |dH|/H0 {max(on):.1e} with FEPR")
+            parts.append(f"energy error {format_value('energy_error', max(on))} with FEPR")
         if off:
-            parts.append(f"{max(off):.1e} without")
+            parts.append(f"{format_value('energy_error', max(off))} without")
+        problems = self.problems()
+        if problems:
+            word = "problem" if len(problems) == 1 else "problems"
+            parts.append(f"{len(problems)} {word} with FEPR ({'; '.join(problems)})")
         video = (
             f"{self.video_frames} frames {self.video_size[0]}x{self.video_size[1]}" if self.video_size else "no video"
         )

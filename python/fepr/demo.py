@@ -32,13 +32,14 @@ a table. :func:`run_demos` runs the same scenes without any rendering (numbers o
 from __future__ import annotations
 
 import copy
-import math
 import sys
+import textwrap
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
+from .report.metrics import FIELDS, LEGEND
 from .scene import RunResult, Scene, run_scene, scene_from_dict
 
 __all__ = [
@@ -187,59 +188,49 @@ def run_demos(
     return results
 
 
-def _sci(x: Optional[float]) -> str:
-    if x is None:
-        return "-"
-    if not math.isfinite(x):
-        return str(x)
-    return f"{x:.1e}"
-
-
-HEADER = ("scene", "FEPR", "steps", "max|H/H0-1|", "|P-Pexp|", "|L-L0|", "iters", "ms/step")
+#: The columns of the demo tables: the scene, FEPR on/off, then the summary numbers of
+#: :data:`fepr.report.metrics.FIELDS` (the same headers and cells as ``summary.md``).
+HEADER = ("scene", "FEPR") + tuple(h for _, h in FIELDS)
 
 
 def format_row(r: RunResult) -> List[str]:
-    """The table cells for one run."""
-    steps = f"runaway at {r.runaway_step}" if r.runaway else str(r.steps_completed)
-    iters = "-" if r.mean_iterations is None else f"{r.mean_iterations:.2f}"
-    return [
-        r.scene,
-        "on" if r.projection else "off",
-        steps,
-        _sci(r.max_energy_error),
-        _sci(r.momentum_error),
-        _sci(r.angular_momentum_error),
-        iters,
-        f"{r.ms_per_step:.3f}",
-    ]
+    """The table cells for one run (:meth:`fepr.report.metrics.RunMetrics.cell`)."""
+    return [r.scene, "on" if r.projection else "off"] + [r.metrics.cell(k) for k, _ in FIELDS]
 
 
-def format_table(results: List[RunResult]) -> str:
-    """A plain-text table of demo results, one line per run, with a legend."""
-    rows = [list(HEADER)] + [format_row(r) for r in results]
-    widths = [max(len(row[i]) for row in rows) for i in range(len(HEADER))]
+def _legend() -> List[str]:
+    return [textwrap.fill(line[2:].replace("**", ""), width=110, subsequent_indent="  ") for line in LEGEND]
+
+
+def _aligned(rows: List[List[str]], left: int) -> List[str]:
+    """Rows as text columns (the first ``left`` left-aligned), a rule under the header."""
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     lines = []
     for k, row in enumerate(rows):
-        cells = [c.ljust(w) if i < 3 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))]
+        cells = [c.ljust(w) if i < left else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))]
         lines.append("  ".join(cells).rstrip())
         if k == 0:
             lines.append("  ".join("-" * w for w in widths))
-    notes = [
-        f"  {r.scene} (FEPR on): the base step alone was unstable from step {r.base_unstable_step}\n"
-        "    (its own energy error exceeded 100%); the projection kept the state bounded"
-        for r in results
-        if r.projection and not r.runaway and r.base_unstable_step is not None
-    ]
+    return lines
+
+
+def _flags(items: Sequence[Tuple[str, Any]]) -> List[str]:
+    """``problems:`` and ``notes:`` blocks for (name, RunMetrics) pairs, empty when there are none."""
+    lines: List[str] = []
+    problems = [f"  {name}: {'; '.join(m.problems())}" for name, m in items if m.problems()]
+    notes = [f"  {name}: {'; '.join(m.notes())}" for name, m in items if m.notes()]
+    if problems:
+        lines += ["", "problems:"] + problems
     if notes:
         lines += ["", "notes:"] + notes
-    lines.append("")
-    lines += [
-        "max|H/H0-1|  largest relative energy error over the run",
-        "|P-Pexp|     final linear momentum against P0 + m g t, relative",
-        "|L-L0|       final angular momentum about the centre of mass against its initial value, relative",
-        "             ('-': vertices pinned, the supports exchange momentum with the body)",
-        "iters        mean FEPR iterations per step; ms/step: wall time per step",
-    ]
+    return lines
+
+
+def format_table(results: List[RunResult]) -> str:
+    """A plain-text table of demo results, one line per run, with the runs' problems and notes and a legend."""
+    lines = _aligned([list(HEADER)] + [format_row(r) for r in results], left=3)
+    lines += _flags([(f"{r.scene} (FEPR {'on' if r.projection else 'off'})", r.metrics) for r in results])
+    lines += [""] + _legend()
     return "\n".join(lines)
 
 
@@ -332,18 +323,11 @@ def run_gallery(
     return results
 
 
-GALLERY_HEADER = (
-    "scene",
-    "integrator",
-    "FEPR",
-    "steps",
-    "max|H/H0-1|",
-    "|P-Pexp|",
-    "|L-L0|",
-    "min J",
-    "iters",
-    "ms/step",
-)
+GALLERY_HEADER = ("scene", "integrator", "FEPR") + tuple(h for _, h in FIELDS)
+
+
+def _gallery_name(res: Any, run: Any) -> str:
+    return res.scene if run.spec.default else f"{res.scene}/{run.spec.integrator}"
 
 
 def gallery_rows(results: Sequence[Any]) -> List[List[str]]:
@@ -352,44 +336,19 @@ def gallery_rows(results: Sequence[Any]) -> List[List[str]]:
     rows = []
     for res in results:
         for run, m in zip(res.runs, res.metrics):
-            name = res.scene if run.spec.default else f"{res.scene}/{run.spec.integrator}"
-            steps = f"runaway at {m.runaway_step}" if m.runaway_step is not None else str(m.steps)
-            rows.append(
-                [
-                    name,
-                    run.spec.integrator,
-                    "on" if run.spec.projection else "off",
-                    steps,
-                    _sci(m.max_dh),
-                    _sci(m.p_drift),
-                    _sci(m.l_drift),
-                    f"{m.min_j:.3g}",
-                    "-" if m.mean_iterations is None else f"{m.mean_iterations:.2f}",
-                    f"{m.ms_per_step:.3f}",
-                ]
-            )
+            head = [_gallery_name(res, run), run.spec.integrator, "on" if run.spec.projection else "off"]
+            rows.append(head + [m.cell(k) for k, _ in FIELDS])
     return rows
 
 
 def format_gallery_table(results: Sequence[Any]) -> str:
-    """The plain-text table of ``fepr demo``: one line per run, with a legend."""
-    rows = [list(GALLERY_HEADER)] + gallery_rows(results)
-    widths = [max(len(row[i]) for row in rows) for i in range(len(GALLERY_HEADER))]
-    lines = []
-    for k, row in enumerate(rows):
-        cells = [c.ljust(w) if i < 4 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))]
-        lines.append("  ".join(cells).rstrip())
-        if k == 0:
-            lines.append("  ".join("-" * w for w in widths))
-    lines += [
-        "",
-        "max|H/H0-1|  largest relative energy error over the run",
-        "|P-Pexp|     largest drift of the linear momentum from P0 + m g t, relative",
-        "|L-L0|       largest drift of the angular momentum about the centre of mass, relative",
-        "             ('-': vertices pinned, the supports exchange momentum with the body)",
-        "min J        smallest volume ratio det F; iters: mean FEPR iterations per step",
-        "ms/step      the solver's own time per step (base step + projection)",
+    """The plain-text table of ``fepr demo``: one line per run, the runs' problems and notes, and a legend."""
+    lines = _aligned([list(GALLERY_HEADER)] + gallery_rows(results), left=4)
+    items = [
+        (f"{_gallery_name(res, run)} ({run.spec.label})", m) for res in results for run, m in zip(res.runs, res.metrics)
     ]
+    lines += _flags(items)
+    lines += [""] + _legend()
     return "\n".join(lines)
 
 
@@ -426,10 +385,12 @@ def main(
     frames: int = DEMO_FRAMES,
     size: Tuple[int, int] = DEMO_SIZE,
     video: bool = True,
+    strict: bool = False,
 ) -> int:
     """Run the gallery, write ``out_dir`` (default ``./fepr-demo``), print the table (what ``fepr demo`` does).
 
-    Returns 0.
+    Returns 0; with ``strict``, 3 when a run with FEPR has a problem (a runaway, inverted tets at the end,
+    unconverged projections, unresolved energy above 1e-3; :meth:`fepr.compare.CompareResult.problems`).
     """
     out = Path("fepr-demo") if out_dir is None else Path(out_dir)
     start = time.perf_counter()
@@ -453,4 +414,8 @@ def main(
         f"\nfepr demo: {len(results)} scenes, {runs} runs in {time.perf_counter() - start:.1f} s; report: {index}",
         flush=True,
     )
+    problems = [f"{r.scene}: {p}" for r in results for p in r.problems()]
+    if strict and problems:
+        print(f"fepr: --strict: {'; '.join(problems)}", file=sys.stderr, flush=True)
+        return 3
     return 0

@@ -118,6 +118,8 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
         "slack",
         "warm_start",
         "metric",
+        "quality_guard",
+        "quality_margin",
     ),
     "world": (
         "gravity",
@@ -310,6 +312,8 @@ class ProjectionSettings:
     slack: Optional[str] = None
     warm_start: Optional[float] = None
     metric: Optional[str] = None
+    quality_guard: Optional[bool] = None
+    quality_margin: Optional[float] = None
 
     def options(self) -> Dict[str, Any]:
         """The options that were given, as keyword arguments for :class:`fepr.Projection`."""
@@ -1140,6 +1144,8 @@ def _parse_projection(t: _Table) -> ProjectionSettings:
         slack=t.string("slack", None, choices=("auto", "on", "off")),
         warm_start=t.number("warm_start", None, nonnegative=True),
         metric=t.string("metric", None, choices=("auto", "mass", "stiffness")),
+        quality_guard=t.boolean("quality_guard", None),
+        quality_margin=t.number("quality_margin", None, positive=True),
     )
 
 
@@ -1501,16 +1507,23 @@ def load_scene(path: Union[str, Path]) -> Scene:
 
 @dataclass
 class RunResult:
-    """What :func:`run_scene` did, with the conservation measures of the run.
+    """What :func:`run_scene` did, with the summary of the run (:mod:`fepr.report.metrics`).
 
-    Relative errors: energy ``|H - H0| / |H0|`` (``H0`` replaced by ``K0 + |E_el0| + |E_grav0|`` when it is
-    near zero); momentum ``|P - P_expected| / p_scale`` with ``P_expected = P0 + m_tot g t`` and
-    ``p_scale = max(|P_expected|, |P0|, sqrt(2 m_tot (K0 + |E_el0|)))``; angular momentum (about the centre of
-    mass) ``|L - L0| / max(|L0|, r_g p_scale)`` with ``r_g`` the radius of gyration of the initial shape.
-    Momentum errors are ``None`` when vertices are pinned (the supports exchange momentum with the body).
+    ``metrics`` is the full summary (:class:`fepr.report.metrics.RunMetrics`), computed from the run's history
+    like every other command's; the fields below are filled from it. ``max_energy_error`` and
+    ``final_energy_error``: the energy error against the books, ``|H - (H0 + budget_total)| / |H0|`` (``H0``
+    replaced by ``K0 + |E_el0| + |E_grav0|``, or ``m_tot |g| r``, when it is near zero), the largest over the run
+    and at its end. ``momentum_error`` and ``angular_momentum_error``: the largest drift over the run of ``P``
+    and ``L`` (about the centre of mass) from their targets, ``P0`` and ``L0`` plus every external impulse so far
+    (gravity, obstacles, forces, damping; history columns ``px_target ... lz_target``), relative to
+    ``p_scale = max(|P0|, max |P_target|, sqrt(2 m_tot (K0 + |E_el0|)))`` and ``max(|L0|, r p_scale)``, ``r`` half
+    the rest shape's bounding-box diagonal; ``None`` when vertices are pinned (the supports' impulses are not
+    known). ``mean_iterations`` and ``max_iterations``: the projection's iterations per step.
     ``base_unstable_step`` is the first step the simulation flagged as a runaway of the base integrator
     (its own energy error above 100%; with FEPR on, the projection may still keep the state bounded), and
-    ``warnings`` the messages of the warnings issued while stepping. With exports, ``export_dir``,
+    ``warnings`` the messages of the warnings issued while stepping, plus the end-of-run warning when the run
+    ends with inverted tets, had unconverged projections or left more than 1e-3 of its energy unresolved
+    (:attr:`problems`). With exports, ``export_dir``,
     ``export_frames``, ``export_formats`` and ``export_fps`` (frames per simulated second) say what was
     written; ``wall_s`` leaves out the time spent writing them.
     """
@@ -1539,6 +1552,7 @@ class RunResult:
     export_fps: Optional[float] = None
     bodies: Tuple[str, ...] = ()
     body_diagnostics_paths: Dict[str, Path] = field(default_factory=dict)
+    metrics: Any = None  # fepr.report.metrics.RunMetrics
 
     @property
     def ms_per_step(self) -> float:
@@ -1549,125 +1563,85 @@ class RunResult:
     def runaway(self) -> bool:
         return self.runaway_step is not None
 
+    @property
+    def problems(self) -> List[str]:
+        """What makes the run untrustworthy, as short phrases: a runaway, inverted tets at the end, unconverged
+        projections, unresolved energy above 1e-3 of the energy scale
+        (:meth:`fepr.report.metrics.RunMetrics.problems`; empty: none)."""
+        if self.metrics is None:
+            return [f"runaway at step {self.runaway_step}"] if self.runaway else []
+        return self.metrics.problems()
+
     def summary(self) -> str:
-        """One line: steps, |H/H0-1|, |dP|, |dL|, mean projection iterations, ms per step."""
-        head = (
-            f"runaway at step {self.runaway_step} after {self.steps_completed} steps"
-            if self.runaway
-            else f"{self.steps_completed} steps"
-        )
-        iters = "projection off" if self.mean_iterations is None else f"{self.mean_iterations:.2f} proj. iters/step"
-        energy = f"|H/H0-1| = {self.final_energy_error:.3g} (max {self.max_energy_error:.3g})"
-        dp, dl = _fmt_opt(self.momentum_error), _fmt_opt(self.angular_momentum_error)
-        fepr = "on" if self.projection else "off"
-        return (
-            f"{self.scene} (FEPR {fepr}): {head}, {energy}, |dP| = {dp}, |dL| = {dl} (relative), "
-            f"{iters}, {self.ms_per_step:.3g} ms/step"
-        )
+        """One line, the same as every command prints (:meth:`fepr.report.metrics.RunMetrics.summary_line`):
+        steps, energy error against the books, unresolved energy, P and L drift against the targets, min J,
+        inverted tets, unconverged projections, iterations, substeps, ms per step, then the problems."""
+        label = f"{self.scene} (FEPR {'on' if self.projection else 'off'})"
+        if self.metrics is None:
+            return f"{label}: {self.steps_completed} steps"
+        return self.metrics.summary_line(label)
 
 
-def _fmt_opt(x: Optional[float]) -> str:
-    return "n/a" if x is None else f"{x:.3g}"
+def _history_from(sim, rows_before: int) -> Dict[str, np.ndarray]:
+    """The history columns of ``sim`` (with the momentum targets of a multi-body system) from the row before
+    the first new step, so that a run of an already stepped simulation is measured from where it started."""
+    from .report.metrics import simulation_history
+
+    h = simulation_history(sim)
+    start = max(rows_before - 1, 0)
+    return {k: v[start:] for k, v in h.items()} if start else h
 
 
-def _column(hist, name: str) -> Optional[np.ndarray]:
-    cols = list(hist.columns)
-    if name not in cols:
-        return None
-    return np.asarray(hist[name], dtype=np.float64)
+def _measure(result: RunResult, sim, rows_before: int, pinned: bool) -> None:
+    """Fill in the summary of ``result`` (:func:`fepr.report.metrics.simulation_metrics`) and the fields that
+    repeat it."""
+    from .report.metrics import simulation_metrics
 
-
-@dataclass
-class _Snapshot:
-    """The invariants of one state, measured directly (not from the history)."""
-
-    time: float
-    kinetic: float
-    elastic: float
-    gravitational: float
-    total: float
-    momentum: np.ndarray
-    angular_momentum: np.ndarray
-
-
-def _snapshot(sim) -> _Snapshot:
-    e = sim.energy()
-    return _Snapshot(
-        time=float(sim.time),
-        kinetic=float(e.kinetic),
-        elastic=float(e.elastic),
-        gravitational=float(e.gravitational),
-        total=float(e.total),
-        momentum=np.asarray(sim.linear_momentum(), dtype=np.float64),
-        angular_momentum=np.asarray(sim.angular_momentum(), dtype=np.float64),
+    m = simulation_metrics(
+        sim,
+        projection=result.projection,
+        pinned=pinned,
+        runaway_step=result.runaway_step,
+        history=_history_from(sim, rows_before),
     )
+    result.metrics = m
+    result.max_energy_error = m.energy_error
+    result.final_energy_error = m.final_energy_error
+    result.momentum_error = m.p_drift
+    result.angular_momentum_error = m.l_drift
+    result.mean_iterations = m.mean_iterations
+    result.max_iterations = m.max_iterations
+    result.base_unstable_step = m.base_unstable_step
 
 
-def _measure(
-    result: RunResult,
-    sim,
-    scene: Scene,
-    x0: np.ndarray,
-    first: _Snapshot,
-    rows_before: int,
-    pinned: bool,
-    projection: bool,
-) -> None:
-    """Fill in the conservation errors of ``result`` from the initial snapshot, the new history rows and the
-    final state."""
-    tiny = 1e-300
-    last = _snapshot(sim)
-    hist = sim.history
-    totals = [first.total, last.total]
-    # The expected energy is H0 plus the energy budget of the steps so far (damping, contact, pins, forces).
-    expected = [0.0, 0.0]
-    tot = _column(hist, "total")
-    if tot is not None:
-        totals[1:1] = list(tot[rows_before:])
-        bud = _column(hist, "budget_total")
-        if bud is not None and len(bud):
-            base = float(bud[rows_before - 1]) if rows_before > 0 else 0.0
-            expected = [0.0] + list(bud[rows_before:] - base) + [float(bud[-1]) - base]
-        else:
-            expected = [0.0] * len(totals)
-    # A body that starts with zero energy (at rest, centre of mass at the origin) still has a physical energy
-    # scale under gravity: m_tot |g| r, lifting it by its half bounding-box diagonal.
-    rest = np.asarray(sim.rest_positions)
-    r_half = 0.5 * float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
-    lift = float(sim.total_mass) * float(np.linalg.norm(scene.world.gravity)) * r_half
-    e_scale = max(first.kinetic + abs(first.elastic) + abs(first.gravitational), lift)
-    h_scale = abs(first.total)
-    if h_scale < 1e-12 * e_scale or h_scale < tiny:
-        h_scale = max(e_scale, tiny)
-    with np.errstate(all="ignore"):
-        err = np.abs(np.asarray(totals) - first.total - np.asarray(expected)) / h_scale
-        finite = err[np.isfinite(err)]
-        result.max_energy_error = float(finite.max()) if finite.size else float("inf")
-        result.final_energy_error = float(err[-1])
-        if not pinned:
-            masses = _vertex_masses(np.asarray(sim.masses), len(x0))
-            m_tot = float(masses.sum())
-            g = np.asarray(scene.world.gravity, dtype=np.float64)
-            f = np.zeros(3) if scene.world.force is None else np.asarray(scene.world.force, dtype=np.float64)
-            p_exp = first.momentum + (m_tot * g + f) * (last.time - first.time)
-            p_scale = max(
-                float(np.linalg.norm(p_exp)),
-                float(np.linalg.norm(first.momentum)),
-                math.sqrt(max(2.0 * m_tot * (first.kinetic + abs(first.elastic)), 0.0)),
-                tiny,
-            )
-            result.momentum_error = float(np.linalg.norm(last.momentum - p_exp) / p_scale)
-            c = _centre_of_mass(x0, masses)
-            r_g = math.sqrt(float((masses * ((x0 - c) ** 2).sum(axis=1)).sum()) / m_tot)
-            l_scale = max(float(np.linalg.norm(first.angular_momentum)), r_g * p_scale, tiny)
-            dl = last.angular_momentum - first.angular_momentum
-            result.angular_momentum_error = float(np.linalg.norm(dl) / l_scale)
-    it = _column(hist, "proj_iterations")
-    if projection and it is not None and len(it) > rows_before:
-        steps_it = it[rows_before:][np.isfinite(it[rows_before:])]
-        if steps_it.size:
-            result.mean_iterations = float(steps_it.mean())
-            result.max_iterations = int(steps_it.max())
+def _warn_problems(result: RunResult) -> None:
+    """Warn (and record in ``result.warnings``) when the run ends with inverted tets, had unconverged projections
+    or left more than :data:`fepr.report.metrics.UNRESOLVED_LIMIT` of its energy unresolved."""
+    from .report.metrics import RunProblemWarning
+
+    text = None if result.metrics is None else result.metrics.warning_text(f"{result.scene}: the run")
+    if text is None:
+        return
+    result.warnings.append(text)
+    warnings.warn(text, RunProblemWarning, stacklevel=3)
+
+
+def _write_diagnostics(sim, path: Path) -> None:
+    """``diagnostics.csv``: the history of a simulation; for a multi-body system its totals with the momentum
+    targets and the other columns :func:`fepr.report.metrics.system_history` adds (so that the summary can be
+    recomputed from the file)."""
+    from .multibody import MultiBody
+
+    if not isinstance(sim, MultiBody):
+        sim.save_diagnostics(str(path))
+        return
+    from .report.metrics import system_history
+    from .simulation import History
+
+    cols = system_history(sim)
+    names = list(cols)
+    data = np.stack([cols[c] for c in names], axis=1) if len(cols[names[0]]) else np.zeros((0, len(names)))
+    History(data, names).to_csv(path)
 
 
 def _projection_on(scene: Scene, override) -> bool:
@@ -1765,11 +1739,10 @@ def run_scene(
     if n < 0:
         raise ConfigError(f"steps must be >= 0, got {n}")
     sim = scene.build_multibody(projection=projection) if scene.is_multibody else scene.build(projection=projection)
-    x0 = np.array(sim.positions, dtype=np.float64)
-    first = _snapshot(sim)
     rows_before = len(sim.history)
-    # Supports, obstacles and air drag exchange momentum with the bodies: no momentum conservation to measure.
-    pinned = scene.has_supports() or bool(scene.world.obstacles) or scene.world.air_damping > 0
+    # The supports' impulses are not known: no momentum drift to measure. (Obstacles, forces and air drag are
+    # in the momentum targets of the history.)
+    pinned = scene.has_supports()
     result = RunResult(
         scene=scene.name,
         projection=_projection_on(scene, projection),
@@ -1820,27 +1793,21 @@ def run_scene(
         result.export_formats = recorders[0].formats
         result.export_fps = recorders[0].fps
     result.warnings = [str(w.message) for w in caught]
-    # The base step alone was unstable when its energy error exceeded 100% of the energy scale, whether or
-    # not a converged projection rescued the step.
-    flags = _column(sim.history, "base_energy_error")
-    if flags is not None:
-        flags = np.where(np.isfinite(flags), flags, np.inf) > 1.0
-    if flags is not None and np.any(flags[rows_before:] > 0):
-        first_flag = rows_before + int(np.argmax(flags[rows_before:] > 0))
-        steps_col = _column(sim.history, "step")
-        result.base_unstable_step = int(steps_col[first_flag]) if steps_col is not None else first_flag
     result.steps_completed = int(sim.num_steps) - start_steps if result.runaway else done
-    _measure(result, sim, scene, x0, first, rows_before, bool(pinned), result.projection)
+    # The summary (fepr.report.metrics), as every command reports it; base_unstable_step is the first step whose
+    # base energy error exceeded 100% of the energy scale, whether or not a converged projection rescued it.
+    _measure(result, sim, rows_before, bool(pinned))
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         result.diagnostics_path = out / "diagnostics.csv"
         result.state_path = out / "final_state.npz"
-        sim.save_diagnostics(str(result.diagnostics_path))
+        _write_diagnostics(sim, result.diagnostics_path)
         sim.save_state(str(result.state_path))
         if scene.is_multibody:
             for name, body in zip(sim.names, sim.bodies):
                 path = out / f"diagnostics_{name}.csv"
                 body.save_diagnostics(str(path))
                 result.body_diagnostics_paths[name] = path
+    _warn_problems(result)
     return result

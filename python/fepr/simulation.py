@@ -235,6 +235,12 @@ class ProjectionReport:
     ``stiffness_metric`` and ``system_metric`` say which position metric it used (neither: the mass metric):
     ``W = M + h^2 diag(K_0)``, or the base integrator's own matrix (after Projective Dynamics with the energy as
     the only row, the default with pins: ``W = M + h^2 L``, PD's global matrix times ``h^2``).
+    ``gap`` is the step's energy gap ``H_target - H(x*, v*)`` (J; positive: the base step lost energy),
+    ``restored`` the fraction of it the projection closed and ``unresolved`` the rest, booked as unresolved energy
+    (J; see :class:`Projection`'s ``quality_guard``); ``quality_excess`` the largest change of a tet's volume ratio
+    as a fraction of what the guard allows (0 where it did not run); ``trials`` the projections the step tried;
+    ``metric_switched``: the stiffness metric stalled and the step was projected in the mass metric;
+    ``translated``: the body was first translated onto its centre-of-mass target.
     """
 
     iterations: int
@@ -258,6 +264,8 @@ class ProjectionReport:
     evaluations: int
     restored: float = 1.0
     unresolved: float = 0.0
+    gap: float = 0.0
+    translated: bool = False
     trials: int = 1
     metric_switched: bool = False
     quality_excess: float = 0.0
@@ -556,6 +564,8 @@ class Simulation:
         self.gravity = np.array(gravity)
         self.damping = float(damping)
         self._warned_runaway = False
+        self._warned_unconverged = False
+        self._warned_unresolved = False
 
     @staticmethod
     def _pinned_indices(pinned, m: int) -> List[int]:
@@ -667,6 +677,58 @@ class Simulation:
             raise err from None
         finally:
             self._check_runaway(before)
+            self._check_projection(before)
+
+    #: Unresolved energy (a share of the run's initial energy scale) above which :meth:`step` warns, once.
+    UNRESOLVED_WARNING = 1e-3
+
+    def _check_projection(self, before: int) -> None:
+        """Warn (once per simulation each) about energy booked as unresolved and unconverged projections."""
+        if self.projection is None or self.num_steps == before:
+            return
+        if not self._warned_unconverged:
+            k = self._sim.first_unconverged(before + 1)
+            if k is not None:
+                self._warned_unconverged = True
+                warnings.warn(
+                    f"the FEPR projection did not converge in step {k}: that step keeps the best state it found, off "
+                    "its energy and momentum targets by the residual in history['proj_residual'] "
+                    "(history['proj_converged'] marks every such step)",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+        if not self._warned_unresolved:
+            unresolved, lost, scale = self._sim.unresolved_energy()
+            if -unresolved > self.UNRESOLVED_WARNING * scale:
+                self._warned_unresolved = True
+                warnings.warn(self._unresolved_message(-unresolved, lost), RuntimeWarning, stacklevel=3)
+
+    def _unresolved_message(self, unresolved: float, lost: float) -> str:
+        share = f"{unresolved / lost:.0%} of the energy the base integrator lost" if lost > 0 else "energy"
+        dt_res = self._sim.resolving_time_step()
+        if self.integrator == "symplectic_euler":
+            cause = (
+                f"symplectic Euler at dt = {self.dt:.3g} s is at or beyond its stability limit in the states this "
+                "motion reaches (its own energy errors: history['base_energy_error']); a smaller dt keeps its steps "
+                "stable"
+            )
+        elif self.dt > dt_res:
+            cause = (
+                f"dt = {self.dt:.3g} s does not resolve this body's fast elastic modes (a pressure wave crosses it "
+                f"in {10 * dt_res:.3g} s); dt <= {dt_res:.2g} s resolves them"
+            )
+        else:
+            cause = (
+                f"the motion strains some tets hard (dt = {self.dt:.3g} s resolves this body's pressure waves, so "
+                "this is the mesh: sliver tets whose motion the restoration would have amplified)"
+            )
+        return (
+            f"FEPR could not restore {share} ({unresolved:.3g} J of {lost:.3g} J so far) without moving tets' "
+            f"volume ratios by more than the quality guard allows (margin {self.projection.quality_margin}): it is "
+            f"booked as unresolved energy (history['work_unresolved'], part of budget_total). Cause: {cause}. "
+            "Projection(quality_guard=False) restores everything instead (the model's own dynamics, which can "
+            "invert sliver tets)."
+        )
 
     def _check_runaway(self, before: int) -> None:
         if self._warned_runaway or self.num_steps == before:

@@ -86,6 +86,22 @@ impl Model {
     pub fn num_pinned(&self) -> usize {
         self.pinned.iter().filter(|p| **p).count()
     }
+    /// Speed of a pressure (longitudinal) wave in the material at rest, m/s: `sqrt(M / rho)` with the P-wave
+    /// modulus `M = d^2 Psi / d eps^2` of a uniaxial strain `F = diag(1 + eps, 1, 1)` at rest (`lambda + 2 mu`
+    /// for the Neo-Hookean family; measured from the material's energy, so every material gets it the same way)
+    /// and the mean density `rho` (total mass over rest volume).
+    pub fn pressure_wave_speed(&self) -> f64 {
+        use crate::material::Hyperelastic;
+        let psi = |e: f64| {
+            self.material
+                .energy_density(&[[1.0 + e, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+        };
+        let eps = 1e-4;
+        let modulus = (psi(eps) - 2.0 * psi(0.0) + psi(-eps)) / (eps * eps);
+        let volume: f64 = self.rest_volume.iter().sum();
+        (modulus.max(0.0) * volume / self.total_mass).sqrt()
+    }
+
     /// Mass of the vertices that are not pinned, kg.
     pub fn free_mass(&self) -> f64 {
         self.masses

@@ -342,13 +342,18 @@ pub struct ProjectionReport {
     /// base step handed it over ([`Projector::offer_base_gradient`]: backward Euler): an iteration evaluates
     /// its trial point, and a second one where the full step overshoots.
     pub evaluations: usize,
-    /// Fraction of the step's energy deficit `H_target - H(x*, v*)` that the projection restored (1 when the
-    /// base step lost nothing, gained energy, or the whole deficit was restored; below 1 where the quality
-    /// guard or convergence limited it, see [`ProjectionSettings::quality_margin`]).
+    /// Fraction of the step's energy gap `H_target - H(x*, v*)` (a deficit to restore or an excess to remove)
+    /// that the projection closed: 1 unless the quality guard or convergence limited it (see
+    /// [`ProjectionSettings::quality_margin`]).
     pub restored: f64,
-    /// Energy the projection did not restore, J (`-(1 - restored) * deficit`, so 0 or negative): booked as the
-    /// step's unresolved energy, a budget source of its own, so that `H = H_0 + budget_total` still holds.
+    /// Energy the projection left between the base step's energy and the target, J (`-(1 - restored) * gap`
+    /// with `gap = H_target - H(x*, v*)`: negative for a deficit it did not restore, positive for an excess it
+    /// did not remove): booked as the step's unresolved energy, a budget source of its own, so that
+    /// `H = H_0 + budget_total` still holds.
     pub unresolved: f64,
+    /// The step's energy gap `H_target - H(x*, v*)`, J: what the base step lost (positive) or gained (negative)
+    /// against its target.
+    pub gap: f64,
     /// Projections tried in this step (1, plus one per restored fraction tried and per metric switch).
     pub trials: usize,
     /// The diagonal stiffness metric stalled (the scaled residual did not halve in an iteration after the
@@ -903,9 +908,14 @@ impl Projector {
             * f64::EPSILON
             * crate::linalg::norm(targets.center_of_mass)
             / self.settings.tolerance;
+        // The momenta's scales are those of the motion, `sqrt(2 m_tot S)` with `S` the energy row's scale (and
+        // `r` times that for L), not `m_tot r / h` (the momentum that moves the body by its size in one step):
+        // at a small step or a slow motion the latter is hundreds of times the momenta the body has, and a
+        // tolerance on it let P and L drift by 1e-8 of them.
+        let momentum_scale = (2.0 * mt * pb.row_scale[0]).sqrt();
         for a in 0..3 {
-            pb.row_scale[1 + a] = mt * r / h;
-            pb.row_scale[4 + a] = mt * r * r / h;
+            pb.row_scale[1 + a] = momentum_scale;
+            pb.row_scale[4 + a] = momentum_scale * r;
             pb.row_scale[7 + a] = r.max(com_floor);
         }
         let tol = self.settings.tolerance;

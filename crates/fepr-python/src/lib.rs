@@ -269,6 +269,8 @@ fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py
     d.set_item("trials", r.trials)?;
     d.set_item("metric_switched", r.metric_switched)?;
     d.set_item("quality_excess", r.quality_excess)?;
+    d.set_item("gap", r.gap)?;
+    d.set_item("translated", r.translated)?;
     Ok(d)
 }
 
@@ -330,10 +332,12 @@ const HISTORY_COLUMNS: &[&str] = &[
     "lx_target",
     "ly_target",
     "lz_target",
+    "proj_gap",
 ];
 
-fn history_row(d: &StepDiagnostics) -> [f64; 56] {
+fn history_row(d: &StepDiagnostics) -> [f64; 57] {
     let i = &d.invariants;
+    let lt = d.angular_momentum_target();
     let p = d.projection.unwrap_or_default();
     let has = d.projection.is_some();
     let nan_if = |x: f64| if has { x } else { f64::NAN };
@@ -395,9 +399,10 @@ fn history_row(d: &StepDiagnostics) -> [f64; 56] {
         d.references.momentum[0],
         d.references.momentum[1],
         d.references.momentum[2],
-        d.references.angular_momentum[0],
-        d.references.angular_momentum[1],
-        d.references.angular_momentum[2],
+        lt[0],
+        lt[1],
+        lt[2],
+        nan_if(p.gap),
     ]
 }
 
@@ -823,6 +828,28 @@ impl Simulation {
             .skip(start)
             .find(|d| d.runaway)
             .map(|d| d.step)
+    }
+
+    /// First step at or after `start` whose projection did not converge (None if none).
+    fn first_unconverged(&self, start: usize) -> Option<usize> {
+        self.inner
+            .history()
+            .iter()
+            .skip(start)
+            .find(|d| d.projection.is_some_and(|p| !p.converged))
+            .map(|d| d.step)
+    }
+
+    /// `(unresolved, lost, scale)`: the energy booked as unresolved so far, the energy the base steps lost
+    /// against their targets and the run's initial energy scale, J (see
+    /// `fepr_core::simulation::Simulation::unresolved_energy`).
+    fn unresolved_energy(&self) -> (f64, f64, f64) {
+        self.inner.unresolved_energy()
+    }
+
+    /// A time step that resolves the body's fast elastic modes, s (a tenth of a pressure wave's crossing time).
+    fn resolving_time_step(&self) -> f64 {
+        self.inner.resolving_time_step()
     }
 
     /// Obstacles as `(kind, params, restitution, friction)`: `"plane"` [point, normal], `"sphere"` [center,

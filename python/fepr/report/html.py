@@ -22,6 +22,7 @@ th { background: #f8f9fa; }
 .swatch { display: inline-block; width: 0.8rem; height: 0.8rem; border-radius: 2px; margin-right: 0.4rem;
           vertical-align: -1px; }
 .note { color: #495057; font-size: 0.9rem; }
+.problem { color: #c92a2a; }
 .plots { display: flex; flex-direction: column; gap: 0.8rem; }
 """
 
@@ -38,6 +39,20 @@ def _table(rows: Sequence[Dict[str, str]], colors: Sequence[str]) -> str:
             cells.append(f"<td>{text}</td>")
         body.append("<tr>" + "".join(cells) + "</tr>")
     return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+
+
+def _problems(rows: Sequence[Dict[str, str]]) -> str:
+    """The runs' problems and notes (as under the table of ``summary.md``), or nothing."""
+    items = []
+    for r in rows:
+        parts = []
+        if r.get("problems"):
+            parts.append(f'<strong class="problem">problems: {html.escape(r["problems"])}</strong>')
+        if r.get("notes"):
+            parts.append(f"notes: {html.escape(r['notes'])}")
+        if parts:
+            items.append(f"<li>{html.escape(r['run'])}: {'; '.join(parts)}</li>")
+    return f'<ul class="note">{"".join(items)}</ul>' if items else ""
 
 
 def report_section(
@@ -68,6 +83,9 @@ def report_section(
     elif note:
         parts.append(f'<p class="note">{html.escape(note)}</p>')
     parts.append(_table(rows, colors))
+    problems = _problems(rows)
+    if problems:
+        parts.append(problems)
     parts.append(
         f'<div class="plots"><img src="{p}energy.png" alt="energy over time">'
         f'<img src="{p}momentum.png" alt="momentum over time"></div>'

@@ -1,6 +1,7 @@
 """Energy and momentum plots of a comparison (matplotlib, off-screen ``Agg`` back end).
 
-``energy.png``: total energy H(t) (J) and the relative error |H/H0 - 1| (log scale), one curve per run.
+``energy.png``: total energy H(t) (J) and the energy error against the books |H - (H0 + budget)| / |H0|
+(log scale; :func:`fepr.report.metrics.energy_error_series`), one curve per run.
 ``momentum.png``: |P(t)| (kg m/s) and |L(t)| about the centre of mass (kg m^2/s), one curve per run.
 Colours follow :mod:`fepr.report.style`: warm with FEPR (solid), cool without (dashed). A run that ran away is
 marked with a cross where it stopped, and the axes are scaled to the runs that did not.
@@ -14,6 +15,7 @@ from typing import Callable, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ..errors import MissingDependencyError
+from .metrics import energy_error_series, length_scale
 from .runs import RecordedRun
 
 __all__ = ["energy_plot", "momentum_plot"]
@@ -110,7 +112,8 @@ def _span(runs: Sequence[RecordedRun], series: Callable[[RecordedRun], np.ndarra
 
 
 def energy_plot(runs: Sequence[RecordedRun], path, *, title: str = "") -> Path:
-    """Write ``energy.png``: H(t) in J and |H/H0 - 1| on a log scale, one curve per run. Returns the path."""
+    """Write ``energy.png``: H(t) in J and the energy error against the books on a log scale, one curve per
+    run. Returns the path."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
 
@@ -118,15 +121,16 @@ def energy_plot(runs: Sequence[RecordedRun], path, *, title: str = "") -> Path:
         return r.history["total"]
 
     def rel(r: RecordedRun) -> np.ndarray:
-        h = r.history["total"]
-        with np.errstate(all="ignore"):
-            return np.maximum(np.abs(h / h[0] - 1.0), 1e-17)
+        err = energy_error_series(
+            r.history, total_mass=r.total_mass, gravity=r.gravity, length_scale=length_scale(r.rest_positions)
+        )
+        return np.maximum(err, 1e-17)
 
     h0 = max(abs(float(r.history["total"][0])) for r in runs)
     _panel(axes[0], runs, total, log=False, min_span=0.1 * h0)
     _style(axes[0], "total energy H = K + U", "H (J)")
     _panel(axes[1], runs, rel, log=True)
-    _style(axes[1], "relative energy error", "|H/H0 - 1|")
+    _style(axes[1], "energy error against the books", "|H - (H0 + budget)| / |H0|")
     return _finish(fig, axes, Path(path), title or "energy")
 
 

@@ -1,7 +1,8 @@
 """Off-screen side-by-side video of a comparison: polyscope on EGL (Mesa's software renderer works), no display.
 
 Each run is one panel: rows are integrators, columns are FEPR on / off; every panel uses the same camera and
-ground grid, and carries the run's label, a frame counter and an energy readout. Frames go to
+ground grid, and carries the run's label, a frame counter and an energy readout (the energy error against the
+books, :func:`fepr.report.metrics.energy_error_series`, and H/H0). Frames go to
 ``side_by_side.mp4`` (H.264 via imageio-ffmpeg) and ``side_by_side.gif`` (Pillow, scaled to at most
 :data:`GIF_MAX_WIDTH` pixels wide).
 
@@ -18,6 +19,7 @@ import numpy as np
 
 from ..errors import FeprError, MissingDependencyError
 from ..export.surface import boundary_surface
+from .metrics import energy_error_series, format_value, length_scale
 from .runs import RecordedRun
 from .style import rgb
 
@@ -160,8 +162,12 @@ def _overlay(img: np.ndarray, run: RecordedRun, k: int, nframes: int, fonts) -> 
     ratio = H / h0 if h0 != 0 else float("nan")
     ratio_text = f"{ratio:.6f}" if abs(ratio) < 1e3 else f"{ratio:.2e}"
     K = hist["kinetic"][row]
-    _boxed(d, (pad, pad + line), f"H/H0 = {ratio_text}", big, (33, 37, 41))
-    _boxed(d, (pad, pad + 2 * line), f"K = {K:.3g} J   U = {H - K:.3g} J", small, (52, 58, 64))
+    books = energy_error_series(
+        hist, total_mass=run.total_mass, gravity=run.gravity, length_scale=length_scale(run.rest_positions)
+    )[row]
+    _boxed(d, (pad, pad + line), f"energy error {format_value('energy_error', books)}", big, (33, 37, 41))
+    energies = f"H/H0 = {ratio_text}   K = {K:.3g} J   U = {H - K:.3g} J"
+    _boxed(d, (pad, pad + 2 * line), energies, small, (52, 58, 64))
     times = hist["time"]
     dt = float(times[1] - times[0]) if len(times) > 1 else 0.0
     t = float(times[0]) + step * dt

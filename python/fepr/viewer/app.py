@@ -2,7 +2,8 @@
 
 The simulation runs in the session's background thread; this module's loop (the caller's thread) pushes the
 latest snapshot to the browser about 30 times a second: the surface (solid, or coloured by J or the energy
-density), the drag spring, a status panel, and live plots of K, U, H and of |P|, |L|.
+density), the drag spring, a status panel (with the run's summary from :mod:`fepr.report.metrics`, the numbers
+``fepr run`` prints), and live plots of K, U, H and of |P|, |L|.
 """
 
 from __future__ import annotations
@@ -287,6 +288,11 @@ class ViewerApp:
             f"|P| = {snap.momentum:.4g} kg m/s · |L| = {snap.angular_momentum:.4g} kg m²/s",
             f"projection iterations {it} · {snap.ms_per_step:.2f} ms/step · drag work {snap.drag_work:.4g} J",
         ]
+        m = snap.metrics
+        if m is not None:  # the summary fepr run prints (fepr.report.metrics), since the last reset or change
+            lines.append(" · ".join(m.summary_parts()[1:-2]))
+            if m.problems():
+                lines.append("**problems:** " + ", ".join(m.problems()))
         if snap.error:
             lines.append(f"**stopped:** {snap.error}")
         return "  \n".join(lines)

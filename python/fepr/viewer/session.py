@@ -12,6 +12,13 @@ step's result) enters the step's energy budget (history column ``work_forces``),
 the steps taken while dragging (with a constant scene ``force``, its work in those steps is included). Releasing calls
 :meth:`fepr.Simulation.clear_drag`. The stiffness is ``k = min(20 M, m_i / (2 h^2))`` (N/m, M the total mass),
 below the explicit stability limit of the spring alone. Pinned vertices cannot be dragged.
+
+Summary. :attr:`Snapshot.metrics` is the run's summary (:func:`fepr.report.metrics.simulation_metrics`, the
+numbers ``fepr run`` prints: energy error against the books, unresolved energy, P and L drift against the
+targets, min J, inverted tets, unconverged projections) since the last reset or rebuild (projection, integrator
+or dt change). It reads the whole history, so it is recomputed in the simulation thread at most every
+:data:`METRICS_EVERY_S` seconds and within :data:`METRICS_BUDGET` of the wall time, and whenever the session is
+paused or stepped by hand; in between, snapshots carry the last one.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import numpy as np
 
 from .. import _core
 from ..errors import ConfigError, SimulationError
+from ..report.metrics import RunMetrics, simulation_metrics
 
 __all__ = ["Builder", "Snapshot", "ViewerSession"]
 
@@ -33,6 +41,11 @@ __all__ = ["Builder", "Snapshot", "ViewerSession"]
 Builder = Callable[[str, float, bool], object]
 
 SERIES = ("t", "kinetic", "potential", "total", "p", "l")
+
+#: The live summary is recomputed at most this often (s of wall time) ...
+METRICS_EVERY_S = 0.25
+#: ... and takes at most this share of the wall time (a long history takes longer to read).
+METRICS_BUDGET = 0.05
 
 
 @dataclass
@@ -58,6 +71,7 @@ class Snapshot:
     dragging: Optional[int]
     error: Optional[str]
     series: Dict[str, List[float]] = field(default_factory=dict)
+    metrics: Optional[RunMetrics] = None
 
 
 class ViewerSession:
@@ -217,6 +231,8 @@ class ViewerSession:
         self._ms = 0.0
         self._wall0 = time.perf_counter()
         self._error = None
+        self._metrics: Optional[RunMetrics] = None
+        self._metrics_next = 0.0
 
     def _rebuild(self, keep_state: bool) -> None:
         x, v = np.array(self._sim.positions), np.array(self._sim.velocities)
@@ -228,6 +244,7 @@ class ViewerSession:
             self._t_offset = t
         self._sync_drag()
         self._wall0 = time.perf_counter() - self._sim_time
+        self._metrics_next = 0.0  # a new simulation: a new history
 
     def _apply_commands(self) -> None:
         changed = False
@@ -328,8 +345,21 @@ class ViewerSession:
         self._ms = 1e3 * (time.perf_counter() - t0)
         self._publish()
 
+    def _update_metrics(self) -> None:
+        """Recompute the summary when it is due (see the module docstring), in the simulation thread."""
+        now = time.perf_counter()
+        if self.running and not self._pending_steps and now < self._metrics_next:
+            return
+        try:
+            self._metrics = simulation_metrics(self._sim)
+        except (KeyError, ValueError, IndexError):  # an unusual simulation (no history columns): no summary
+            self._metrics = None
+        cost = time.perf_counter() - now
+        self._metrics_next = now + max(METRICS_EVERY_S, cost / METRICS_BUDGET)
+
     def _take_snapshot(self) -> Snapshot:
         sim = self._sim
+        self._update_metrics()
         e = sim.energy()
         p = float(np.linalg.norm(sim.linear_momentum()))
         ang = float(np.linalg.norm(sim.angular_momentum()))
@@ -361,6 +391,7 @@ class ViewerSession:
             dragging=None if self._drag is None else self._drag[0],
             error=self._error,
             series={k: list(v) for k, v in s.items()},
+            metrics=self._metrics,
         )
 
     def _publish(self) -> None:

@@ -13,16 +13,19 @@
 //!   `|J_e(x + h v) - J_e(x* + h v*)| <= margin`;
 //! - and no tet that is upright in `x*` is inverted in `x`.
 //!
-//! Where the full restoration breaks the rule (or does not converge), the projection restores the largest
-//! fraction `theta` of the deficit that keeps it, found by a safeguarded regula falsi on the largest change
-//! (`theta = 0` keeps the base step's energy and only fixes the momenta). The rest, `-(1 - theta) deficit`, is
-//! the step's unresolved energy: the simulation books it as a budget source of its own, so the books
-//! `H = H_0 + budget_total` still close. Momentum and centre-of-mass rows are always enforced in full.
+//! Where the full projection breaks the rule (or does not converge), the projection closes the largest
+//! fraction `theta` of the energy gap `H_target - H(x*, v*)` that keeps it, found by a safeguarded regula falsi
+//! on the largest change (`theta = 0` keeps the base step's energy and only fixes the momenta). The rest,
+//! `-(1 - theta) gap`, is the step's unresolved energy: the simulation books it as a budget source of its own,
+//! so the books `H = H_0 + budget_total` still close. Momentum and centre-of-mass rows are always enforced in
+//! full. The rule holds for a gap of either sign: removing an excess (a base step that gained energy) through
+//! the positions can crush a sliver as well; in practice an excess is removed in full, since a small change of
+//! the velocities does it within the trust region. Where no projection keeps the rule, the step returns the base
+//! step's own state, reported as a fallback.
 //!
 //! In a resolved motion the base step loses a small fraction of the energy per step, the restoration changes the
 //! velocities by that fraction and the volume ratios by a fraction of their change over a step: far below the
-//! margin, so the guard only acts where the time step cannot carry the motion. An energy excess (a base step that
-//! gained energy) is always removed in full: keeping it would feed a runaway.
+//! margin, so the guard only acts where the time step cannot carry the motion.
 
 use super::{Metric, ProjectionReport, Projector, SystemMetric, Targets};
 use crate::invariants::Invariants;
@@ -74,24 +77,67 @@ struct TetBase {
 const MOTION_SHARE: f64 = 0.25;
 
 /// How far a state's volume ratios moved from the base step's.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 struct QualityCheck {
     /// Largest change `|J - J_base|` over the tets, at the end of the step and one step ahead, over the change
     /// that tet may undergo.
     excess: f64,
     /// Tets upright in the base step's state that are inverted here.
     inverted: usize,
+    /// Smallest volume ratio at the end of the step.
+    min_now: f64,
+    /// Smallest volume ratio of the base step's state (measured by [`Restoration::check_against_base`] only).
+    base_min: f64,
+}
+
+impl Default for QualityCheck {
+    fn default() -> Self {
+        Self {
+            excess: 0.0,
+            inverted: 0,
+            min_now: f64::INFINITY,
+            base_min: f64::INFINITY,
+        }
+    }
 }
 
 impl QualityCheck {
-    fn holds(&self) -> bool {
-        self.inverted == 0 && self.excess <= 1.0
-    }
     fn combine(a: Self, b: Self) -> Self {
         Self {
             excess: a.excess.max(b.excess),
             inverted: a.inverted + b.inverted,
+            // A NaN ratio is an inversion (counted above); `min` keeps the finite ones.
+            min_now: a.min_now.min(b.min_now),
+            base_min: a.base_min.min(b.base_min),
         }
+    }
+}
+
+/// What the guard asks of a projection, by the sign of the energy gap it closes.
+#[derive(Clone, Copy, Debug)]
+struct Rule {
+    /// The projection removes an excess (a base step that gained energy).
+    removing: bool,
+    /// The base step's smallest volume ratio.
+    base_min: f64,
+    margin: f64,
+}
+
+impl Rule {
+    /// How far `c` is from breaking the rule, as a fraction of what the rule allows (above 1: broken).
+    /// Restoring a deficit: the per-tet trust region (energy put into the motion concentrates in the tets
+    /// it can move most). Removing an excess takes energy out, which does not concentrate it: there the
+    /// worst tet may not end more than the margin below the base step's worst (an excess removed through the
+    /// positions of a stiff mesh in the mass metric can crush a sliver all the same), and no tet may invert.
+    fn measure(&self, c: &QualityCheck) -> f64 {
+        if self.removing {
+            ((self.base_min - c.min_now) / self.margin).max(0.0)
+        } else {
+            c.excess
+        }
+    }
+    fn holds(&self, c: &QualityCheck) -> bool {
+        c.inverted == 0 && self.measure(c) <= 1.0
     }
 }
 
@@ -127,7 +173,9 @@ fn tet_check(base: &TetBase, now: f64, ahead: f64) -> QualityCheck {
     // cross zero in the prediction by a small change.
     QualityCheck {
         excess,
+        min_now: now,
         inverted: flipped(base.now, now),
+        base_min: f64::INFINITY,
     }
 }
 
@@ -220,7 +268,9 @@ impl Restoration {
                     *base = TetBase::measure(xb, vb, h, t, six_v, margin);
                     let now = volume_ratio(corners(x, v, 0.0, t), six_v);
                     let ahead = volume_ratio(corners(x, v, h, t), six_v);
-                    sum = QualityCheck::combine(sum, tet_check(base, now, ahead));
+                    let mut tet = tet_check(base, now, ahead);
+                    tet.base_min = base.now;
+                    sum = QualityCheck::combine(sum, tet);
                 }
                 part[0] = sum;
             },
@@ -369,33 +419,38 @@ impl Projector {
         }
         self.switch_on_stall = false;
         let base_energy = rep.base_energy;
-        let deficit = targets.energy - base_energy;
+        let base_residual = rep.initial_residual;
+        // The energy the projection is asked to restore (positive) or remove (negative).
+        let gap = targets.energy - base_energy;
         let tolerance = self.settings.tolerance * targets.energy_scale;
         let mut restored = 1.0;
         let mut excess = 0.0;
-        if let (Some(margin), true) = (margin, deficit > tolerance && base_energy.is_finite()) {
+        if let (Some(margin), true) = (margin, base_energy.is_finite()) {
             let first = rs.check_against_base(model, h, state, margin);
-            excess = first.excess;
-            if !(rep.converged && first.holds()) {
-                // The full restoration's result, kept for the case where no smaller fraction converges either:
-                // then it was not the deficit that stopped the projection, and the step is a plain fallback.
-                let full = (!rep.converged).then(|| {
+            let rule = Rule {
+                removing: gap < 0.0,
+                base_min: first.base_min,
+                margin,
+            };
+            excess = rule.measure(&first);
+            if !(rep.converged && rule.holds(&first)) {
+                // A full projection that did not converge but keeps the guard is the fallback if no fraction
+                // converges either: then it was not the energy that stopped it.
+                let full = (!rep.converged && rule.holds(&first)).then(|| {
                     rs.keep_full(state);
-                    (rep, inv, first.excess)
+                    (rep, inv, excess)
                 });
-                // The search over the restored fraction theta; `lo` is accepted (0: untried), `hi` is not.
+                // The search over the fraction theta of the gap; `lo` is accepted (0: untried), `hi` is not.
                 let (mut lo, mut e_lo) = (0.0, 0.0);
-                let (mut hi, mut e_hi) = (
-                    1.0,
-                    if rep.converged {
-                        first.excess
-                    } else {
-                        f64::INFINITY
-                    },
-                );
+                let (mut hi, mut e_hi) = (1.0, if rep.converged { excess } else { f64::INFINITY });
                 let mut kept: Option<(ProjectionReport, Invariants, f64)> = None;
                 let mut last_is_kept = false;
-                for _ in 0..MAX_FRACTION_TRIALS {
+                // An excess that the full projection could not remove (it did not converge) is not reduced: keeping
+                // part of the energy a base step gained would feed a runaway. That step is a plain fallback, and the
+                // next one tries again from its targets.
+                let search = gap > tolerance || (gap < -tolerance && rep.converged);
+                let trials = if search { MAX_FRACTION_TRIALS } else { 0 };
+                for _ in 0..trials {
                     let theta = next_fraction(lo, e_lo, hi, e_hi);
                     let (r, i, check) = self.project_fraction(
                         model,
@@ -408,28 +463,22 @@ impl Projector {
                         base_energy,
                     );
                     tally.add(&r);
-                    last_is_kept = r.converged && check.holds();
+                    let e = rule.measure(&check);
+                    last_is_kept = r.converged && rule.holds(&check);
                     if last_is_kept {
-                        (lo, e_lo) = (theta, check.excess);
+                        (lo, e_lo) = (theta, e);
                         rs.keep(state);
-                        kept = Some((r, i, check.excess));
+                        kept = Some((r, i, e));
                     } else {
-                        (hi, e_hi) = (
-                            theta,
-                            if r.converged {
-                                check.excess
-                            } else {
-                                f64::INFINITY
-                            },
-                        );
+                        (hi, e_hi) = (theta, if r.converged { e } else { f64::INFINITY });
                     }
                     if hi - lo <= FRACTION_PRECISION * hi {
                         break;
                     }
                 }
                 let mut chosen = kept.map(|k| (k, lo, last_is_kept));
-                if chosen.is_none() {
-                    // Nothing of the deficit fits: keep the base step's energy and fix the momenta.
+                if chosen.is_none() && search {
+                    // Nothing of the gap fits: keep the base step's energy and fix the momenta.
                     let (r, i, check) = self.project_fraction(
                         model,
                         state,
@@ -441,8 +490,8 @@ impl Projector {
                         base_energy,
                     );
                     tally.add(&r);
-                    if r.converged || full.is_none() {
-                        chosen = Some(((r, i, check.excess), 0.0, true));
+                    if r.converged && (rule.holds(&check) || full.is_none()) {
+                        chosen = Some(((r, i, rule.measure(&check)), 0.0, true));
                     }
                 }
                 match (chosen, full) {
@@ -460,7 +509,18 @@ impl Projector {
                         (rep, inv, excess) = (r, i, e);
                     }
                     (None, None) => {
-                        unreachable!("the base energy is chosen unless the full restoration failed")
+                        // Every projection either broke the guard or failed: the base step's state, unprojected
+                        // (the references keep their targets, so the next step tries again).
+                        rs.restore_base(state);
+                        self.invalidate_hand_over();
+                        inv = crate::invariants::measure(model, state);
+                        rep.converged = false;
+                        rep.fallback = true;
+                        rep.final_residual = base_residual;
+                        rep.correction = 0.0;
+                        rep.s = 0.0;
+                        rep.t = 0.0;
+                        excess = 0.0;
                     }
                 }
             }
@@ -470,8 +530,9 @@ impl Projector {
         let mut rep = tally.into_report(rep);
         rep.base_energy = base_energy;
         rep.restored = restored;
+        rep.gap = gap;
         rep.unresolved = if restored < 1.0 {
-            -(1.0 - restored) * deficit
+            -(1.0 - restored) * gap
         } else {
             0.0
         };
@@ -493,10 +554,15 @@ mod tests {
             inv_allowed_now: 20.0,
             inv_allowed_ahead: 20.0,
         };
+        let restoring = Rule {
+            removing: false,
+            base_min: 0.5,
+            margin: 0.05,
+        };
         let c = tet_check(&base, -0.1, 0.5);
         assert_eq!(c.inverted, 1);
         assert!((c.excess - 12.0).abs() < 1e-12);
-        assert!(!c.holds());
+        assert!(!restoring.holds(&c));
         let c = tet_check(&base, f64::NAN, 0.5);
         assert_eq!(c.inverted, 1);
         assert!(c.excess.is_infinite());
@@ -504,7 +570,26 @@ mod tests {
         let inverted = TetBase { now: -0.2, ..base };
         let c = tet_check(&inverted, -0.21, 0.5);
         assert_eq!(c.inverted, 0);
-        assert!(c.holds());
+        assert!(restoring.holds(&c));
+    }
+
+    #[test]
+    fn removing_an_excess_is_judged_on_the_worst_tet_alone() {
+        let removing = Rule {
+            removing: true,
+            base_min: 0.5,
+            margin: 0.05,
+        };
+        let check = |min_now: f64, inverted: usize| QualityCheck {
+            excess: 100.0, // per-tet changes do not count when energy is taken out
+            inverted,
+            min_now,
+            base_min: f64::INFINITY,
+        };
+        assert!(removing.holds(&check(0.46, 0)));
+        assert!((removing.measure(&check(0.4, 0)) - 2.0).abs() < 1e-12);
+        assert!(!removing.holds(&check(0.4, 0)));
+        assert!(!removing.holds(&check(0.6, 1)));
     }
 
     #[test]
