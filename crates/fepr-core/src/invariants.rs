@@ -105,3 +105,40 @@ pub fn measure_with_elastic(model: &Model, state: &State, el: ElasticSummary) ->
         inverted: el.inverted,
     }
 }
+
+/// The rigid motion that carries a state's linear and angular momentum: total mass, centre of mass, momentum,
+/// angular momentum about the centre of mass, and the inverse inertia about it (`None` for a degenerate, e.g.
+/// collinear, body).
+#[derive(Clone, Copy, Debug)]
+pub struct RigidMotion {
+    pub mass: f64,
+    pub center: Vec3,
+    pub momentum: Vec3,
+    pub angular_momentum: Vec3,
+    pub inertia_inv: Option<crate::linalg::Mat3>,
+}
+
+/// [`RigidMotion`] of the vertices `x`, `v` with masses `masses` (sequential).
+pub fn rigid_motion(masses: &[f64], x: &[Vec3], v: &[Vec3]) -> RigidMotion {
+    let mass: f64 = masses.iter().sum();
+    let center = center_of_mass(masses, mass, x);
+    let momentum = linear_momentum(masses, v);
+    let angular_momentum = angular_momentum(masses, x, v, center);
+    let mut inertia = [[0.0; 3]; 3];
+    for (m, xi) in masses.iter().zip(x) {
+        let r = sub(*xi, center);
+        let rr = dot(r, r);
+        for a in 0..3 {
+            for b in 0..3 {
+                inertia[a][b] += m * (if a == b { rr } else { 0.0 } - r[a] * r[b]);
+            }
+        }
+    }
+    RigidMotion {
+        mass,
+        center,
+        momentum,
+        angular_momentum,
+        inertia_inv: crate::linalg::inverse(&inertia),
+    }
+}

@@ -1150,12 +1150,12 @@ impl Projector {
                         best_in_x = false;
                     }
                     // The diagonal stiffness metric cannot move the body rigidly (its position directions are
-                    // scaled per vertex), so where the rows need a rigid correction (a body in free fall: the
-                    // centre-of-mass rows) its iterates deform the body and the energy row stalls near 1e-8.
-                    // Under `Metric::Auto` the caller then restarts in the mass metric (`stalled`).
+                    // scaled per vertex): where the rows need a rigid correction that the translation before the
+                    // iteration did not make, its iterates deform the body and stall. Under `Metric::Auto` the
+                    // caller then tries the mass metric (`stalled`).
                     if stall_exit
                         && report.iterations >= 2
-                        && n > 0.5 * previous_norm
+                        && n > 0.9 * previous_norm
                         && max_scaled(&pb, &cur.c) > tol
                     {
                         stalled = true;
@@ -1697,10 +1697,19 @@ fn warm_start_velocities(
     let [k_u, k_now, k_next] = reduce_chunks(vr.len(), chunk, parts, map, add3).unwrap_or([0.0; 3]);
     let k_target = k_u - c_h - (k_next - k_now);
     // A (nearly) rigid motion has no deformational energy to scale: a huge factor would only amplify round-off.
-    if !(k_target > 0.0 && k_target.is_finite() && k_u > 1e-6 * k_target) {
+    // The rigid part still goes onto its momentum targets (a spinning body after Projective Dynamics lost
+    // angular momentum and rotational energy together: putting its spin back restores both, and leaves the
+    // iteration a small energy residual where the angular momentum rows, linearised about a fast rotation,
+    // converged a few percent per iteration).
+    let scalable = k_target > 0.0 && k_target.is_finite() && k_u > 1e-6 * k_target;
+    if !scalable && target.is_none() {
         return false;
     }
-    let beta = (k_target / k_u).sqrt();
+    let beta = if scalable {
+        (k_target / k_u).sqrt()
+    } else {
+        1.0
+    };
     for_each_chunk_mut(v, chunk, |c, vs| {
         for (k, vi) in vs.iter_mut().enumerate() {
             let i = c * chunk + k;

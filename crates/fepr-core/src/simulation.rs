@@ -100,7 +100,10 @@ impl StepDiagnostics {
         let r = &self.references;
         sub(
             r.angular_momentum,
-            cross(sub(self.invariants.center_of_mass, r.center_of_mass), r.momentum),
+            cross(
+                sub(self.invariants.center_of_mass, r.center_of_mass),
+                r.momentum,
+            ),
         )
     }
 }
@@ -650,7 +653,10 @@ impl Simulation {
         // The base step's own error in this step: against the start-of-step energy plus the step's budget (with
         // the projection on, that is the target up to the tolerance; without it, the references do not follow the
         // base integrator's drift, and a stable drift accumulated over a long run is not a runaway).
-        let start_energy = self.history.last().map_or(targets.energy, |d| d.invariants.total);
+        let start_energy = self
+            .history
+            .last()
+            .map_or(targets.energy, |d| d.invariants.total);
         let base_energy_error = (base_total - start_energy - report.energy_budget).abs() / scale_h;
         if let Some(p) = projection {
             // What the projection could not restore within its quality guard is the step's unresolved energy:

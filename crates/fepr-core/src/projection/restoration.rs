@@ -42,18 +42,34 @@ const AIM: f64 = 0.8;
 /// Tets per task of the guard's passes.
 const TETS_PER_TASK: usize = 4096;
 
+/// A copy of a state's positions and velocities.
+#[derive(Clone, Debug, Default)]
+struct Snapshot {
+    x: Vec<Vec3>,
+    v: Vec<Vec3>,
+}
+
+impl Snapshot {
+    fn save(&mut self, state: &State) {
+        copy_rows(&state.x, &mut self.x);
+        copy_rows(&state.v, &mut self.v);
+    }
+    fn restore(&self, state: &mut State) {
+        state.x.copy_from_slice(&self.x);
+        state.v.copy_from_slice(&self.v);
+    }
+}
+
 /// The guard's buffers, kept across steps.
 #[derive(Clone, Debug, Default)]
 pub(super) struct Restoration {
     /// The base step's state `(x*, v*)`.
-    x_base: Vec<Vec3>,
-    v_base: Vec<Vec3>,
+    base: Snapshot,
     /// The state of the largest fraction accepted so far.
-    x_kept: Vec<Vec3>,
-    v_kept: Vec<Vec3>,
-    /// The full restoration's state, where it did not converge.
-    x_full: Vec<Vec3>,
-    v_full: Vec<Vec3>,
+    kept: Snapshot,
+    /// The full projection's state, where it did not converge (or the stiffness metric's, while the mass
+    /// metric is tried).
+    full: Snapshot,
     /// Per tet (user order): its volume ratios in the base step's state and what they may become.
     tets: Vec<TetBase>,
     parts: Vec<QualityCheck>,
@@ -204,38 +220,6 @@ impl TetBase {
 }
 
 impl Restoration {
-    /// Keep `(x*, v*)`.
-    fn save_base(&mut self, state: &State) {
-        copy_rows(&state.x, &mut self.x_base);
-        copy_rows(&state.v, &mut self.v_base);
-    }
-
-    /// Put `(x*, v*)` back into `state`.
-    fn restore_base(&self, state: &mut State) {
-        state.x.copy_from_slice(&self.x_base);
-        state.v.copy_from_slice(&self.v_base);
-    }
-
-    fn keep(&mut self, state: &State) {
-        copy_rows(&state.x, &mut self.x_kept);
-        copy_rows(&state.v, &mut self.v_kept);
-    }
-
-    fn restore_kept(&self, state: &mut State) {
-        state.x.copy_from_slice(&self.x_kept);
-        state.v.copy_from_slice(&self.v_kept);
-    }
-
-    fn keep_full(&mut self, state: &State) {
-        copy_rows(&state.x, &mut self.x_full);
-        copy_rows(&state.v, &mut self.v_full);
-    }
-
-    fn restore_full(&self, state: &mut State) {
-        state.x.copy_from_slice(&self.x_full);
-        state.v.copy_from_slice(&self.v_full);
-    }
-
     /// Measure the base step's volume ratios (from the saved `(x*, v*)`) and check `state` against them.
     fn check_against_base(
         &mut self,
@@ -250,8 +234,8 @@ impl Restoration {
             .resize(k.div_ceil(TETS_PER_TASK), QualityCheck::default());
         let (tets, volume) = (model.mesh.tets(), &model.rest_volume);
         let (xb, vb, x, v) = (
-            &self.x_base[..],
-            &self.v_base[..],
+            &self.base.x[..],
+            &self.base.v[..],
             &state.x[..],
             &state.v[..],
         );
@@ -352,8 +336,39 @@ impl Tally {
 }
 
 impl Projector {
+    /// The change of kinetic energy that putting the rigid part of `v` on the momentum targets would make, J
+    /// (the warm start's rigid part: `V = P_target / m`, `omega = I^-1 L_target` about the centre of mass; the
+    /// deformational rest carries no momenta, so it keeps its energy). 0 where the momentum rows do not hold the
+    /// whole body (pins, rows off, slack free) or the body is degenerate.
+    fn momentum_energy(&self, model: &Model, x: &[Vec3], v: &[Vec3], targets: &Targets) -> f64 {
+        let rows = self.active_rows(model, targets);
+        let slack = match self.settings.slack {
+            super::Slack::On => true,
+            super::Slack::Off => false,
+            super::Slack::Auto => targets.uncertain_impulses,
+        };
+        if model.num_pinned() > 0 || !rows[1..7].iter().all(|&a| a) || slack {
+            return 0.0;
+        }
+        let rigid = crate::invariants::rigid_motion(&model.masses, x, v);
+        let Some(inv) = rigid.inertia_inv else {
+            return 0.0;
+        };
+        let m = rigid.mass;
+        let vt = targets.momentum.map(|p| p / m);
+        let offset = cross(sub(rigid.center, targets.center_of_mass), vt);
+        let l_t = [0, 1, 2].map(|a| targets.angular_momentum[a] - m * offset[a]);
+        let spin = |l: Vec3| {
+            let w = [0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * l[b]).sum::<f64>());
+            0.5 * dot(w, l)
+        };
+        let k_now = 0.5 * dot(rigid.momentum, rigid.momentum) / m + spin(rigid.angular_momentum);
+        let k_next = 0.5 * m * dot(vt, vt) + spin(l_t);
+        k_next - k_now
+    }
+
     /// Project the base step's state (put back into `state` from `rs`) with the energy target
-    /// `H* + theta (H_target - H*)`, and check the result against the base step's volume ratios.
+    /// `anchor + theta (H_target - anchor)`, and check the result against the base step's volume ratios.
     #[allow(clippy::too_many_arguments)]
     fn project_fraction<'d>(
         &mut self,
@@ -364,11 +379,11 @@ impl Projector {
         rs: &mut Restoration,
         theta: f64,
         system: Option<&mut (dyn SystemMetric + 'd)>,
-        base_energy: f64,
+        anchor: f64,
     ) -> (ProjectionReport, Invariants, QualityCheck) {
-        rs.restore_base(state);
+        rs.base.restore(state);
         let t = Targets {
-            energy: base_energy + theta * (targets.energy - base_energy),
+            energy: anchor + theta * (targets.energy - anchor),
             ..*targets
         };
         let (r, i) = self.project_once(model, state, h, &t, system);
@@ -384,12 +399,13 @@ impl Projector {
     ///
     /// Around the iteration of fepr-spec section 3 (`project_once`):
     /// - the metric switch: under [`Metric::Auto`] after an implicit base step, an iteration in the diagonal
-    ///   stiffness metric that stalls (its scaled residual does not halve in an iteration after the first)
-    ///   restarts from `(x*, v*)` in the mass metric (`metric_switched`);
-    /// - the quality guard (see the module [`restoration`](self)): where restoring the whole energy deficit
-    ///   moves a tet's volume ratio by more than [`super::ProjectionSettings::quality_margin`] or does not
-    ///   converge, the largest fraction that keeps within it is restored, and the rest is reported as
-    ///   `unresolved` for the simulation to book.
+    ///   stiffness metric that makes no progress (its scaled residual falls by less than a tenth in an iteration
+    ///   after the first) restarts from `(x*, v*)` in the mass metric (`metric_switched`); the better result of
+    ///   the two is kept;
+    /// - the quality guard (see the module [`restoration`](self)): where closing the whole energy gap breaks
+    ///   [`super::ProjectionSettings::quality_margin`]'s rule or does not converge, the largest fraction that
+    ///   converges within the rule is closed, and the rest is reported as `unresolved` for the simulation to
+    ///   book; where nothing does, the step is a fallback.
     pub fn project_with(
         &mut self,
         model: &Model,
@@ -402,27 +418,21 @@ impl Projector {
         let switchable = self.settings.metric == Metric::Auto && self.implicit_base;
         let mut rs = std::mem::take(&mut self.restoration);
         if margin.is_some() || switchable {
-            rs.save_base(state);
+            rs.base.save(state);
         }
-        self.switch_on_stall = switchable;
         let mut tally = Tally::default();
-        let (mut rep, mut inv) = self.project_once(model, state, h, targets, system.as_deref_mut());
-        tally.add(&rep);
-        let mut switched = false;
-        if self.stalled {
-            rs.restore_base(state);
-            self.metric_override = Some(Metric::Mass);
-            self.switch_on_stall = false;
-            (rep, inv) = self.project_once(model, state, h, targets, system.as_deref_mut());
-            tally.add(&rep);
-            switched = true;
-        }
-        self.switch_on_stall = false;
+        let (mut rep, mut inv, switched) = self.project_full(
+            model,
+            state,
+            h,
+            targets,
+            &mut rs,
+            &mut tally,
+            system.as_deref_mut(),
+        );
         let base_energy = rep.base_energy;
-        let base_residual = rep.initial_residual;
         // The energy the projection is asked to restore (positive) or remove (negative).
         let gap = targets.energy - base_energy;
-        let tolerance = self.settings.tolerance * targets.energy_scale;
         let mut restored = 1.0;
         let mut excess = 0.0;
         if let (Some(margin), true) = (margin, base_energy.is_finite()) {
@@ -434,84 +444,53 @@ impl Projector {
             };
             excess = rule.measure(&first);
             if !(rep.converged && rule.holds(&first)) {
-                // A full projection that did not converge but keeps the guard is the fallback if no fraction
+                let tolerance = self.settings.tolerance * targets.energy_scale;
+                // The fractions run from the energy the momentum targets alone give the base step's state (its
+                // rigid motion put on them: a spinning body that lost angular momentum gets its rotational energy
+                // back with it) to the full target: only the rest, the internal energy, is the guard's to limit.
+                let anchor =
+                    base_energy + self.momentum_energy(model, &rs.base.x, &rs.base.v, targets);
+                let rest = targets.energy - anchor;
+                let search = Search {
+                    targets,
+                    anchor,
+                    rule,
+                    // An excess that the full projection could not remove (it did not converge) is not reduced:
+                    // keeping part of the energy a base step gained would feed a runaway.
+                    allowed: rest > tolerance || (rest < -tolerance && rep.converged),
+                    full_converged: rep.converged,
+                    full_excess: excess,
+                };
+                // A full projection that did not converge but keeps the rule is the fallback if no fraction
                 // converges either: then it was not the energy that stopped it.
                 let full = (!rep.converged && rule.holds(&first)).then(|| {
-                    rs.keep_full(state);
+                    rs.full.save(state);
                     (rep, inv, excess)
                 });
-                // The search over the fraction theta of the gap; `lo` is accepted (0: untried), `hi` is not.
-                let (mut lo, mut e_lo) = (0.0, 0.0);
-                let (mut hi, mut e_hi) = (1.0, if rep.converged { excess } else { f64::INFINITY });
-                let mut kept: Option<(ProjectionReport, Invariants, f64)> = None;
-                let mut last_is_kept = false;
-                // An excess that the full projection could not remove (it did not converge) is not reduced: keeping
-                // part of the energy a base step gained would feed a runaway. That step is a plain fallback, and the
-                // next one tries again from its targets.
-                let search = gap > tolerance || (gap < -tolerance && rep.converged);
-                let trials = if search { MAX_FRACTION_TRIALS } else { 0 };
-                for _ in 0..trials {
-                    let theta = next_fraction(lo, e_lo, hi, e_hi);
-                    let (r, i, check) = self.project_fraction(
-                        model,
-                        state,
-                        h,
-                        targets,
-                        &mut rs,
-                        theta,
-                        system.as_deref_mut(),
-                        base_energy,
-                    );
-                    tally.add(&r);
-                    let e = rule.measure(&check);
-                    last_is_kept = r.converged && rule.holds(&check);
-                    if last_is_kept {
-                        (lo, e_lo) = (theta, e);
-                        rs.keep(state);
-                        kept = Some((r, i, e));
-                    } else {
-                        (hi, e_hi) = (theta, if r.converged { e } else { f64::INFINITY });
-                    }
-                    if hi - lo <= FRACTION_PRECISION * hi {
-                        break;
-                    }
-                }
-                let mut chosen = kept.map(|k| (k, lo, last_is_kept));
-                if chosen.is_none() && search {
-                    // Nothing of the gap fits: keep the base step's energy and fix the momenta.
-                    let (r, i, check) = self.project_fraction(
-                        model,
-                        state,
-                        h,
-                        targets,
-                        &mut rs,
-                        0.0,
-                        system,
-                        base_energy,
-                    );
-                    tally.add(&r);
-                    if r.converged && (rule.holds(&check) || full.is_none()) {
-                        chosen = Some(((r, i, rule.measure(&check)), 0.0, true));
-                    }
-                }
+                let chosen =
+                    self.search_fraction(model, state, h, &search, &mut rs, &mut tally, system);
                 match (chosen, full) {
                     (Some(((r, i, e), theta, in_state)), _) => {
                         if !in_state {
-                            rs.restore_kept(state);
+                            rs.kept.restore(state);
                             // The hand-over buffers belong to the last projection, not to this state.
                             self.invalidate_hand_over();
                         }
-                        (rep, inv, restored, excess) = (r, i, theta, e);
+                        // The share of the whole gap closed.
+                        let left = (1.0 - theta) * rest;
+                        restored = if gap != 0.0 { 1.0 - left / gap } else { 1.0 };
+                        (rep, inv, excess) = (r, i, e);
                     }
                     (None, Some((r, i, e))) => {
-                        rs.restore_full(state);
+                        rs.full.restore(state);
                         self.invalidate_hand_over();
                         (rep, inv, excess) = (r, i, e);
                     }
                     (None, None) => {
-                        // Every projection either broke the guard or failed: the base step's state, unprojected
-                        // (the references keep their targets, so the next step tries again).
-                        rs.restore_base(state);
+                        // Every projection broke the rule or failed: the base step's state, unprojected (the
+                        // references keep their targets, so the next step tries again).
+                        let base_residual = rep.initial_residual;
+                        rs.base.restore(state);
                         self.invalidate_hand_over();
                         inv = crate::invariants::measure(model, state);
                         rep.converged = false;
@@ -525,13 +504,12 @@ impl Projector {
                 }
             }
         }
-        self.metric_override = None;
         self.restoration = rs;
         let mut rep = tally.into_report(rep);
         rep.base_energy = base_energy;
         rep.restored = restored;
         rep.gap = gap;
-        rep.unresolved = if restored < 1.0 {
+        rep.unresolved = if restored != 1.0 {
             -(1.0 - restored) * gap
         } else {
             0.0
@@ -540,6 +518,168 @@ impl Projector {
         rep.quality_excess = excess;
         (rep, inv)
     }
+
+    /// The projection onto the full targets, with the metric switch (see [`Projector::project_with`]): the
+    /// report, the invariants and whether it switched to the mass metric.
+    #[allow(clippy::too_many_arguments)]
+    fn project_full<'d>(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        targets: &Targets,
+        rs: &mut Restoration,
+        tally: &mut Tally,
+        mut system: Option<&mut (dyn SystemMetric + 'd)>,
+    ) -> (ProjectionReport, Invariants, bool) {
+        self.switch_on_stall = self.settings.metric == Metric::Auto && self.implicit_base;
+        let (rep, inv) = self.project_once(model, state, h, targets, system.as_deref_mut());
+        tally.add(&rep);
+        self.switch_on_stall = false;
+        if !self.stalled {
+            return (rep, inv, false);
+        }
+        // Keep the stalled result aside, try the mass metric from q~, and keep whichever ends closer.
+        rs.full.save(state);
+        rs.base.restore(state);
+        self.metric_override = Some(Metric::Mass);
+        let (mass, mass_inv) = self.project_once(model, state, h, targets, system);
+        self.metric_override = None;
+        tally.add(&mass);
+        if mass.converged || mass.final_residual <= rep.final_residual {
+            (mass, mass_inv, true)
+        } else {
+            rs.full.restore(state);
+            self.invalidate_hand_over();
+            (rep, inv, false)
+        }
+    }
+
+    /// The search over the fraction theta of the energy gap (see the module docs): the accepted projection
+    /// (report, invariants, measure under the rule), its fraction, and whether `state` holds it (else it is in
+    /// `rs`'s kept buffers); `None` where no fraction converges within the rule.
+    #[allow(clippy::too_many_arguments)]
+    fn search_fraction<'d>(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        search: &Search,
+        rs: &mut Restoration,
+        tally: &mut Tally,
+        mut system: Option<&mut (dyn SystemMetric + 'd)>,
+    ) -> Option<((ProjectionReport, Invariants, f64), f64, bool)> {
+        if !search.allowed {
+            return None;
+        }
+        // `lo` is accepted (0: untried), `hi` is not.
+        let (mut lo, mut e_lo) = (0.0, 0.0);
+        let (mut hi, mut e_hi) = (1.0, search.full_excess);
+        let mut kept: Option<(ProjectionReport, Invariants, f64)> = None;
+        let mut last_is_kept = false;
+        if !search.full_converged {
+            // The full projection did not converge: try the base step's energy first. If that does not
+            // converge either, it was not the energy that stopped the projection: no fraction will.
+            let (r, i, e, holds) = self.project_judged(
+                model,
+                state,
+                h,
+                search,
+                rs,
+                tally,
+                0.0,
+                system.as_deref_mut(),
+            );
+            if !r.converged {
+                return None;
+            }
+            if !holds {
+                // Converged but broke the rule with the energy untouched (the momenta's correction did).
+                return Some(((r, i, e), 0.0, true));
+            }
+            (lo, e_lo, e_hi) = (0.0, e, f64::INFINITY);
+            rs.kept.save(state);
+            kept = Some((r, i, e));
+            last_is_kept = true;
+        }
+        for _ in 0..MAX_FRACTION_TRIALS {
+            let theta = next_fraction(lo, e_lo, hi, e_hi);
+            let (r, i, e, holds) = self.project_judged(
+                model,
+                state,
+                h,
+                search,
+                rs,
+                tally,
+                theta,
+                system.as_deref_mut(),
+            );
+            last_is_kept = holds;
+            if holds {
+                (lo, e_lo) = (theta, e);
+                rs.kept.save(state);
+                kept = Some((r, i, e));
+            } else {
+                (hi, e_hi) = (theta, if r.converged { e } else { f64::INFINITY });
+            }
+            if hi - lo <= FRACTION_PRECISION * hi {
+                break;
+            }
+        }
+        if let Some(k) = kept {
+            return Some((k, lo, last_is_kept));
+        }
+        // Nothing of the gap fits: keep the base step's energy and fix the momenta.
+        let (r, i, e, holds) = self.project_judged(model, state, h, search, rs, tally, 0.0, system);
+        (r.converged && (holds || search.full_converged)).then_some(((r, i, e), 0.0, true))
+    }
+
+    /// [`Projector::project_fraction`] for `search`, tallied and judged: the report, the invariants, the rule's
+    /// measure and whether it converged within the rule.
+    #[allow(clippy::too_many_arguments)]
+    fn project_judged<'d>(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        search: &Search,
+        rs: &mut Restoration,
+        tally: &mut Tally,
+        theta: f64,
+        system: Option<&mut (dyn SystemMetric + 'd)>,
+    ) -> (ProjectionReport, Invariants, f64, bool) {
+        let (r, i, check) = self.project_fraction(
+            model,
+            state,
+            h,
+            search.targets,
+            rs,
+            theta,
+            system,
+            search.anchor,
+        );
+        tally.add(&r);
+        let rule = &search.rule;
+        (
+            r,
+            i,
+            rule.measure(&check),
+            r.converged && rule.holds(&check),
+        )
+    }
+}
+
+/// What the fraction search of one step works with.
+struct Search<'a> {
+    targets: &'a Targets,
+    /// The energy of fraction 0 (the base step's, with its rigid motion on the momentum targets), J.
+    anchor: f64,
+    rule: Rule,
+    /// Whether the gap may be closed in part at all.
+    allowed: bool,
+    /// The full projection converged (and broke the rule), with the rule's measure `full_excess`.
+    full_converged: bool,
+    full_excess: f64,
 }
 
 #[cfg(test)]
