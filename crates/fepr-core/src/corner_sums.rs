@@ -133,6 +133,13 @@ impl CornerSums {
         self.chunk
     }
 
+    /// Chunk `c`'s vertices in local order (the user vertex of each local index).
+    #[inline]
+    pub(crate) fn chunk_vertices(&self, c: usize) -> &[u32] {
+        let first = c * self.stride;
+        &self.vertex[first..first + self.count[c] as usize]
+    }
+
     /// Runs `f` with chunk `c`'s vertex positions in local order (`xl[j] = x[v]` for its local vertex `j`,
     /// user vertex `v`), gathered into this thread's reused buffer.
     pub(crate) fn with_positions<R>(

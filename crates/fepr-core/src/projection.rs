@@ -32,6 +32,7 @@ use crate::model::{Model, ModelKey, State};
 use crate::moment_lanes::{self as ml, q, UPPER, VL};
 use crate::trial_lanes as tl;
 
+mod certificate;
 mod restoration;
 
 /// Which constraint rows the projection enforces.
@@ -327,6 +328,8 @@ pub struct ProjectionReport {
     pub active_rows: usize,
     /// Total energy `H(x*, v*)` of the base step's state, J (measured by the first evaluation).
     pub base_energy: f64,
+    /// Smallest volume ratio of the base step's state (measured by the first evaluation).
+    pub base_min_j: f64,
     /// The velocity warm start was used (energy error above `warm_start_threshold`).
     pub warm_start: bool,
     /// The position metric was `W = M + h^2 diag(K_0)` (see [`Metric`]).
@@ -925,6 +928,7 @@ impl Projector {
             active_rows: pb.active.iter().filter(|a| **a).count(),
             initial_residual: max_scaled(&pb, &cur.c),
             base_energy: cur.kinetic + cur.el.energy + cur.gravitational,
+            base_min_j: cur.el.min_j,
             stiffness_metric: self.uses_stiffness_metric() && system.is_none(),
             system_metric: system.is_some(),
             evaluations: usize::from(offered.is_none()),
