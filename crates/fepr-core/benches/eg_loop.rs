@@ -47,12 +47,12 @@ fn time_ns<T, R>(samples: &[T], mut f: impl FnMut(&T) -> R) -> f64 {
 }
 
 fn small_kernels() {
-    use fepr_core::hessian::project_psd;
-    use fepr_core::linalg::{
+    use fepr_core::material::project_psd;
+    use fepr_core::material::Hyperelastic;
+    use fepr_core::math::{
         matmul, polar_rotation, polar_rotation_svd, symmetric_eigen, symmetric_eigen3,
         symmetric_eigen_fixed, transpose, Mat3,
     };
-    use fepr_core::material::Hyperelastic;
     // Deterministic deformation gradients: a rotation about a varying axis times a stretch within 10%.
     let fs: Vec<Mat3> = (0..20_000)
         .map(|k| {
@@ -76,9 +76,7 @@ fn small_kernels() {
         time_ns(&fs, polar_rotation)
     );
     let mut rs = vec![[[0.0; 3]; 3]; fs.len()];
-    let batch = time_ns(&[()], |_| {
-        fepr_core::batch_polar::polar_rotations(&fs, &mut rs)
-    });
+    let batch = time_ns(&[()], |_| fepr_core::math::polar_rotations(&fs, &mut rs));
     println!(
         "polar_rotations (batched)   {:8.1} ns",
         batch / fs.len() as f64
@@ -118,7 +116,7 @@ fn small_kernels() {
 }
 
 /// Backward Euler that prints its Newton decrements after every step.
-struct Verbose(fepr_core::implicit::ImplicitEuler);
+struct Verbose(fepr_core::integrators::ImplicitEuler);
 
 impl fepr_core::integrators::Integrator for Verbose {
     fn name(&self) -> &'static str {
@@ -175,7 +173,7 @@ fn stretched_study_model(
 }
 
 fn newton_study(stem: &str, steps: usize, project: bool) {
-    use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
+    use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
     let (model, state) = stretched_study_model(
         stem,
         Material::NeoHookean(NeoHookean::new(1e5, 0.3).unwrap()),
@@ -212,8 +210,8 @@ fn targets_at(inv: &fepr_core::invariants::Invariants) -> fepr_core::projection:
 /// projection again at once (warm): microseconds per elastic evaluation of each, over steps 10-59 of the
 /// set-up of `newton_study` on `threads` threads, with a `KeepAwake` guard per step as `Simulation::step` holds.
 fn cold_projection_study(stem: &str, threads: usize) {
-    use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
     use fepr_core::integrators::Integrator;
+    use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
     use fepr_core::invariants::measure;
     use fepr_core::projection::Projector;
     let material = Material::NeoHookean(NeoHookean::new(1e5, 0.3).unwrap());
@@ -233,7 +231,7 @@ fn cold_projection_study(stem: &str, threads: usize) {
         let mut totals = [(0.0, 0); 2];
         for step in 0..60 {
             // As `Simulation::step` holds it: for one step, base step and projection.
-            let _awake = fepr_core::parallel::KeepAwake::new();
+            let _awake = fepr_core::exec::KeepAwake::new();
             let mut base = state.clone();
             ie.step(&model, &mut base, h);
             let mut results = Vec::with_capacity(2);
@@ -262,7 +260,7 @@ fn cold_projection_study(stem: &str, threads: usize) {
 
 /// Projective Dynamics (10 iterations) on a TetGen mesh as in `newton_study`, but with the
 /// ARAP material; prints ms per step and the phase times (`fepr` after STEPS: with the FEPR projection).
-struct TimedPd(fepr_core::pd::ProjectiveDynamics);
+struct TimedPd(fepr_core::integrators::ProjectiveDynamics);
 
 impl fepr_core::integrators::Integrator for TimedPd {
     fn name(&self) -> &'static str {
@@ -295,7 +293,7 @@ impl fepr_core::integrators::Integrator for TimedPd {
 /// The vertex-graph Cholesky of `model` (a Laplacian-like SPD matrix): size, fill, solve time with 3
 /// right-hand sides.
 fn solve_study(model: &fepr_core::model::Model, rounds: usize) {
-    use fepr_core::sparse::SparseCholesky;
+    use fepr_core::math::SparseCholesky;
     let n = model.num_vertices();
     let pattern = common::vertex_pattern(model);
     let mut values = vec![-1e-3; pattern.nnz()];
@@ -368,7 +366,7 @@ fn pd_study(stem: &str, steps: usize, project: bool) {
     use fepr_core::material::Arap;
     let (model, state) = stretched_study_model(stem, Material::Arap(Arap::new(1e5, 0.3).unwrap()));
     solve_study(&model, 5);
-    let pd = TimedPd(fepr_core::pd::ProjectiveDynamics::default());
+    let pd = TimedPd(fepr_core::integrators::ProjectiveDynamics::default());
     // The Python layer's default after PD: warm start always (`Projection(warm_start="auto")`).
     let settings = fepr_core::projection::ProjectionSettings {
         warm_start_threshold: 0.0,
@@ -395,18 +393,13 @@ fn pd_study(stem: &str, steps: usize, project: bool) {
         total / (steps - 1).max(1) as f64
     );
     // The polar decompositions of the final state, batched and one by one.
-    let fs: Vec<fepr_core::linalg::Mat3> = (0..sim.model.num_tets())
+    let fs: Vec<fepr_core::math::Mat3> = (0..sim.model.num_tets())
         .map(|e| fepr_core::elasticity::deformation_gradient(&sim.model, &sim.state.x, e))
         .collect();
-    let inverted = fs
-        .iter()
-        .filter(|f| fepr_core::linalg::det(f) <= 0.0)
-        .count();
+    let inverted = fs.iter().filter(|f| fepr_core::math::det(f) <= 0.0).count();
     let mut rs = vec![[[0.0; 3]; 3]; fs.len()];
-    let batched = time_ns(&[()], |_| {
-        fepr_core::batch_polar::polar_rotations(&fs, &mut rs)
-    });
-    let scalar = time_ns(&fs, fepr_core::linalg::polar_rotation);
+    let batched = time_ns(&[()], |_| fepr_core::math::polar_rotations(&fs, &mut rs));
+    let scalar = time_ns(&fs, fepr_core::math::polar_rotation);
     println!(
         "final state: {} tets ({inverted} inverted): polar batched {:.1} ns/tet, scalar {:.1} ns/tet",
         fs.len(),
@@ -462,7 +455,7 @@ fn main() {
             .unwrap();
         for _ in 0..5 {
             let budget = std::time::Duration::from_millis(100);
-            let f = pool.install(|| fepr_core::parallel::measure_sync_floor(budget));
+            let f = pool.install(|| fepr_core::exec::measure_sync_floor(budget));
             println!(
                 "region {:.3} us, round trip {:.1} ns",
                 f.region_s * 1e6,
@@ -555,7 +548,7 @@ fn time_energy_gradient(mesh: TetMesh, threads: usize, repeats: usize) {
     pool.install(|| {
         let _awake = std::env::var("EG_AWAKE")
             .is_ok()
-            .then(fepr_core::parallel::KeepAwake::new);
+            .then(fepr_core::exec::KeepAwake::new);
         elastic_energy_gradient(model, &x, &mut ws, &mut grad);
         let t0 = Instant::now();
         for _ in 0..repeats {
@@ -602,7 +595,7 @@ fn time_simulation(mesh: TetMesh, threads: usize, steps: usize) {
         let n0 = sim.num_steps();
         let batch = std::env::var("EG_BATCH")
             .is_ok()
-            .then(fepr_core::parallel::KeepAwake::new);
+            .then(fepr_core::exec::KeepAwake::new);
         for _ in 0..steps {
             sim.step().unwrap();
         }
@@ -623,7 +616,7 @@ fn time_simulation(mesh: TetMesh, threads: usize, steps: usize) {
             })
             .fold(f64::INFINITY, f64::min);
         let (mut grad, mut ws) = (vec![[0.0; 3]; x.len()], ElasticWorkspace::default());
-        let _awake = fepr_core::parallel::KeepAwake::new();
+        let _awake = fepr_core::exec::KeepAwake::new();
         let mut eg = f64::INFINITY;
         for _ in 0..10 {
             let t0 = Instant::now();
@@ -666,7 +659,7 @@ fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
         .build()
         .unwrap();
     pool.install(|| {
-        let _awake = std::env::var("EG_AWAKE").is_ok().then(fepr_core::parallel::KeepAwake::new);
+        let _awake = std::env::var("EG_AWAKE").is_ok().then(fepr_core::exec::KeepAwake::new);
         let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
         let mut state = base.clone();
         let (report, _) = proj.project(&model, &mut state, h, &targets);

@@ -13,12 +13,12 @@ use common::{bench_model as model, load_tetgen, vertex_pattern};
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
 use fepr_core::integrators::{Integrator, SymplecticEuler};
-use fepr_core::linalg::Vec3;
+use fepr_core::math::Vec3;
+use fepr_core::math::{LowerPattern, SparseCholesky};
 use fepr_core::mesh::TetMesh;
 use fepr_core::model::{Model, State};
 use fepr_core::projection::{ProjectionSettings, Projector};
 use fepr_core::simulation::Simulation;
-use fepr_core::sparse::{LowerPattern, SparseCholesky};
 
 /// An `n x n x n` box of unit size, 6 tets per cell (the layout of `fepr.meshes.box`).
 fn box_mesh(n: usize) -> TetMesh {

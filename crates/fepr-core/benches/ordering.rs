@@ -9,8 +9,8 @@ use std::time::Instant;
 mod common;
 use common::load_tetgen;
 
+use fepr_core::math::{FillOrdering, LowerPattern, SparseCholesky};
 use fepr_core::mesh::TetMesh;
-use fepr_core::sparse::{FillOrdering, LowerPattern, SparseCholesky};
 
 fn box_mesh(n: usize) -> TetMesh {
     let idx = |i: usize, j: usize, k: usize| (i + (n + 1) * (j + (n + 1) * k)) as i64;

@@ -14,7 +14,7 @@
 //! [`measure`] to round-off, not bit for bit. Both take the elastic energy from [`crate::elasticity`].
 
 use crate::elasticity::{elastic_energy, ElasticSummary};
-use crate::linalg::{add, cross, dot, scale, sub, Vec3};
+use crate::math::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, State};
 
 /// Everything measured about a state.
@@ -115,7 +115,7 @@ pub struct RigidMotion {
     pub center: Vec3,
     pub momentum: Vec3,
     pub angular_momentum: Vec3,
-    pub inertia_inv: Option<crate::linalg::Mat3>,
+    pub inertia_inv: Option<crate::math::Mat3>,
 }
 
 /// [`RigidMotion`] of the vertices `x`, `v` with masses `masses` (sequential).
@@ -139,6 +139,6 @@ pub fn rigid_motion(masses: &[f64], x: &[Vec3], v: &[Vec3]) -> RigidMotion {
         center,
         momentum,
         angular_momentum,
-        inertia_inv: crate::linalg::inverse(&inertia),
+        inertia_inv: crate::math::inverse(&inertia),
     }
 }

@@ -24,30 +24,17 @@
 // Index loops mirror the tensor formulas (P_ij, dP_ij/dF_kl) and read better than iterator chains here.
 #![allow(clippy::needless_range_loop)]
 
-pub mod batch_polar;
-pub(crate) mod corner_sums;
 pub mod elasticity;
 pub mod error;
-pub mod hessian;
-pub mod implicit;
+pub mod exec;
 pub mod integrators;
 pub mod invariants;
-pub mod linalg;
 pub mod material;
+pub mod math;
 pub mod mesh;
 pub mod model;
-pub(crate) mod moment_lanes;
-pub mod obstacles;
-pub mod ordering;
-pub mod parallel;
-pub mod pd;
 pub mod projection;
-pub mod renumber;
-pub(crate) mod rotation_blocks;
 pub mod simulation;
-pub mod sparse;
-pub(crate) mod trial_lanes;
 pub mod world;
-pub mod xpbd;
 
 pub use error::{FeprError, Result};

@@ -270,7 +270,7 @@ fn projected_run_is_bit_identical_for_any_thread_count_on(cells: i64) {
         in_pool(threads, || {
             let big = cubes_mesh(&block_cells(cells), 0.1);
             assert!(
-                cells < 10 || big.num_vertices() > fepr_core::parallel::SERIAL_ROWS,
+                cells < 10 || big.num_vertices() > fepr_core::exec::SERIAL_ROWS,
                 "{} vertices",
                 big.num_vertices()
             );
@@ -343,7 +343,7 @@ fn warm_start_restores_a_large_energy_deficit_and_keeps_the_momenta() {
 /// The deformational part `u = v - V - omega x (x - c)` of a velocity field (rigid part fitted by mass:
 /// `V = P / m`, `omega = I_c^-1 L_c`).
 fn deformational_part(masses: &[f64], x: &[[f64; 3]], v: &[[f64; 3]]) -> Vec<[f64; 3]> {
-    use fepr_core::linalg::{cross, inverse, sub};
+    use fepr_core::math::{cross, inverse, sub};
     let m: f64 = masses.iter().sum();
     let (mut p, mut mx) = ([0.0; 3], [0.0; 3]);
     for ((mi, xi), vi) in masses.iter().zip(x).zip(v) {

@@ -5,7 +5,7 @@
 
 mod common;
 use common::*;
-use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
+use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
 use fepr_core::integrators::{Integrator, StepReport, SymplecticEuler};
 use fepr_core::mesh::TetMesh;
 use fepr_core::model::{Model, State};
@@ -155,7 +155,7 @@ fn gradient_handoff_leaves_the_projected_trajectory_bit_identical() {
 fn projected_positions_copy_is_handed_over_and_leaves_the_trajectory_bit_identical() {
     let cells: Vec<[i64; 3]> = (0..1000).map(|c| [c % 10, c / 10 % 10, c / 100]).collect();
     let block = || cubes_mesh(&cells, 0.1);
-    assert!(block().num_vertices() >= fepr_core::parallel::SERIAL_ROWS);
+    assert!(block().num_vertices() >= fepr_core::exec::SERIAL_ROWS);
     let steps = 12;
     let counts = Arc::new([AtomicUsize::new(0), AtomicUsize::new(0)]);
     let counting = CountingCopies(SymplecticEuler::new(), counts.clone());

@@ -2,8 +2,8 @@
 
 mod common;
 use common::*;
-use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
 use fepr_core::integrators::Integrator;
+use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
 use fepr_core::model::State;
 
 #[test]
@@ -104,8 +104,8 @@ fn pinned_vertices_stay_put_under_gravity() {
 #[test]
 #[ignore]
 fn newton_iteration_cost_breakdown() {
-    use fepr_core::hessian::HessianAssembler;
-    use fepr_core::sparse::SparseCholesky;
+    use fepr_core::elasticity::HessianAssembler;
+    use fepr_core::math::SparseCholesky;
     use std::time::Instant;
     let n = 16;
     let cells = block_cells(n);

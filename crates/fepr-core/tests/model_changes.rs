@@ -8,15 +8,15 @@
 mod common;
 use common::*;
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
-use fepr_core::implicit::ImplicitEuler;
+use fepr_core::integrators::ImplicitEuler;
+use fepr_core::integrators::ProjectiveDynamics;
+use fepr_core::integrators::Xpbd;
 use fepr_core::integrators::{Integrator, StepReport, SymplecticEuler};
 use fepr_core::invariants::measure;
 use fepr_core::material::{Arap, ConstraintNeoHookean, Material};
 use fepr_core::model::{Model, State};
-use fepr_core::pd::ProjectiveDynamics;
 use fepr_core::projection::{Metric, ProjectionSettings, Projector, Targets};
 use fepr_core::simulation::Simulation;
-use fepr_core::xpbd::Xpbd;
 
 fn assert_same_bits(a: &State, b: &State, what: &str) {
     for (i, (p, q)) in

@@ -2,9 +2,9 @@
 
 mod common;
 use common::*;
+use fepr_core::integrators::ProjectiveDynamics;
 use fepr_core::material::{Arap, Material};
 use fepr_core::model::State;
-use fepr_core::pd::ProjectiveDynamics;
 use fepr_core::simulation::Simulation;
 
 fn arap() -> Material {

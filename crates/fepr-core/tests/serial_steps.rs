@@ -6,15 +6,15 @@
 
 mod common;
 use common::*;
-use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
+use fepr_core::exec::{current_threads, serial};
+use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
 use fepr_core::integrators::{Integrator, SymplecticEuler};
+use fepr_core::integrators::{PdSettings, ProjectiveDynamics};
+use fepr_core::integrators::{Xpbd, XpbdSettings};
 use fepr_core::material::{Arap, ConstraintNeoHookean, Material};
 use fepr_core::model::State;
-use fepr_core::parallel::{current_threads, serial};
-use fepr_core::pd::{PdSettings, ProjectiveDynamics};
 use fepr_core::projection::{ProjectionSettings, Projector};
 use fepr_core::simulation::Simulation;
-use fepr_core::xpbd::{Xpbd, XpbdSettings};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;

@@ -7,13 +7,13 @@
 
 mod common;
 use common::*;
+use fepr_core::integrators::ProjectiveDynamics;
+use fepr_core::integrators::Xpbd;
 use fepr_core::integrators::{Integrator, SymplecticEuler};
 use fepr_core::material::{Arap, ConstraintNeoHookean, Material};
 use fepr_core::model::State;
-use fepr_core::pd::ProjectiveDynamics;
 use fepr_core::projection::{ProjectionSettings, Projector};
 use fepr_core::simulation::Simulation;
-use fepr_core::xpbd::Xpbd;
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 

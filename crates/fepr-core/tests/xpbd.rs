@@ -4,10 +4,10 @@
 mod common;
 use common::*;
 use fepr_core::integrators::Integrator;
+use fepr_core::integrators::{colour_tets, Xpbd, XpbdSettings};
 use fepr_core::material::{ConstraintNeoHookean, Material};
 use fepr_core::model::State;
 use fepr_core::simulation::Simulation;
-use fepr_core::xpbd::{colour_tets, Xpbd, XpbdSettings};
 
 fn constraint_nh() -> Material {
     Material::ConstraintNeoHookean(ConstraintNeoHookean::new(1e3, 0.3).unwrap())

@@ -10,24 +10,24 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
-use fepr_core::implicit::{ImplicitEuler, NewtonSettings};
 use fepr_core::integrators::{integrator_by_name, INTEGRATOR_NAMES};
+use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
+use fepr_core::integrators::{PdSettings, ProjectiveDynamics};
+use fepr_core::integrators::{Xpbd, XpbdSettings};
 use fepr_core::invariants::measure;
-use fepr_core::linalg::Vec3;
 use fepr_core::material::{
     Arap, ConstraintNeoHookean, Hyperelastic, Material, NeoHookean, StableNeoHookean,
 };
+use fepr_core::math::Vec3;
+use fepr_core::mesh::VertexOrder;
 use fepr_core::mesh::{MassSpec, TetMesh};
 use fepr_core::model::{ModelBuilder, State};
-use fepr_core::obstacles::{Obstacle, Shape};
-use fepr_core::pd::{PdSettings, ProjectiveDynamics};
 use fepr_core::projection::{
     ActiveRows, Metric, ProjectionReport, ProjectionSettings, Projector, Slack,
 };
-use fepr_core::renumber::VertexOrder;
 use fepr_core::simulation::{Simulation as CoreSimulation, StepDiagnostics};
 use fepr_core::world::{Drag, KinematicPins, PinMotion};
-use fepr_core::xpbd::{Xpbd, XpbdSettings};
+use fepr_core::world::{Obstacle, Shape};
 use fepr_core::FeprError;
 
 /// A kinematic pin group from Python: `(vertices, motion kind, motion parameters, keyframe times)`.
@@ -199,7 +199,7 @@ fn material_eval<'py>(
 struct Simulation {
     inner: CoreSimulation,
     threads: Threads,
-    /// The core runs on the mesh renumbered in a locality order (`fepr_core::renumber`: two threads share
+    /// The core runs on the mesh renumbered in a locality order (`fepr_core::mesh`: two threads share
     /// their cores' caches better); every per-vertex array crossing this boundary is translated, so Python
     /// sees the user's numbering.
     order: VertexOrder,
@@ -236,8 +236,8 @@ impl Threads {
     /// `f()` on these threads.
     fn run<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
         match self {
-            Self::Global => fepr_core::parallel::on_pool(f),
-            Self::Serial => fepr_core::parallel::serial(f),
+            Self::Global => fepr_core::exec::on_pool(f),
+            Self::Serial => fepr_core::exec::serial(f),
             Self::Pool(pool) => pool.install(f),
         }
     }
@@ -572,7 +572,7 @@ impl Simulation {
         // guard then keeps this one's team: `parallel::KeepAwake`).
         let result = py.detach(|| {
             threads.run(|| -> Result<usize, FeprError> {
-                let _awake = (n > 1).then(fepr_core::parallel::KeepAwake::new);
+                let _awake = (n > 1).then(fepr_core::exec::KeepAwake::new);
                 for _ in 0..n {
                     inner.step()?;
                 }
@@ -785,7 +785,7 @@ impl Simulation {
         let (model, x) = (&self.inner.model, &self.inner.state.x);
         Ok(py.detach(|| {
             pool.install(|| {
-                let _awake = awake.then(fepr_core::parallel::KeepAwake::new);
+                let _awake = awake.then(fepr_core::exec::KeepAwake::new);
                 let mut grad = vec![[0.0; 3]; x.len()];
                 let mut ws = ElasticWorkspace::default();
                 let mut s = elastic_energy_gradient(model, x, &mut ws, &mut grad);
@@ -1008,7 +1008,7 @@ impl Simulation {
     }
 }
 
-/// Measure what synchronising `threads` threads costs on this machine (`fepr_core::parallel::SyncFloor`), in
+/// Measure what synchronising `threads` threads costs on this machine (`fepr_core::exec::SyncFloor`), in
 /// about 0.1 s: (seconds per parallel region that every thread must join, with no work in it and the threads
 /// kept awake, seconds per cache-line round trip between two threads; NaN on a single CPU).
 #[pyfunction]
@@ -1021,7 +1021,7 @@ fn bench_sync_floor(py: Python<'_>, threads: usize) -> PyResult<(f64, f64)> {
         .build()
         .map_err(|e| PyRuntimeError::new_err(format!("cannot start {threads} threads: {e}")))?;
     let budget = std::time::Duration::from_millis(80);
-    let floor = py.detach(|| pool.install(|| fepr_core::parallel::measure_sync_floor(budget)));
+    let floor = py.detach(|| pool.install(|| fepr_core::exec::measure_sync_floor(budget)));
     Ok((floor.region_s, floor.round_trip_s))
 }
 

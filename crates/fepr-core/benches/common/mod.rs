@@ -27,12 +27,12 @@ pub fn load_tetgen(stem: &std::path::Path) -> Option<TetMesh> {
         .map(|r| [1, 2, 3, 4].map(|c| r[c] as i64 - base))
         .collect();
     let (mesh, _) = TetMesh::new(v, &t).ok()?;
-    Some(fepr_core::renumber::VertexOrder::locality(mesh.vertices()).mesh(&mesh))
+    Some(fepr_core::mesh::VertexOrder::locality(mesh.vertices()).mesh(&mesh))
 }
 
 /// The vertex adjacency of a mesh as a lower pattern (the Projective Dynamics m x m matrix).
 #[allow(dead_code)] // not every bench target that includes this module uses it
-pub fn vertex_pattern(model: &fepr_core::model::Model) -> fepr_core::sparse::LowerPattern {
+pub fn vertex_pattern(model: &fepr_core::model::Model) -> fepr_core::math::LowerPattern {
     let m = model.num_vertices();
     let mut cols = vec![Vec::new(); m];
     for t in model.mesh.tets() {
@@ -44,7 +44,7 @@ pub fn vertex_pattern(model: &fepr_core::model::Model) -> fepr_core::sparse::Low
             }
         }
     }
-    fepr_core::sparse::LowerPattern::from_columns(m, cols)
+    fepr_core::math::LowerPattern::from_columns(m, cols)
 }
 
 /// The bench scenes' model (the bunny2 set-up): Neo-Hookean E = 1e3 Pa, nu = 0.3, 0.05 kg per node.

@@ -18,10 +18,10 @@
 //! Where that is within the guard's margin (and below the base state's smallest volume ratio, so no tet can
 //! flip), the per-tet trust region holds and the full check is not needed.
 
+use crate::exec::{copy_rows, reduce_chunks};
 use crate::invariants::{center_of_mass, linear_momentum};
-use crate::linalg::{norm, sub, Vec3};
+use crate::math::{norm, sub, Vec3};
 use crate::model::{Model, ModelKey, State};
-use crate::parallel::{copy_rows, reduce_chunks};
 
 /// Vertices per task of the bound's pass.
 const VERTICES_PER_TASK: usize = 4096;
@@ -108,8 +108,8 @@ impl Certificate {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::linalg::{cross, dot};
     use crate::material::{Material, NeoHookean};
+    use crate::math::{cross, dot};
     use crate::mesh::{MassSpec, TetMesh};
     use crate::model::ModelBuilder;
 

@@ -33,11 +33,11 @@
 
 use super::certificate::{Certificate, Sensitivity};
 use super::{Metric, ProjectionReport, Projector, SystemMetric, Targets};
-use crate::elasticity::BLOCK;
+use crate::exec::{copy_rows, for_each_mut};
 use crate::invariants::Invariants;
-use crate::linalg::{cross, dot, norm, sub, Vec3};
+use crate::math::{cross, dot, norm, sub, Vec3};
+use crate::model::BLOCK;
 use crate::model::{Model, State};
-use crate::parallel::{copy_rows, for_each_mut};
 
 /// Projections tried after the full restoration failed the guard, before the fraction search stops.
 const MAX_FRACTION_TRIALS: usize = 4;

@@ -15,10 +15,10 @@
 
 use std::cell::Cell;
 
-use crate::linalg::Vec3;
-use crate::parallel::{
+use crate::exec::{
     for_each_chunk_mut, for_each_chunk_mut2, tet_chunk_for, vertex_task_len, TET_CHUNK,
 };
+use crate::math::Vec3;
 
 // Local indices are u16: a chunk touches at most 4 TET_CHUNK vertices (the largest chunk).
 const _: () = assert!(4 * TET_CHUNK <= u16::MAX as usize + 1);

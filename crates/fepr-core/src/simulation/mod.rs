@@ -4,13 +4,14 @@
 use std::time::Instant;
 
 use crate::error::{FeprError, Result};
-use crate::integrators::{same_bits, Integrator, StepReport};
+use crate::exec::copy_rows;
+use crate::integrators::{Integrator, StepReport};
 use crate::invariants::{center_of_mass, measure, Invariants};
-use crate::linalg::{add, cross, dot, scale, sub, Vec3};
+use crate::math::same_bits;
+use crate::math::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, State};
-use crate::obstacles::{max_penetration, near_obstacles, resolve_contacts, Obstacle};
-use crate::parallel::copy_rows;
 use crate::projection::{ProjectionReport, Projector, Targets};
+use crate::world::{max_penetration, near_obstacles, resolve_contacts, Obstacle};
 use crate::world::{Drag, KinematicPins, Work, World};
 
 /// Contact push-outs deeper than this fraction of the mean rest edge length make the step redo itself in
@@ -114,7 +115,7 @@ fn mean_edge_length(model: &Model) -> f64 {
     let mut sum = 0.0;
     for t in model.mesh.tets() {
         for (a, b) in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)] {
-            sum += crate::linalg::norm(sub(x[t[a]], x[t[b]]));
+            sum += crate::math::norm(sub(x[t[a]], x[t[b]]));
         }
     }
     sum / (6.0 * model.num_tets().max(1) as f64)
@@ -318,9 +319,8 @@ impl Simulation {
     /// steps; their ratio is the share of the lost energy the projection could not restore), and the run's
     /// initial energy scale (J: the initial `K + |E_el|`, at least `m_tot |g| r`) to judge them by.
     pub fn unresolved_energy(&self) -> (f64, f64, f64) {
-        let lift = self.model.total_mass
-            * crate::linalg::norm(self.model.gravity)
-            * self.model.length_scale;
+        let lift =
+            self.model.total_mass * crate::math::norm(self.model.gravity) * self.model.length_scale;
         (
             self.unresolved_totals.0,
             self.unresolved_totals.1,
@@ -365,7 +365,7 @@ impl Simulation {
             let p2 = dot(i.momentum, i.momentum);
             (i.kinetic - 0.5 * p2 / mt).max(0.0) + i.elastic.abs()
         });
-        let g = crate::linalg::norm(self.model.gravity);
+        let g = crate::math::norm(self.model.gravity);
         let lift = mt * g * self.model.length_scale;
         let tolerance = self
             .projector
@@ -513,9 +513,9 @@ impl Simulation {
     /// start in substeps small enough for the depth, up to 16; the projection runs once, at the end.
     ///
     /// Called from a thread outside every rayon pool (a program's main thread, Python's), the step runs on a
-    /// thread of the global pool ([`crate::parallel::on_pool`]), as it does inside `ThreadPool::install`.
+    /// thread of the global pool ([`crate::exec::on_pool`]), as it does inside `ThreadPool::install`.
     pub fn step(&mut self) -> Result<&StepDiagnostics> {
-        crate::parallel::on_pool(|| self.step_on_pool())?;
+        crate::exec::on_pool(|| self.step_on_pool())?;
         Ok(self.history.last().expect("a step pushes its diagnostics"))
     }
 
@@ -523,7 +523,7 @@ impl Simulation {
     fn step_on_pool(&mut self) -> Result<()> {
         // A step enters 6-30 parallel regions with sequential work between them: keep the other threads
         // polling for work meanwhile instead of parking and waking them for each region (`KeepAwake`).
-        let _awake = crate::parallel::KeepAwake::new();
+        let _awake = crate::exec::KeepAwake::new();
         copy_state(&self.state, &mut self.previous);
         let h = self.dt;
         let t0 = Instant::now();

@@ -7,17 +7,17 @@
 //! `write_corners`), so the results are the same bits (gated by a test); only the scheduling differs. The PD
 //! local step stops the polar iteration at [`PD_LOCAL`] (rotations to about 1e-10).
 
-use crate::parallel::for_each_chunk_mut;
+use crate::exec::for_each_chunk_mut;
 use std::ops::Range;
 
-use crate::batch_polar::{polar_lanes, Lanes, EXACT, LANES, PD_LOCAL};
 use crate::elasticity::{
-    add_corner_rows, block_corner_rows, block_deformation_gradients, chunked_pass, Block,
-    ElasticSummary, GradientSink, TetBlock, TetBlocks, BLOCK,
+    add_corner_rows, block_corner_rows, block_deformation_gradients, chunked_pass, ElasticSummary,
+    GradientSink,
 };
-use crate::linalg::Vec3;
 use crate::material::Arap;
-use crate::model::Model;
+use crate::math::Vec3;
+use crate::math::{polar_lanes, Lanes, EXACT, LANES, PD_LOCAL};
+use crate::model::{Block, Model, TetBlock, TetBlocks, BLOCK};
 
 const _: () = assert!(BLOCK.is_multiple_of(LANES));
 
@@ -247,8 +247,8 @@ mod tests {
         for e in 0..model.num_tets() {
             let pos = model.tet_position[e] as usize;
             let f = crate::elasticity::deformation_gradient(&model, &x, e);
-            let r = crate::linalg::polar_rotation(&f).0;
-            let g = crate::hessian::shape_gradients(&model, e);
+            let r = crate::math::polar_rotation(&f).0;
+            let g = crate::elasticity::shape_gradients(&model, e);
             let w = 2.0 * mu * model.rest_volume[e];
             for (k, gk) in g.iter().enumerate() {
                 let got = out[pos][k];

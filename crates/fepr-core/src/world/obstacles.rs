@@ -8,7 +8,7 @@
 //! base step's overshoot); FEPR restores the energy it changes.
 
 use crate::error::{invalid, Result};
-use crate::linalg::{add, cross, dot, norm, scale, sub, Mat3, Vec3};
+use crate::math::{add, cross, dot, norm, scale, sub, Mat3, Vec3};
 use crate::model::{Model, State};
 
 /// Geometry of an obstacle (metres). The solid is where the signed distance is negative.
@@ -113,7 +113,7 @@ impl Obstacle {
                         }
                     }
                 }
-                if crate::linalg::det(&axes) < 0.0 {
+                if crate::math::det(&axes) < 0.0 {
                     return Err(invalid(
                         "box rotation",
                         "must be a rotation (determinant +1), not a reflection",

@@ -10,11 +10,11 @@
 //! tets of one colour share no vertex): within a colour the tets are solved in parallel, which is exactly the
 //! sequential Gauss-Seidel result, so the step is bit-identical for any number of threads.
 
+use crate::elasticity::shape_gradients;
 use crate::error::{invalid, Result};
-use crate::hessian::shape_gradients;
 use crate::integrators::{Integrator, StepReport};
-use crate::linalg::{cofactor, det, scale, Mat3, Vec3};
 use crate::material::{ConstraintNeoHookean, Material};
+use crate::math::{cofactor, det, scale, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
 
 /// XPBD settings.
@@ -185,7 +185,7 @@ struct TetConstraints {
 
 fn tet_constraints(p: &[Vec3; 4], g: &[Vec3; 4], alpha: f64) -> TetConstraints {
     let f = deformation(p, g);
-    let norm = crate::linalg::ddot(&f, &f).sqrt();
+    let norm = crate::math::ddot(&f, &f).sqrt();
     // C_D = |F|, dC_D/dF = F / |F| (undefined at F = 0: a collapsed tet is left to the hydrostatic term).
     let (c_d, q_d) = if norm > 1e-12 {
         (norm, f.map(|row| row.map(|v| v / norm)))
@@ -225,8 +225,8 @@ fn local_objective(
     let mut kin = 0.0;
     for k in 0..4 {
         if w[k] > 0.0 {
-            let d = crate::linalg::sub(p[k], p0[k]);
-            kin += crate::linalg::dot(d, d) / w[k];
+            let d = crate::math::sub(p[k], p0[k]);
+            kin += crate::math::dot(d, d) / w[k];
         }
     }
     let mut phi = 0.5 * kin;
@@ -280,11 +280,10 @@ fn project_tet(
     }
     let (mut a11, mut a12, mut a22) = (alpha_tilde[0], 0.0, alpha_tilde[1]);
     for k in 0..4 {
-        a11 += crate::linalg::dot(tc.grad[0][k], y[0][k]);
+        a11 += crate::math::dot(tc.grad[0][k], y[0][k]);
         a12 += 0.5
-            * (crate::linalg::dot(tc.grad[0][k], y[1][k])
-                + crate::linalg::dot(tc.grad[1][k], y[0][k]));
-        a22 += crate::linalg::dot(tc.grad[1][k], y[1][k]);
+            * (crate::math::dot(tc.grad[0][k], y[1][k]) + crate::math::dot(tc.grad[1][k], y[0][k]));
+        a22 += crate::math::dot(tc.grad[1][k], y[1][k]);
     }
     let det2 = a11 * a22 - a12 * a12;
     if !(det2 > 0.0 && det2.is_finite()) {
@@ -302,8 +301,8 @@ fn project_tet(
         // Phi'(0) along dp: sum_c (r_c / alpha~_c) grad C_c . dp (negative: the Gauss-Newton matrix is SPD).
         let mut slope = 0.0;
         for k in 0..4 {
-            slope += r[0] / alpha_tilde[0] * crate::linalg::dot(tc.grad[0][k], dp[k])
-                + r[1] / alpha_tilde[1] * crate::linalg::dot(tc.grad[1][k], dp[k]);
+            slope += r[0] / alpha_tilde[0] * crate::math::dot(tc.grad[0][k], dp[k])
+                + r[1] / alpha_tilde[1] * crate::math::dot(tc.grad[1][k], dp[k]);
         }
         loop {
             let (phi, j) = local_objective(&at(t), &p0, w, g, alpha, alpha_tilde, lambda);
@@ -416,7 +415,7 @@ impl Integrator for Xpbd {
                             .map(|k| [p[k][0] - p0[k][0], p[k][1] - p0[k][1], p[k][2] - p0[k][2]]);
                         *out = (d, lam, halved);
                     };
-                    crate::parallel::for_each_chunk_mut(&mut self.updates, TETS, |c, outs| {
+                    crate::exec::for_each_chunk_mut(&mut self.updates, TETS, |c, outs| {
                         for (k, out) in outs.iter_mut().enumerate() {
                             solve(out, colour[c * TETS + k]);
                         }
@@ -474,7 +473,7 @@ mod tests {
     /// Shape gradients `g_k` of a rest tet (`F = sum_k x_k g_k^T`) and its volume.
     fn rest_tet(x: &[Vec3; 4]) -> ([Vec3; 4], f64) {
         let dm = [0, 1, 2].map(|a| [0, 1, 2].map(|k| x[k + 1][a] - x[0][a]));
-        let inv = crate::linalg::inverse(&dm).expect("non-degenerate rest tet");
+        let inv = crate::math::inverse(&dm).expect("non-degenerate rest tet");
         let g1 = inv[0];
         let g2 = inv[1];
         let g3 = inv[2];

@@ -22,11 +22,11 @@ use faer::{Conj, MatMut, Par, Side};
 use std::ops::Range;
 
 use crate::error::{FeprError, Result};
-use crate::ordering::nested_dissection;
+use crate::math::nested_dissection;
 
 /// faer parallelism for the current rayon pool.
 fn parallelism() -> Par {
-    match crate::parallel::current_threads() {
+    match crate::exec::current_threads() {
         0 | 1 => Par::Seq,
         n => Par::rayon(n),
     }
@@ -756,7 +756,7 @@ fn for_each_task<F>(tasks: &[Task], y: &mut [Row], ws: &mut [Row], f: &F)
 where
     F: Fn(&Task, &mut [Row], &mut [Row]) + Sync,
 {
-    let threads = crate::parallel::current_threads();
+    let threads = crate::exec::current_threads();
     if threads < 2 {
         let mut queue = TaskQueue::new(tasks, y, ws);
         while let Some((t, y, w)) = queue.pop() {

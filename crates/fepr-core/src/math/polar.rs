@@ -1,5 +1,5 @@
 //! The rotation factor of the polar decomposition for many matrices at once, bit for bit
-//! [`crate::linalg::polar_rotation`]'s.
+//! [`crate::math::polar_rotation`]'s.
 //!
 //! One scaled Newton iteration on one 3x3 matrix is a short dependency chain (two square roots and a
 //! division per iteration), so the scalar routine is latency-bound (about 150 ns on this machine). Here
@@ -9,7 +9,7 @@
 //! rejects (inverted, nearly singular, no convergence) are handed to the scalar routine, which takes its SVD
 //! path for them. Used by the Projective Dynamics local step and the ARAP energy (fepr-spec section 5).
 
-use crate::linalg::{polar_rotation, Mat3, COFACTOR_PAIRS};
+use crate::math::{polar_rotation, Mat3, COFACTOR_PAIRS};
 
 /// Matrices per batch (8 with AVX2 measured 2.8x faster than the scalar routine, against 2.2x for 4 and 2.5x
 /// for 16; AVX-512 lanes were slower on this machine).
@@ -222,7 +222,7 @@ fn newton_update(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::linalg::matmul;
+    use crate::math::matmul;
 
     /// Deformation gradients of every kind the fast path and the fallback see: rotations times stretches,
     /// large stretches, inverted, singular, a non-finite one.

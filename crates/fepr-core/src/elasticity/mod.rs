@@ -7,13 +7,19 @@
 //! Per tet: `D_s = [x1-x0, x2-x0, x3-x0]`, `F = D_s D_m^-1`, gradient on vertices 1..3 = the columns of
 //! `V P(F) D_m^-T`, vertex 0 gets minus their sum (fepr-spec section 4).
 
+mod hessian;
+mod rotation;
+
+pub use hessian::*;
+pub(crate) use rotation::*;
+
 use std::ops::Range;
 
-use crate::linalg::{det, matmul, transpose, Mat3, Vec3, COFACTOR_PAIRS};
+use crate::exec::reduce_chunks;
 use crate::material::{ln, ln_core, ln_core_applies, Hyperelastic, Material, NeoHookean, LANES};
-use crate::mesh::{edge_matrix, RestShape};
-use crate::model::Model;
-use crate::parallel::{reduce_chunks, MIN_TET_CHUNK};
+use crate::math::{det, matmul, transpose, Mat3, Vec3, COFACTOR_PAIRS};
+use crate::mesh::edge_matrix;
+use crate::model::{Block, Model, TetBlock, TetBlocks, BLOCK};
 
 /// Energy and element-health summary of one evaluation.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -86,88 +92,6 @@ impl ElasticWorkspace {
     }
 }
 
-/// Tets per block of the rest data and of the batched kernels. A multiple of 8 (the f64
-/// lanes of AVX-512) that divides every chunk length (a power of two, at least
-/// [`MIN_TET_CHUNK`]), so every chunk but the last is made of whole blocks.
-pub const BLOCK: usize = 16;
-const _: () = assert!(MIN_TET_CHUNK.is_multiple_of(BLOCK) && BLOCK.is_multiple_of(8));
-pub(crate) type Block = [f64; BLOCK];
-
-/// The rest data of [`BLOCK`] consecutive tets in structure-of-arrays form: the Neo-Hookean kernel reads
-/// it with SIMD loads instead of transposing `Model::rest` for every evaluation. Lanes past the last tet
-/// are padding (vertex 0, zero `D_m^-1` and volume); the kernel ignores their results.
-#[derive(Clone, Debug)]
-#[repr(C, align(64))]
-pub struct TetBlock {
-    /// `D_m^-1[i][j]` at `dm[i][j]`.
-    pub(crate) dm: [[Block; 3]; 3],
-    /// Rest volumes, m^3.
-    pub(crate) vol: Block,
-    /// Local vertex index of every corner in its chunk (`corner_sums`: the chunk's positions and
-    /// accumulator), by corner.
-    pub(crate) loc: [[u16; BLOCK]; 4],
-}
-
-/// [`TetBlock`]s of a whole mesh (88 bytes per tet), built once with the model, in the model's internal tet
-/// order (`Model::tet_at`).
-#[derive(Clone, Debug, Default)]
-pub struct TetBlocks {
-    pub(crate) blocks: Vec<TetBlock>,
-}
-
-impl TetBlocks {
-    /// Blocks of the rest data: position `p` holds tet `tet_at[p]` (`rest`'s index), with its corners'
-    /// local indices `local[p]`.
-    pub(crate) fn new(rest: &RestShape, tet_at: &[u32], local: &[[u16; 4]]) -> Self {
-        assert_eq!(tet_at.len(), rest.volume.len(), "one position per tet");
-        assert_eq!(local.len(), tet_at.len(), "local indices per position");
-        let blocks = tet_at
-            .chunks(BLOCK)
-            .zip(local.chunks(BLOCK))
-            .map(|(ts, locs)| {
-                let mut tb = TetBlock {
-                    dm: [[[0.0; BLOCK]; 3]; 3],
-                    vol: [0.0; BLOCK],
-                    loc: [[0; BLOCK]; 4],
-                };
-                for (l, (&e, lc)) in ts.iter().zip(locs).enumerate() {
-                    let e = e as usize;
-                    for c in 0..4 {
-                        tb.loc[c][l] = lc[c];
-                    }
-                    for i in 0..3 {
-                        for j in 0..3 {
-                            tb.dm[i][j][l] = rest.dm_inv[e][i][j];
-                        }
-                    }
-                    tb.vol[l] = rest.volume[e];
-                }
-                tb
-            })
-            .collect();
-        Self { blocks }
-    }
-
-    /// Bytes held.
-    pub fn bytes(&self) -> usize {
-        self.blocks.capacity() * std::mem::size_of::<TetBlock>()
-    }
-
-    /// `D_m^-1` of the tet at block position `p` (of user tet `e`: `Model::dm_inv(e)`).
-    #[inline]
-    pub fn dm_inv_at(&self, p: usize) -> Mat3 {
-        let (b, l) = (&self.blocks[p / BLOCK], p % BLOCK);
-        // Plain loops: nested `array::map` closures were not inlined here (measured: 13% of a PD step).
-        let mut m = [[0.0; 3]; 3];
-        for i in 0..3 {
-            for j in 0..3 {
-                m[i][j] = b.dm[i][j][l];
-            }
-        }
-        m
-    }
-}
-
 /// Deformation gradient of tet `e` (a user tet index).
 #[inline]
 pub fn deformation_gradient(model: &Model, x: &[Vec3], e: usize) -> Mat3 {
@@ -193,7 +117,7 @@ macro_rules! with_material {
 pub fn elastic_energy(model: &Model, x: &[Vec3]) -> ElasticSummary {
     match &model.material {
         Material::NeoHookean(nh) => neo_hookean_energy(nh, model, x),
-        Material::Arap(arap) => crate::rotation_blocks::arap_energy(arap, model, x),
+        Material::Arap(arap) => crate::elasticity::arap_energy(arap, model, x),
         _ => with_material!(model, mat => energy_impl(mat, model, x)),
     }
 }
@@ -273,7 +197,7 @@ pub(crate) fn elastic_gradient_chunks(
     };
     match &model.material {
         Material::NeoHookean(nh) => neo_hookean_pass(Lanes::detect(), nh, model, x, sink),
-        Material::Arap(arap) => crate::rotation_blocks::arap_gradient_pass(arap, model, x, sink),
+        Material::Arap(arap) => crate::elasticity::arap_gradient_pass(arap, model, x, sink),
         _ => with_material!(model, mat => element_pass(mat, model, x, sink)),
     }
 }
@@ -949,7 +873,7 @@ pub(crate) mod tests {
         for seed in [1, 5, 9] {
             let x = squashed(&model, seed);
             let (sa, a) = gradient_bits(&model, |sink| {
-                crate::rotation_blocks::arap_gradient_pass(&arap, &model, &x, sink)
+                crate::elasticity::arap_gradient_pass(&arap, &model, &x, sink)
             });
             let (sb, b) = gradient_bits(&model, |sink| element_pass(&arap, &model, &x, sink));
             assert!(sa.inverted > 0, "{sa:?}");
@@ -959,7 +883,7 @@ pub(crate) mod tests {
                 (sb.min_j.to_bits(), sb.inverted)
             );
             assert_eq!(a, b);
-            let ea = crate::rotation_blocks::arap_energy(&arap, &model, &x);
+            let ea = crate::elasticity::arap_energy(&arap, &model, &x);
             let eb = energy_impl(&arap, &model, &x);
             assert_eq!(ea.energy.to_bits(), eb.energy.to_bits());
             assert_eq!(

@@ -17,7 +17,13 @@
 //! residual. Non-convergence keeps the best iterate (or `q~`) and is reported; the result is never NaN and
 //! never has more inverted tets than the base step.
 
-use crate::parallel::{
+mod moments;
+mod trial_steps;
+
+pub(crate) use moments::*;
+pub(crate) use trial_steps::*;
+
+use crate::exec::{
     for_each_chunk_mut, for_each_chunk_mut2, for_each_chunk_mut3, for_each_chunk_mut4,
     for_each_mut, reduce_chunks,
 };
@@ -27,10 +33,10 @@ use crate::elasticity::{
 };
 use crate::error::{invalid, Result};
 use crate::invariants::Invariants;
-use crate::linalg::{cholesky_substitute, cross, dot, solve_symmetric_psd_into, sub, Mat3, Vec3};
+use crate::math::{cholesky_substitute, cross, dot, solve_symmetric_psd_into, sub, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
-use crate::moment_lanes::{self as ml, q, UPPER, VL};
-use crate::trial_lanes as tl;
+use crate::projection as tl;
+use crate::projection::{self as ml, q, UPPER, VL};
 
 mod certificate;
 mod restoration;
@@ -909,7 +915,7 @@ impl Projector {
         let com_floor = ROUNDING_ULPS
             * rounding_terms(m)
             * f64::EPSILON
-            * crate::linalg::norm(targets.center_of_mass)
+            * crate::math::norm(targets.center_of_mass)
             / self.settings.tolerance;
         // The momenta's scales are those of the motion, `sqrt(2 m_tot S)` with `S` the energy row's scale (and
         // `r` times that for L), not `m_tot r / h` (the momentum that moves the body by its size in one step):
@@ -1356,8 +1362,7 @@ impl Projector {
             _ => Mirror::None,
         };
         debug_assert!(
-            self.mirror != Mirror::Returned
-                || crate::integrators::same_bits(&self.x_mirror, &state.x),
+            self.mirror != Mirror::Returned || crate::math::same_bits(&self.x_mirror, &state.x),
             "the projection's copy of the returned positions is theirs bit for bit"
         );
         report.final_residual = max_scaled(&pb, &fin.c);
@@ -1406,7 +1411,7 @@ impl Projector {
         }
         // Below `SERIAL_ROWS` the caller's copy is a serial one, cheaper than the trial tasks' (1k box: 0.3 us
         // against 0.5-0.6 us more in the trial pass).
-        self.mirror_wanted = self.grad.len() >= crate::parallel::SERIAL_ROWS;
+        self.mirror_wanted = self.grad.len() >= crate::exec::SERIAL_ROWS;
         let positions =
             (std::mem::take(&mut self.mirror) == Mirror::Returned).then_some(&mut self.x_mirror);
         Some((&mut self.grad, positions))
@@ -1609,7 +1614,7 @@ fn rigid_velocity(pb: &Problem, e: &Eval) -> RigidPart {
         })
     });
     let l = sub(e.free_l, cross(d, e.free_p));
-    let inertia_inv = crate::linalg::inverse(&inertia);
+    let inertia_inv = crate::math::inverse(&inertia);
     let omega = inertia_inv.map_or([0.0; 3], |inv| mat_vec(&inv, l));
     let ct = pb.targets.center_of_mass;
     RigidPart {
@@ -1734,7 +1739,7 @@ fn rest_stiffness_ratio(model: &Model) -> Vec<f64> {
     let rest = model.mesh.vertices();
     let mut k = vec![0.0; m];
     for (e, t) in model.mesh.tets().iter().enumerate() {
-        let he = crate::hessian::element_hessian(model, rest, e, true);
+        let he = crate::elasticity::element_hessian(model, rest, e, true);
         for (c, &vtx) in t.iter().enumerate() {
             let mut tr = 0.0;
             for a in 0..3 {
@@ -1760,8 +1765,8 @@ fn rigid_translation_allowed(model: &Model, frozen_positions: &[u32]) -> bool {
 fn freeze_newly_inverted(model: &Model, x_base: &[Vec3], x: &[Vec3], factor: &mut [f64]) -> usize {
     let mut frozen = 0;
     for (e, t) in model.mesh.tets().iter().enumerate() {
-        let j = crate::linalg::det(&deformation_gradient(model, x, e));
-        if j <= 0.0 && crate::linalg::det(&deformation_gradient(model, x_base, e)) > 0.0 {
+        let j = crate::math::det(&deformation_gradient(model, x, e));
+        if j <= 0.0 && crate::math::det(&deformation_gradient(model, x_base, e)) > 0.0 {
             for &v in t {
                 if factor[v] != 0.0 {
                     factor[v] = 0.0;
@@ -2077,14 +2082,14 @@ fn finish(pb: &Problem, s: f64, t: f64, el: ElasticSummary, mut e: Eval) -> Eval
 }
 
 /// Vertices per parallel task of the moment pass, the trial step and the D-norm: the length of every vertex
-/// pass ([`crate::parallel::vertex_task_len`]), a multiple of the moment lanes.
+/// pass ([`crate::exec::vertex_task_len`]), a multiple of the moment lanes.
 fn vertex_chunk(m: usize) -> usize {
     const { assert!(VL == 4, "vertex_task_len is a multiple of 4") };
-    crate::parallel::vertex_task_len(m)
+    crate::exec::vertex_task_len(m)
 }
 
 /// The sums of [`Eval`] over the vertices `first..first + x.len()` (`x`, `v`, `grad`: their rows; `c`, `el`
-/// and `com` are left at zero), in the fixed lane order of [`crate::moment_lanes`] (the same bits for any
+/// and `com` are left at zero), in the fixed lane order of [`crate::projection`] (the same bits for any
 /// thread count). With `S`, the constraints' sums and the moments for `S`; the second-order ones only with
 /// a gradient. Without a gradient the moments take the elastic gradient as zero: the velocity moments (the
 /// warm start's) are exact, the others are not to be solved with (an iteration evaluates the gradient first).

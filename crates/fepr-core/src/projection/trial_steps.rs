@@ -1,6 +1,6 @@
 //! The projection's trial point over one vertex task (fepr-spec section 3: `q - alpha D^-1 G lambda` with a
 //! diagonal position metric), written row by row, and the sums that need only the new rows, taken from them
-//! while they are in registers: the constraints' sums (as [`crate::moment_lanes::constraint_lanes`] takes
+//! while they are in registers: the constraints' sums (as [`crate::projection::constraint_lanes`] takes
 //! them) and the D-norm distance from q~ (as [`correction_lanes`] takes it). The sums run in lanes of [`VL`]
 //! rows, each lane in row order, and the caller adds the lanes in lane order: the same bits for any thread
 //! count.
@@ -18,8 +18,8 @@
 //! gradient, pinned and with a zero metric factor, so every sum gets `+0` or `-0` from them and no row is
 //! written for them.
 
-use crate::linalg::{cross, dot, sub, Vec3};
-use crate::moment_lanes::{Lane, CONSTRAINT_SUMS, VL};
+use crate::math::{cross, dot, sub, Vec3};
+use crate::projection::{Lane, CONSTRAINT_SUMS, VL};
 
 /// The multipliers and constants of one trial step.
 #[derive(Clone, Copy, Debug)]
@@ -228,7 +228,7 @@ pub(crate) mod portable {
         let (x, v) = (&*x_out, &*v_out);
         TrialSums {
             constraints: constraints.then(|| {
-                crate::moment_lanes::portable::constraint_lanes(
+                crate::projection::moments::portable::constraint_lanes(
                     x,
                     v,
                     rows.mass,
@@ -246,7 +246,7 @@ pub(crate) mod portable {
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use super::*;
-    use crate::moment_lanes::avx2::{
+    use crate::projection::avx2::{
         add, constraint_group, cross_at, load_rows, mul, norm2, splat3, store, sub,
     };
     use std::arch::x86_64::*;
@@ -814,10 +814,10 @@ mod tests {
             };
             correction += w * dot(dx, dx) + mass[i] * h2 * dot(dv, dv);
         }
-        let lane_sum = crate::moment_lanes::lane_sum;
+        let lane_sum = crate::projection::lane_sum;
         let constraints = sums.constraints.expect("asked for");
         close(
-            lane_sum(&constraints[crate::moment_lanes::q::KINETIC]),
+            lane_sum(&constraints[crate::projection::q::KINETIC]),
             kinetic,
         );
         close(lane_sum(&sums.correction.expect("a base")), correction);

@@ -6,8 +6,12 @@
 //!
 //! Every material is gated by finite-difference tests of its stress and stress derivative (see `tests`).
 
+mod psd;
+
+pub use psd::*;
+
 use crate::error::{invalid, Result};
-use crate::linalg::{
+use crate::math::{
     cofactor, ddot, det, inverse, matmul, polar_rotation, svd3, symmetric_eigen_fixed, transpose,
     Mat3,
 };
@@ -28,10 +32,10 @@ pub trait Hyperelastic {
     /// Stress derivative `dP/dF` (the energy density's Hessian with respect to F).
     fn stress_derivative(&self, f: &Mat3) -> StressDerivative;
     /// `dP/dF` projected to positive semi-definite (negative eigenvalues clamped to zero). The default
-    /// eigen-decomposes the 9x9 matrix ([`crate::hessian::project_psd`]); materials with a known eigen-system
+    /// eigen-decomposes the 9x9 matrix ([`crate::material::project_psd`]); materials with a known eigen-system
     /// override it.
     fn stress_derivative_psd(&self, f: &Mat3) -> StressDerivative {
-        crate::hessian::project_psd(&self.stress_derivative(f))
+        crate::material::project_psd(&self.stress_derivative(f))
     }
     /// [`Hyperelastic::energy_density`] of [`LANES`] deformation gradients at once, bit for bit the
     /// per-matrix results. The default calls it per matrix; materials whose work vectorises across matrices
@@ -56,7 +60,7 @@ pub trait Hyperelastic {
 }
 
 /// Deformation gradients per call of the `_lanes` methods of [`Hyperelastic`].
-pub const LANES: usize = crate::batch_polar::LANES;
+pub const LANES: usize = crate::math::LANES;
 
 /// Lame parameters `(mu, lambda)` from Young's modulus and Poisson ratio, validated
 /// (`E > 0` finite, `-1 < nu < 0.5`).
@@ -516,7 +520,7 @@ impl Hyperelastic for Arap {
     /// The polar decompositions of all lanes in one batch (the PD and FEPR hot path).
     fn energy_density_lanes(&self, f: &[Mat3; LANES], psi: &mut [f64; LANES]) {
         let mut r = [[[0.0; 3]; 3]; LANES];
-        crate::batch_polar::polar_rotations(f, &mut r);
+        crate::math::polar_rotations(f, &mut r);
         for l in 0..LANES {
             psi[l] = self.energy_and_stress_given(&f[l], &r[l]).0;
         }
@@ -529,7 +533,7 @@ impl Hyperelastic for Arap {
         p: &mut [Mat3; LANES],
     ) {
         let mut r = [[[0.0; 3]; 3]; LANES];
-        crate::batch_polar::polar_rotations(f, &mut r);
+        crate::math::polar_rotations(f, &mut r);
         for l in 0..LANES {
             (psi[l], p[l]) = self.energy_and_stress_given(&f[l], &r[l]);
         }
@@ -682,7 +686,7 @@ mod tests {
         ] {
             for f in &cases {
                 let analytic = m.stress_derivative_psd(f);
-                let reference = crate::hessian::project_psd(&m.stress_derivative(f));
+                let reference = crate::material::project_psd(&m.stress_derivative(f));
                 let scale = reference
                     .iter()
                     .flatten()

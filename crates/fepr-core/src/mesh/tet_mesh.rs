@@ -1,7 +1,7 @@
 //! Tetrahedral meshes: validation with precise errors, orientation repair, rest shape and lumped masses.
 
 use crate::error::{invalid, FeprError, Result};
-use crate::linalg::{det, inverse, norm, sub, Mat3, Vec3};
+use crate::math::{det, inverse, norm, sub, Mat3, Vec3};
 
 /// A tet is degenerate when `|6 V| <= DEGENERATE_RELATIVE_VOLUME * l_max^3`, with `l_max` its longest edge
 /// (a regular tet has `6 V / l^3 = 0.7071`): a scale-invariant test for flat or collinear tets. Slivers of
@@ -130,7 +130,7 @@ impl TetMesh {
     }
 
     /// A mesh from parts already known to be valid (a valid mesh's vertices and tets renamed by a permutation:
-    /// [`crate::renumber::VertexOrder::mesh`]), without checking them again.
+    /// [`crate::mesh::VertexOrder::mesh`]), without checking them again.
     pub(crate) fn from_valid_parts(vertices: Vec<Vec3>, tets: Vec<[usize; 4]>) -> Self {
         Self { vertices, tets }
     }

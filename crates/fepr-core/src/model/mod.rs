@@ -1,12 +1,17 @@
 //! `Model`: everything that does not change during a run (rest mesh, rest shape, masses, material, pins,
 //! gravity, damping). Integrators and the projection read it and mutate only a `State`.
 
-use crate::corner_sums::CornerSums;
-use crate::elasticity::TetBlocks;
+mod blocks;
+mod corners;
+
+pub use blocks::*;
+pub(crate) use corners::*;
+
 use crate::error::{invalid, Result};
-use crate::linalg::Vec3;
 use crate::material::Material;
+use crate::math::Vec3;
 use crate::mesh::{lumped_masses, MassSpec, RestShape, TetMesh};
+use crate::model::CornerSums;
 
 /// The fixed part of a simulation. Build it with [`ModelBuilder`].
 ///
@@ -67,7 +72,7 @@ pub struct Model {
 impl Model {
     /// Inverse rest edge matrix `D_m^-1` of tet `e`, 1/m.
     #[inline]
-    pub fn dm_inv(&self, e: usize) -> crate::linalg::Mat3 {
+    pub fn dm_inv(&self, e: usize) -> crate::math::Mat3 {
         self.tet_blocks.dm_inv_at(self.tet_position[e] as usize)
     }
 
@@ -77,7 +82,7 @@ impl Model {
     pub fn num_tets(&self) -> usize {
         self.mesh.num_tets()
     }
-    /// Tets per chunk of the per-tet passes ([`crate::parallel::tet_chunk_for`] the tet count): chunk `c`
+    /// Tets per chunk of the per-tet passes ([`crate::exec::tet_chunk_for`] the tet count): chunk `c`
     /// holds the block positions `c * tet_chunk() ..`.
     #[inline]
     pub(crate) fn tet_chunk(&self) -> usize {
@@ -340,7 +345,7 @@ impl KernelOrder {
         let m = verts.len();
         u32::try_from(m).expect("vertex indices fit in u32");
         u32::try_from(4 * tets.len()).expect("incidence slots fit in u32");
-        let rank = crate::renumber::VertexOrder::locality(verts).into_internal_indices();
+        let rank = crate::mesh::VertexOrder::locality(verts).into_internal_indices();
         let mut tet_at: Vec<u32> = (0..tets.len() as u32).collect();
         tet_at.sort_by_key(|&e| tets[e as usize].iter().map(|&v| rank[v]).min().unwrap_or(0));
         let mut tet_position = vec![0u32; tets.len()];
@@ -416,11 +421,11 @@ impl State {
         }
     }
     /// True when every coordinate and velocity is finite (and there are as many velocities as positions). In
-    /// the vertex tasks of [`crate::parallel::all_rows`]: a step checks its state after the base step.
+    /// the vertex tasks of [`crate::exec::all_rows`]: a step checks its state after the base step.
     pub fn is_finite(&self) -> bool {
         let finite = |rows: &[Vec3]| rows.iter().all(|p| p.iter().all(|c| c.is_finite()));
         self.x.len() == self.v.len()
-            && crate::parallel::all_rows(self.x.len(), |r| {
+            && crate::exec::all_rows(self.x.len(), |r| {
                 finite(&self.x[r.clone()]) && finite(&self.v[r])
             })
     }

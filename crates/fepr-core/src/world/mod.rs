@@ -14,16 +14,19 @@
 //!   vertices then move with the pins fixed at their new place), so the energy balance has no drift from
 //!   the bookkeeping itself; it is exactly 0 for static pins;
 //! - damping: an operator on the velocities after the base step; its work is the kinetic energy it removes;
-//! - contact ([`crate::obstacles`]): after damping.
+//! - contact ([`crate::world`]): after damping.
+
+mod obstacles;
+
+pub use obstacles::*;
 
 use crate::elasticity::deformation_gradient;
+use crate::elasticity::{element_hessian, HessianAssembler};
 use crate::error::{invalid, Result};
-use crate::hessian::{element_hessian, HessianAssembler};
-use crate::linalg::{add, cross, dot, scale, sub, Vec3};
 use crate::material::Hyperelastic;
+use crate::math::SparseCholesky;
+use crate::math::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, ModelKey, State};
-use crate::obstacles::Obstacle;
-use crate::sparse::SparseCholesky;
 
 /// A prescribed displacement `d(t)` of a group of pinned vertices, m (with `d` relative to `d(0)`).
 #[derive(Clone, Debug, PartialEq)]

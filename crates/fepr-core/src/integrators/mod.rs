@@ -2,11 +2,19 @@
 //! *supposed* to change physically (the energy budget and the external impulses of fepr-spec section 2),
 //! which the projection turns into targets.
 
+mod implicit_euler;
+mod projective_dynamics;
+mod xpbd;
+
+pub use implicit_euler::*;
+pub use projective_dynamics::*;
+pub use xpbd::*;
+
 use crate::elasticity::{elastic_energy_gradient, ElasticSummary, ElasticWorkspace};
+use crate::exec::row_tasks2;
 use crate::invariants::{angular_momentum, center_of_mass, kinetic_energy, linear_momentum};
-use crate::linalg::{scale, Vec3};
+use crate::math::{same_bits, scale, Vec3};
 use crate::model::{Model, ModelKey, State};
-use crate::parallel::row_tasks2;
 
 /// What a base step reports besides the new state.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -203,7 +211,7 @@ impl Integrator for SymplecticEuler {
             return;
         }
         std::mem::swap(&mut self.grad, grad);
-        crate::parallel::copy_rows(x, &mut self.offered_x);
+        crate::exec::copy_rows(x, &mut self.offered_x);
         self.offered_key = Some(model.elastic_key());
     }
 
@@ -222,18 +230,6 @@ impl Integrator for SymplecticEuler {
         std::mem::swap(&mut self.offered_x, x_copy);
         self.offered_key = Some(model.elastic_key());
     }
-}
-
-/// True when the two position arrays agree bit for bit (so a cached evaluation is exactly the fresh one).
-pub(crate) fn same_bits(a: &[Vec3], b: &[Vec3]) -> bool {
-    a.len() == b.len()
-        && crate::parallel::all_rows(a.len(), |r| {
-            // Or-ing the differences, which vectorises (an early exit per row does not).
-            let diff = a[r.clone()].iter().zip(&b[r]).fold(0, |d, (p, q)| {
-                (0..3).fold(d, |d, k| d | (p[k].to_bits() ^ q[k].to_bits()))
-            });
-            diff == 0
-        })
 }
 
 /// End a step of a position-based integrator (backward Euler, Projective Dynamics): the new positions
@@ -265,9 +261,9 @@ pub const INTEGRATOR_NAMES: &[&str] = &[
 pub fn integrator_by_name(name: &str) -> Option<Box<dyn Integrator>> {
     match name {
         "symplectic_euler" => Some(Box::new(SymplecticEuler::new())),
-        "implicit_euler" => Some(Box::new(crate::implicit::ImplicitEuler::default())),
-        "projective_dynamics" => Some(Box::new(crate::pd::ProjectiveDynamics::default())),
-        "xpbd" => Some(Box::new(crate::xpbd::Xpbd::default())),
+        "implicit_euler" => Some(Box::new(crate::integrators::ImplicitEuler::default())),
+        "projective_dynamics" => Some(Box::new(crate::integrators::ProjectiveDynamics::default())),
+        "xpbd" => Some(Box::new(crate::integrators::Xpbd::default())),
         _ => None,
     }
 }

@@ -15,7 +15,7 @@
 //! Padding: the last group of a task with fewer than [`VL`] rows gets lanes of unit mass, zero state and
 //! zero gradient, neither free nor weighted, so every sum gets `+0` or `-0` from them.
 
-use crate::linalg::Vec3;
+use crate::math::Vec3;
 
 /// Vertices per lane group.
 pub(crate) const VL: usize = 4;

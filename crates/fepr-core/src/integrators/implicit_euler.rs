@@ -17,15 +17,15 @@
 //! thanks to the mass term in most iterations, converges quadratically near the solution.
 //! Backward Euler is unconditionally stable but numerically dissipative: FEPR on top restores the energy.
 
+use crate::elasticity::HessianAssembler;
 use crate::elasticity::{
     elastic_energy, elastic_energy_gradient, ElasticSummary, ElasticWorkspace,
 };
 use crate::error::{invalid, Result};
-use crate::hessian::HessianAssembler;
 use crate::integrators::{finish_positional_step, Integrator, StepReport};
-use crate::linalg::{dot, scale, Vec3};
+use crate::math::SparseCholesky;
+use crate::math::{dot, scale, Vec3};
 use crate::model::{Model, ModelKey, State};
-use crate::sparse::SparseCholesky;
 
 /// Newton settings for backward Euler.
 #[derive(Clone, Copy, Debug, PartialEq)]

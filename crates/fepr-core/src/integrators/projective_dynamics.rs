@@ -12,16 +12,16 @@
 //! The energy this minimises is the ARAP energy `Psi = mu |F - R|^2` ([`crate::material::Arap`]); with FEPR,
 //! the model's material must be that energy so that H is the PD energy (fepr-spec section 5).
 
-use crate::parallel::for_each_chunk_mut;
+use crate::exec::for_each_chunk_mut;
 use std::time::Instant;
 
+use crate::elasticity::shape_gradients;
 use crate::error::{invalid, FeprError, Result};
-use crate::hessian::shape_gradients;
 use crate::integrators::{finish_positional_step, Integrator, StepReport};
-use crate::linalg::{scale, Vec3};
 use crate::material::Material;
+use crate::math::{scale, Vec3};
+use crate::math::{LowerPattern, SparseCholesky};
 use crate::model::{Model, ModelKey, State};
-use crate::sparse::{LowerPattern, SparseCholesky};
 
 /// Projective Dynamics settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -330,7 +330,7 @@ impl Integrator for ProjectiveDynamics {
             let t0 = Instant::now();
             // Local step: the closest rotation R_e to each F_e and its corner terms w_e R_e g_k, in parallel
             // (rotation_blocks: bit for bit linalg::polar_rotation).
-            crate::rotation_blocks::pd_rotation_terms(pre.mu, model, &x, &mut self.corner_terms);
+            crate::elasticity::pd_rotation_terms(pre.mu, model, &x, &mut self.corner_terms);
             let t1 = Instant::now();
             // Global step right-hand side, row c for free vertex c: M (y / h^2 + g) + sum_e w_e R_e g_e,k over
             // the tets at the vertex, gathered in parallel in ascending block position (deterministic).

@@ -10,10 +10,10 @@
 //! tet order (deterministic).
 
 use crate::elasticity::deformation_gradient;
-use crate::linalg::{symmetric_eigen_fixed, Vec3};
-use crate::material::{Hyperelastic, StressDerivative};
+use crate::material::Hyperelastic;
+use crate::math::LowerPattern;
+use crate::math::Vec3;
 use crate::model::Model;
-use crate::sparse::LowerPattern;
 
 /// A 12 x 12 element matrix, row-major, index `3 * corner + axis`.
 pub type ElementMatrix = [f64; 144];
@@ -34,55 +34,6 @@ pub fn shape_gradients(model: &Model, e: usize) -> [Vec3; 4] {
         g2,
         g3,
     ]
-}
-
-/// True when a symmetric 9 x 9 matrix is positive definite (a Cholesky factorisation succeeds): the cheap
-/// test that lets most elements skip the eigen-decomposition.
-fn is_positive_definite(d: &StressDerivative) -> bool {
-    let mut l = [[0.0f64; 9]; 9];
-    for j in 0..9 {
-        let mut diag = d[j][j];
-        for k in 0..j {
-            diag -= l[j][k] * l[j][k];
-        }
-        if diag.is_nan() || diag <= 0.0 {
-            return false;
-        }
-        let djj = diag.sqrt();
-        l[j][j] = djj;
-        for i in (j + 1)..9 {
-            let mut s = d[i][j];
-            for k in 0..j {
-                s -= l[i][k] * l[j][k];
-            }
-            l[i][j] = s / djj;
-        }
-    }
-    true
-}
-
-/// Clamp the negative eigenvalues of a symmetric 9 x 9 matrix to zero.
-pub fn project_psd(d: &StressDerivative) -> StressDerivative {
-    if is_positive_definite(d) {
-        return *d;
-    }
-    let (w, v) = symmetric_eigen_fixed(d);
-    if w.iter().all(|x| *x >= 0.0) {
-        return *d;
-    }
-    let mut out = [[0.0; 9]; 9];
-    for (k, &wk) in w.iter().enumerate() {
-        if wk <= 0.0 {
-            continue;
-        }
-        for i in 0..9 {
-            let vi = v[i][k] * wk;
-            for j in 0..9 {
-                out[i][j] += vi * v[j][k];
-            }
-        }
-    }
-    out
 }
 
 /// Element Hessian of tet `e` at positions `x`; `psd` projects `dP/dF` to positive semi-definite first.
@@ -214,9 +165,9 @@ impl HessianAssembler {
         values.clear();
         values.resize(self.pattern.nnz(), 0.0);
         self.elements.resize(model.num_tets(), [0.0; 144]);
-        // Fixed chunks of elements ([`crate::parallel::for_each_chunk_mut`], so that `parallel::serial` holds).
+        // Fixed chunks of elements ([`crate::exec::for_each_chunk_mut`], so that `parallel::serial` holds).
         const ELEMENTS: usize = 64;
-        crate::parallel::for_each_chunk_mut(&mut self.elements, ELEMENTS, |c, hs| {
+        crate::exec::for_each_chunk_mut(&mut self.elements, ELEMENTS, |c, hs| {
             for (k, h) in hs.iter_mut().enumerate() {
                 *h = element_hessian(model, x, c * ELEMENTS + k, psd);
             }
@@ -260,8 +211,8 @@ impl HessianAssembler {
 mod tests {
     use super::*;
     use crate::elasticity::{elastic_energy_gradient, ElasticWorkspace};
-    use crate::linalg::symmetric_eigen;
     use crate::material::{Material, NeoHookean, StableNeoHookean};
+    use crate::math::symmetric_eigen;
     use crate::mesh::{tests::cube, MassSpec, TetMesh};
     use crate::model::ModelBuilder;
 

@@ -13,7 +13,7 @@
 //! API boundary, so users see their own numbering. Rust users may do the same with [`VertexOrder::mesh`],
 //! [`VertexOrder::to_internal`] and [`VertexOrder::to_user`].
 
-use crate::linalg::Vec3;
+use crate::math::Vec3;
 use crate::mesh::TetMesh;
 
 /// A permutation of a mesh's vertices: internal vertex `i` is user vertex `user_of(i)`.
