@@ -220,7 +220,7 @@ def compare(
         )
         for r in runs
     ]
-    from ..report.summary import summary_json, summary_markdown, table_rows
+    from ..report.summary import summary_markdown, table_rows
 
     rows = table_rows(runs, metrics)
     result = CompareResult(scene=sc.name, out_dir=out, runs=runs, metrics=metrics, rows=rows, run_s=run_s)
@@ -229,29 +229,59 @@ def compare(
     (out / "summary.md").write_text(summary_markdown(heading, sc.description, setup, rows))
     result.files["summary.md"] = out / "summary.md"
     if plots:
-        from ..report.plots import energy_plot, momentum_plot
-
-        try:
-            result.files["energy.png"] = energy_plot(runs, out / "energy.png", title=f"{sc.name}: energy")
-            result.files["momentum.png"] = momentum_plot(runs, out / "momentum.png", title=f"{sc.name}: momentum")
-        except MissingDependencyError as exc:
-            result.plot_error = str(exc)
+        _write_plots(result, sc.name)
     t_render = time.perf_counter()
     if video:
-        from ..report.render import RenderUnavailable, render_video
-
-        try:
-            with progress_bar(len(at), desc=f"{sc.name}: render", unit="frame", quiet=quiet) as bar:
-                v = render_video(runs, out, size=size, fps=fps, gif=gif, on_frame=bar.update)
-            result.files["side_by_side.mp4"] = v.mp4
-            if gif:
-                result.files["side_by_side.gif"] = v.gif
-            result.video_frames, result.video_size, result.ms_per_frame = v.frames, v.size, v.ms_per_frame
-        except (RenderUnavailable, MissingDependencyError) as exc:
-            result.video_error = str(exc)
+        _write_video(result, sc.name, len(at), size=size, fps=fps, gif=gif, quiet=quiet)
     result.render_s = time.perf_counter() - t_render
+    _write_summary_json(result, sc, n, at, fps)
+    if html_report:
+        from ..report.html import report_page
+
+        section = _section(result, heading, sc.description, setup)
+        (out / "report.html").write_text(report_page(heading, [section]))
+        result.files["report.html"] = out / "report.html"
+    result.wall_s = time.perf_counter() - t_start
+    return result
+
+
+def _write_plots(result: CompareResult, name: str) -> None:
+    """``energy.png`` and ``momentum.png``; without matplotlib, ``plot_error`` says why."""
+    from ..report.plots import energy_plot, momentum_plot
+
+    out, runs = result.out_dir, result.runs
+    try:
+        result.files["energy.png"] = energy_plot(runs, out / "energy.png", title=f"{name}: energy")
+        result.files["momentum.png"] = momentum_plot(runs, out / "momentum.png", title=f"{name}: momentum")
+    except MissingDependencyError as exc:
+        result.plot_error = str(exc)
+
+
+def _write_video(
+    result: CompareResult, name: str, frames: int, *, size: Tuple[int, int], fps: float, gif: bool, quiet: bool
+) -> None:
+    """``side_by_side.mp4`` (and ``.gif``) of the recorded frames; where it cannot be rendered (no polyscope or
+    no EGL), ``video_error`` says why."""
+    from ..report.render import RenderUnavailable, render_video
+
+    try:
+        with progress_bar(frames, desc=f"{name}: render", unit="frame", quiet=quiet) as bar:
+            v = render_video(result.runs, result.out_dir, size=size, fps=fps, gif=gif, on_frame=bar.update)
+        result.files["side_by_side.mp4"] = v.mp4
+        if gif:
+            result.files["side_by_side.gif"] = v.gif
+        result.video_frames, result.video_size, result.ms_per_frame = v.frames, v.size, v.ms_per_frame
+    except (RenderUnavailable, MissingDependencyError) as exc:
+        result.video_error = str(exc)
+
+
+def _write_summary_json(result: CompareResult, sc, n: int, at, fps: float) -> None:
+    """``summary.json``: the setup, every run's metrics and the video's size and speed."""
+    from ..report.summary import summary_json
+
+    runs = result.runs
     summary_json(
-        out / "summary.json",
+        result.out_dir / "summary.json",
         scene=sc.name,
         setup={
             "description": sc.description,
@@ -264,7 +294,7 @@ def compare(
             "frame_steps": [int(s) for s in at],
         },
         runs=runs,
-        metrics=metrics,
+        metrics=result.metrics,
         video=None
         if result.video_size is None
         else {
@@ -275,15 +305,7 @@ def compare(
             "ms_per_frame": result.ms_per_frame,
         },
     )
-    result.files["summary.json"] = out / "summary.json"
-    if html_report:
-        from ..report.html import report_page
-
-        section = _section(result, heading, sc.description, setup)
-        (out / "report.html").write_text(report_page(heading, [section]))
-        result.files["report.html"] = out / "report.html"
-    result.wall_s = time.perf_counter() - t_start
-    return result
+    result.files["summary.json"] = result.out_dir / "summary.json"
 
 
 def _section(result: CompareResult, heading: str, description: str, setup: str, prefix: str = "") -> str:
