@@ -113,12 +113,14 @@ MATERIAL_MODELS = ("neo_hookean", "stable_neo_hookean", "arap", "constraint_neo_
 #: Integrator names planned by the design; the ones actually accepted come from the compiled core.
 INTEGRATORS = ("symplectic_euler", "implicit_euler", "projective_dynamics", "xpbd")
 PROJECTION_ROWS = ("auto", "energy", "energy_momentum", "all")
+#: The ``[mesh]`` options each builtin mesh takes (its keyword arguments in :func:`fepr.meshes.builtin`).
 _BUILTIN_OPTIONS = {
     "box": ("size", "resolution", "center"),
     "ell": ("size", "resolution"),
     "sphere": ("radius", "resolution", "center"),
     "cylinder": ("radius", "height", "resolution", "center"),
 }
+#: The axes ``pin_below`` and a kinematic pin's ``below`` accept.
 _AXES = {"x": 0, "y": 1, "z": 2}
 
 
@@ -461,28 +463,20 @@ class Scene:
     # ---- building ------------------------------------------------------------------------------------
 
     def _where(self) -> str:
+        """How messages start: the scene file, or nothing for a scene given as a dict without a source."""
         return f"{self.source}: " if self.source else ""
 
     def load_mesh(self):
         """The rest mesh (:class:`fepr.TetMesh`) after the ``[mesh]`` load options (one-body scenes)."""
-        return self._load_body_mesh(self._single("load_mesh()"))
-
-    def _load_body_mesh(self, body: BodySettings):
-        return _build.load_body_mesh(self, body)
+        return _build.load_body_mesh(self, self._single("load_mesh()"))
 
     def make_material(self):
         """The material object (:class:`fepr.NeoHookean`, :class:`fepr.StableNeoHookean`, ...), one-body scenes."""
-        return self._make_body_material(self._single("make_material()"))
-
-    def _make_body_material(self, body: BodySettings):
-        return _build.make_body_material(self, body)
+        return _build.make_body_material(self, self._single("make_material()"))
 
     def pinned_indices(self, rest_vertices: np.ndarray) -> Optional[np.ndarray]:
         """Sorted indices of the pinned vertices (``[world] pinned`` and ``pin_below``), or ``None``."""
-        return self._body_pinned(self._single("pinned_indices()"), rest_vertices)
-
-    def _body_pinned(self, body: BodySettings, rest_vertices: np.ndarray) -> Optional[np.ndarray]:
-        return _build.body_pinned(self, body, rest_vertices)
+        return _build.body_pinned(self, self._single("pinned_indices()"), rest_vertices)
 
     def initial_state(
         self, rest_vertices: np.ndarray, masses: np.ndarray, pinned: Optional[np.ndarray] = None
