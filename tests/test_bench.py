@@ -8,8 +8,7 @@ import os
 
 import pytest
 
-from fepr import bench
-from fepr.cli import main
+from fepr.cli import bench, main
 
 
 def test_run_scene_reports_every_field_and_bit_identical_energy_gradient():

@@ -14,7 +14,7 @@ import pytest
 
 import fepr
 from fepr.cli import EXIT_INVALID, EXIT_OK, EXIT_RUNAWAY, main
-from fepr.demo import DEMO_SCENES
+from fepr.cli.demo import DEMO_SCENES
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 REQUIRED_COLUMNS = (
@@ -226,7 +226,7 @@ def test_demo_quiet_prints_only_the_table(capsys):
 
 def test_demo_reference_numbers_with_projection():
     """The full demo's projected runs conserve what they should (spec section 7, loosely)."""
-    from fepr.demo import run_demos
+    from fepr.cli.demo import run_demos
 
     results = {(r.scene, r.projection): r for r in run_demos()}
     seed = results[("seed_demo3_stretch", True)]

@@ -162,7 +162,7 @@ def test_bad_input_is_a_clear_error_with_exit_2(tmp_path, capsys):
 
 def test_several_integrators_get_their_own_runs(tmp_path):
     from fepr import _core
-    from fepr.compare import compare
+    from fepr.cli.compare import compare
 
     names = [n for n in ("symplectic_euler", "implicit_euler") if n in _core.INTEGRATORS]
     res = compare(SCENE, tmp_path, integrators=names, steps=6, video=False, plots=False)

@@ -7,7 +7,7 @@ import pytest
 
 from fepr import _core
 from fepr.cli import EXIT_OK, main
-from fepr.demo import DEMO_SCENES, GALLERY
+from fepr.cli.demo import DEMO_SCENES, GALLERY
 
 
 def test_gallery_shows_the_seed_l_three_ways_the_boxes_the_bar_and_the_dissipative_integrators():

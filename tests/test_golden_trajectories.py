@@ -26,7 +26,7 @@ import pytest
 
 import fepr
 from conftest import shared_meshes_dir
-from fepr.demo import DEMO_SCENES
+from fepr.cli.demo import DEMO_SCENES
 from fepr.scene import scene_from_dict
 
 if sys.version_info >= (3, 11):

@@ -86,7 +86,7 @@ def test_pd_fepr_on_the_pinned_cantilever_demo_converges_in_the_pd_matrix_metric
     # start's fix, 48 of 90 with an energy error of 0.23).
     import copy
 
-    from fepr.demo import DEMO_SCENES
+    from fepr.cli.demo import DEMO_SCENES
     from fepr.scene import scene_from_dict
 
     d = copy.deepcopy(DEMO_SCENES["implicit_cantilever"])

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from fepr.cli import EXIT_OK, EXIT_STRICT, main
-from fepr.demo import DEMO_SCENES, format_row, gallery_rows
+from fepr.cli.demo import DEMO_SCENES, format_row, gallery_rows
 from fepr.report.metrics import (
     FIELDS,
     RunProblemWarning,
@@ -190,7 +190,7 @@ def test_run_result_fepr_run_and_compare_report_the_same_numbers(path, steps, tm
         assert getattr(from_csv, key) == getattr(m, key), key
 
     # fepr compare: summary.json's run with FEPR and the scene's integrator
-    from fepr.compare import compare
+    from fepr.cli.compare import compare
 
     res = compare(scene, tmp_path / "cmp", steps=steps, video=False, plots=False, html_report=True)
     info = json.loads((tmp_path / "cmp" / "summary.json").read_text())

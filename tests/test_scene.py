@@ -10,7 +10,7 @@ import pytest
 
 import fepr
 from fepr import meshes
-from fepr.demo import DEMO_SCENES
+from fepr.cli.demo import DEMO_SCENES
 from fepr.errors import ConfigError, FeprError
 from fepr.scene import SCENE_KEYS, Scene, load_scene, scene_from_dict
 

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy_baseline  # noqa: E402
 
 import fepr  # noqa: E402
-from fepr.bench import SCENES, load_scene_mesh, shared_meshes_dir, stable_dt  # noqa: E402
+from fepr.cli.bench import SCENES, load_scene_mesh, shared_meshes_dir, stable_dt  # noqa: E402
 
 PEER_SCENES = ("box_10k", "bunny", "bunny2", "box_100k")
 

@@ -31,8 +31,7 @@ import warnings
 from pathlib import Path
 from typing import Optional, Sequence
 
-from .bench import add_bench_parser, cmd_bench
-from .errors import FeprError
+from ..errors import FeprError
 
 __all__ = ["EXIT_ERROR", "EXIT_INVALID", "EXIT_OK", "EXIT_RUNAWAY", "EXIT_STRICT", "build_parser", "main"]
 
@@ -56,7 +55,7 @@ _STRICT_FEPR_HELP = (
 
 def _version() -> str:
     try:
-        from . import __version__  # type: ignore[attr-defined]
+        from .. import __version__  # type: ignore[attr-defined]
 
         return str(__version__)
     except ImportError:
@@ -171,6 +170,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mesh_parser(sub)
     _add_compare_parser(sub)
     _add_view_parser(sub)
+    # Imported here, not at the top: `python -m fepr.cli.bench` (the bench's worker subprocess) imports this
+    # package first, and a bench module already imported would run twice (runpy warns).
+    from .bench import add_bench_parser
+
     add_bench_parser(sub)
     return parser
 
@@ -274,8 +277,8 @@ def _err(msg: str) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from .report.metrics import RunProblemWarning
-    from .scene import load_scene, run_scene
+    from ..report.metrics import RunProblemWarning
+    from ..scene import load_scene, run_scene
 
     scene = load_scene(args.scene)
     out = args.out if args.out is not None else Path("fepr-out") / Path(args.scene).stem
@@ -339,9 +342,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:
-    from .errors import ConfigError
-    from .io import SURFACE_EXTENSIONS, load_mesh, write_mesh
-    from .mesh_report import mesh_info
+    from ..errors import ConfigError
+    from ..io import SURFACE_EXTENSIONS, load_mesh, write_mesh
+    from ..mesh_report import mesh_info
 
     src = Path(args.input)
     surface = src.suffix.lower() in SURFACE_EXTENSIONS
@@ -354,7 +357,7 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
         print(mesh_info(src), flush=True)
         return EXIT_OK
     if surface:
-        from .mesher import tetrahedralize
+        from ..mesher import tetrahedralize
 
         start = time.perf_counter()
         mesh = tetrahedralize(
@@ -394,10 +397,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
+    from ..errors import ConfigError
+    from ..report.runs import parse_integrators
+    from ..scene import load_scene
     from .compare import compare, parse_size
-    from .errors import ConfigError
-    from .report.runs import parse_integrators
-    from .scene import load_scene
 
     size = parse_size(args.size)
     if not Path(args.scene).is_file():
@@ -430,7 +433,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    from .viewer import serve_target
+    from ..viewer import serve_target
 
     return serve_target(
         args.target,
@@ -464,6 +467,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         if args.command == "view":
             return _cmd_view(args)
         if args.command == "bench":
+            from .bench import cmd_bench
+
             return cmd_bench(args)
         return _cmd_demo(args)
     except FeprError as exc:
@@ -475,7 +480,3 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except KeyboardInterrupt:
         _err("interrupted")
         return 130
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -151,8 +151,8 @@ def _reset_peak_rss() -> None:
 
 def load_scene_mesh(scene: Scene, meshes_dir: Optional[Path]):
     """The scene's :class:`fepr.TetMesh`, or ``None`` with the reason when its file is missing."""
-    from . import meshes
-    from .io import load_mesh
+    from .. import meshes
+    from ..io import load_mesh
 
     kind, arg = scene.source
     if kind == "box":
@@ -166,8 +166,8 @@ def load_scene_mesh(scene: Scene, meshes_dir: Optional[Path]):
 
 
 def _make_sim(scene: Scene, mesh, integrator: str, dt: float, threads: int, projection: bool = True):
-    from .materials import NeoHookean
-    from .simulation import Simulation
+    from ..materials import NeoHookean
+    from ..simulation import Simulation
 
     mass = {"node_mass": scene.node_mass} if scene.node_mass is not None else {"density": scene.density}
     sim = Simulation(
@@ -191,7 +191,7 @@ def stable_dt(scene: Scene, mesh, integrator: str, dt: float, steps: int = 200, 
     steps than their median edge suggests)."""
     import warnings
 
-    from .errors import FeprError
+    from ..errors import FeprError
 
     if integrator != "symplectic_euler":
         return dt
@@ -414,10 +414,10 @@ def run_suite(
     meshes: Optional[str] = None,
     progress=None,
 ) -> List[Dict[str, Any]]:
-    """Run each scene in a fresh ``python -m fepr.bench`` subprocess; returns their dicts."""
+    """Run each scene in a fresh ``python -m fepr.cli.bench`` subprocess; returns their dicts."""
     results = []
     for name in scenes:
-        cmd = [sys.executable, "-m", "fepr.bench", "--worker", name]
+        cmd = [sys.executable, "-m", "fepr.cli.bench", "--worker", name]
         if quick:
             cmd.append("--quick")
         if threads:
@@ -575,7 +575,7 @@ def cmd_bench(args) -> int:
 def main(argv: Optional[Sequence[str]] = None) -> int:
     import argparse
 
-    parser = argparse.ArgumentParser(prog="python -m fepr.bench")
+    parser = argparse.ArgumentParser(prog="python -m fepr.cli.bench")
     sub = parser.add_subparsers(dest="command")
     add_bench_parser(sub)
     parser.add_argument("--worker", help=argparse.SUPPRESS)

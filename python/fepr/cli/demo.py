@@ -24,7 +24,7 @@ The seed's three initial conditions on the L are ``seed_demo3_stretch``, ``seed_
 ``spinning_l_gravity``. ``implicit_ell`` and ``implicit_cantilever`` are also run with Projective Dynamics
 (:data:`GALLERY`): every dissipative base integrator alone damps the motion out; with FEPR the energy is held.
 
-``fepr demo`` (:func:`main`) runs the gallery through :func:`fepr.compare.compare`, writes each scene's plots,
+``fepr demo`` (:func:`main`) runs the gallery through :func:`fepr.cli.compare.compare`, writes each scene's plots,
 side-by-side video, summary and report under ``./fepr-demo/<scene>/`` with an index ``report.html``, and prints
 a table. :func:`run_demos` runs the same scenes without any rendering (numbers only).
 """
@@ -39,8 +39,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
-from .report.metrics import FIELDS, LEGEND
-from .scene import RunResult, Scene, run_scene, scene_from_dict
+from ..report.metrics import FIELDS, LEGEND
+from ..scene import RunResult, Scene, run_scene, scene_from_dict
 
 __all__ = [
     "DEMO_SCENES",
@@ -275,7 +275,7 @@ def _gallery_scene(item: GalleryItem) -> Scene:
 def _integrators(item: GalleryItem) -> Optional[List[str]]:
     if item.integrators is None:
         return None
-    from . import _core
+    from .. import _core
 
     names = [n for n in item.integrators if n in _core.INTEGRATORS]
     return names or None
@@ -291,9 +291,9 @@ def run_gallery(
     quiet: bool = False,
     on_result: Optional[Callable[[Any], None]] = None,
 ) -> List[Any]:
-    """Run every :data:`GALLERY` scene through :func:`fepr.compare.compare` into ``out_dir/<scene>/``.
+    """Run every :data:`GALLERY` scene through :func:`fepr.cli.compare.compare` into ``out_dir/<scene>/``.
 
-    Returns the :class:`fepr.compare.CompareResult` of each scene. ``steps`` overrides every scene's length.
+    Returns the :class:`fepr.cli.compare.CompareResult` of each scene. ``steps`` overrides every scene's length.
     """
     from .compare import compare
     from .progress import progress_bar
@@ -353,8 +353,8 @@ def format_gallery_table(results: Sequence[Any]) -> str:
 
 
 def _write_index(out: Path, results: Sequence[Any]) -> Path:
+    from ..report.html import report_page
     from .compare import _section
-    from .report.html import report_page
 
     sections = []
     for res in results:
@@ -390,7 +390,7 @@ def main(
     """Run the gallery, write ``out_dir`` (default ``./fepr-demo``), print the table (what ``fepr demo`` does).
 
     Returns 0; with ``strict``, 3 when a run with FEPR has a problem (a runaway, inverted tets at the end,
-    unconverged projections, unresolved energy above 1e-3; :meth:`fepr.compare.CompareResult.problems`).
+    unconverged projections, unresolved energy above 1e-3; :meth:`fepr.cli.compare.CompareResult.problems`).
     """
     out = Path("fepr-demo") if out_dir is None else Path(out_dir)
     start = time.perf_counter()
