@@ -193,7 +193,7 @@ def render_video(
     Parameters
     ----------
     runs : sequence of RecordedRun
-        Runs with the same frame steps (as :func:`fepr.compare.compare` records them).
+        Runs with the same frame steps (as :func:`fepr.cli.compare.compare` records them).
     size : (int, int)
         Width and height of one panel in pixels (rounded down to multiples of 16, at least 64).
     fps : float
