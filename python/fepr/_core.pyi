@@ -5,14 +5,101 @@ method and argument of ``crates/fepr-python/src/lib.rs`` is declared here; ``tes
 the names, kinds and argument lists against the compiled module.
 """
 
-from typing import List, Optional, Sequence, Tuple, TypedDict
+from typing import List, Optional, Sequence, Tuple, TypedDict, Union
 
 import numpy as np
 import numpy.typing as npt
 
 __version__: str
+# The name lists, each defined once in the Rust core (``tests/test_core_contract.py`` checks that the Python
+# package uses them).
 #: Names of the base integrators, as used in scene files and by ``Simulation(integrator=...)``.
 INTEGRATORS: List[str]
+#: Names of the material models (``fepr.NeoHookean.model``, ...; ``fepr_core::material::MATERIAL_NAMES``).
+MATERIALS: List[str]
+#: ``Projection(rows=...)`` choices (``fepr_core::projection::ROW_NAMES``).
+PROJECTION_ROWS: List[str]
+#: ``Projection(metric=...)`` choices (``fepr_core::projection::METRIC_NAMES``).
+METRICS: List[str]
+#: ``Projection(slack=...)`` choices (``fepr_core::projection::SLACK_NAMES``).
+SLACK_MODES: List[str]
+#: Named ``Projection(warm_start=...)`` modes besides a number and None (``fepr_core::projection::WARM_START_MODES``).
+WARM_START_MODES: List[str]
+#: Column names of ``Simulation.history()``, in order (``fepr_core::simulation::HISTORY_COLUMNS``).
+HISTORY_COLUMNS: List[str]
+#: The history columns that hold counts or 0/1 flags (``fepr_core::simulation::HISTORY_INTEGER_COLUMNS``).
+HISTORY_INTEGER_COLUMNS: List[str]
+#: Keys of ``Simulation.last_projection()`` (``fepr_core::projection::REPORT_FIELDS``).
+PROJECTION_REPORT_FIELDS: List[str]
+#: Warm-start thresholds of ``warm_start="auto"`` after Projective Dynamics and after XPBD
+#: (``fepr_core::simulation::PD_WARM_START``, ``XPBD_WARM_START``).
+PD_WARM_START: float
+XPBD_WARM_START: float
+
+class _MaterialSettings(TypedDict, total=False):
+    """A material for the core: ``model`` (one of :data:`MATERIALS`), ``youngs_modulus`` Pa, ``poisson_ratio``,
+    ``j0`` (neo_hookean only, default 0.1)."""
+
+    model: str
+    youngs_modulus: float
+    poisson_ratio: float
+    j0: float
+
+class _IntegratorSettings(TypedDict, total=False):
+    """An integrator for the core: ``name`` (one of :data:`INTEGRATORS`) and that integrator's settings
+    (implicit_euler: tolerance, max_iterations; projective_dynamics: iterations; xpbd: substeps, iterations)."""
+
+    name: str
+    tolerance: float
+    max_iterations: int
+    iterations: int
+    substeps: int
+
+class _ProjectionSettings(TypedDict, total=False):
+    """The projection for the core: the fields of ``fepr.Projection`` (absent keys take its defaults)."""
+
+    tolerance: float
+    max_iterations: int
+    rows: str
+    c_eps: float
+    regularization: float
+    max_halvings: int
+    impact_bound: Optional[float]
+    slack: str
+    warm_start: Union[float, str, None]
+    metric: str
+    quality_guard: bool
+    quality_margin: float
+
+class _MassSettings(TypedDict, total=False):
+    """Exactly one of ``density`` kg/m^3, ``node_mass`` kg per vertex, ``node_masses`` (m,) kg."""
+
+    density: float
+    node_mass: float
+    node_masses: npt.NDArray[np.float64]
+
+class _WorldSettings(TypedDict, total=False):
+    """``gravity`` (3,) m/s^2, ``pinned`` vertex indices, ``damping`` velocity damping factor per step in [0, 1)."""
+
+    gravity: Tuple[float, float, float]
+    pinned: Sequence[int]
+    damping: float
+
+def check_material(material: _MaterialSettings) -> None:
+    """Check a material in the core; raises ValueError naming the key (``material.youngs_modulus ...``)."""
+
+def check_integrator(integrator: _IntegratorSettings) -> None:
+    """Check an integrator's settings in the core; raises ValueError naming the key (``integrator.substeps ...``)."""
+
+def check_projection(projection: _ProjectionSettings) -> None:
+    """Check projection settings in the core; raises ValueError naming the key (``projection.tolerance ...``)."""
+
+def conserved_material(integrator: str) -> Optional[str]:
+    """The material model whose energy the integrator minimises and the projection therefore conserves
+    ("arap" for projective_dynamics, "constraint_neo_hookean" for xpbd), or None: any material."""
+
+def warm_start_threshold(integrator: str) -> float:
+    """The projection's warm-start threshold under ``warm_start="auto"`` after ``integrator`` (inf: off)."""
 
 def validate_mesh(
     vertices: npt.NDArray[np.float64], tets: npt.NDArray[np.int64]
@@ -78,40 +165,17 @@ class Simulation:
         vertices: npt.NDArray[np.float64],
         tets: npt.NDArray[np.int64],
         *,
-        material: str,
-        youngs_modulus: float,
-        poisson_ratio: float,
-        j0: float,
-        mass_kind: str,
-        mass_value: float,
-        node_masses: Optional[npt.NDArray[np.float64]],
-        integrator: str,
+        material: _MaterialSettings,
+        mass: _MassSettings,
+        integrator: _IntegratorSettings,
         dt: float,
-        projection: bool,
-        tolerance: float,
-        max_iterations: int,
-        rows: str,
-        c_eps: float,
-        regularization: float,
-        max_halvings: int,
-        impact_bound: Optional[float],
-        gravity: Tuple[float, float, float],
-        pinned: Sequence[int],
-        damping: float,
-        threads: Optional[int],
-        slack: str = "auto",
-        newton_tolerance: float = 1e-6,
-        newton_max_iterations: int = 20,
-        pd_iterations: int = 10,
-        warm_start_threshold: float = ...,
-        metric: str = "auto",
-        xpbd_substeps: int = 20,
-        xpbd_iterations: int = 1,
-        quality_margin: Optional[float] = 0.05,
+        projection: Optional[_ProjectionSettings],
+        world: _WorldSettings,
+        threads: Optional[int] = None,
     ) -> None:
-        """``mass_kind``: "density" (``mass_value`` kg/m^3) or "node_mass" (``mass_value`` kg per vertex, or
-        ``node_masses`` (m,) kg). ``warm_start_threshold`` defaults to infinity (no warm start);
-        ``quality_margin`` None turns the projection's quality guard off."""
+        """One settings dict per concern, each checked in the core (errors name ``section.key``); ``projection``
+        None: no projection. Under projective_dynamics and xpbd the material is :func:`conserved_material`'s,
+        built from the given moduli."""
 
     def step(self, n: int) -> int:
         """Take ``n`` steps with the GIL released; returns the number taken. Raises RuntimeError (naming the

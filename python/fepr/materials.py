@@ -12,16 +12,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _core
-from ._validate import real
 from .errors import ConfigError
 
 
-def _set_elastic(material, youngs_modulus, poisson_ratio) -> None:
-    """Validate E and nu and store them as floats on a frozen material dataclass."""
-    e = real(youngs_modulus, "youngs_modulus", unit="Pa", lo=0, lo_open=True)
-    nu = real(poisson_ratio, "poisson_ratio", lo=-1, hi=0.5, lo_open=True, hi_open=True)
-    object.__setattr__(material, "youngs_modulus", e)
-    object.__setattr__(material, "poisson_ratio", nu)
+def _set_elastic(material) -> None:
+    """Check the material in the core (``_core.check_material``: the messages name the key as
+    ``material.key``) and store its numbers as floats on the frozen dataclass."""
+    try:
+        _core.check_material(material._settings())
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    for name in ("youngs_modulus", "poisson_ratio", "j0"):
+        if hasattr(material, name):
+            object.__setattr__(material, name, float(getattr(material, name)))
 
 
 class _Material:
@@ -32,6 +35,15 @@ class _Material:
     @property
     def _j0(self) -> float:
         return 0.1
+
+    def _settings(self) -> dict:
+        """The material as the core reads it (``_core.Simulation(material=...)``)."""
+        return {
+            "model": self.model,
+            "youngs_modulus": self.youngs_modulus,
+            "poisson_ratio": self.poisson_ratio,
+            "j0": self._j0,
+        }
 
     @property
     def mu(self) -> float:
@@ -94,8 +106,7 @@ class NeoHookean(_Material):
     model = "neo_hookean"
 
     def __post_init__(self):
-        _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
-        object.__setattr__(self, "j0", real(self.j0, "j0", lo=0, hi=1, lo_open=True))
+        _set_elastic(self)
 
     @property
     def _j0(self) -> float:
@@ -122,7 +133,7 @@ class StableNeoHookean(_Material):
     model = "stable_neo_hookean"
 
     def __post_init__(self):
-        _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
+        _set_elastic(self)
 
 
 @dataclass(frozen=True)
@@ -146,7 +157,7 @@ class Arap(_Material):
     model = "arap"
 
     def __post_init__(self):
-        _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
+        _set_elastic(self)
 
 
 @dataclass(frozen=True)
@@ -172,7 +183,10 @@ class ConstraintNeoHookean(_Material):
     model = "constraint_neo_hookean"
 
     def __post_init__(self):
-        _set_elastic(self, self.youngs_modulus, self.poisson_ratio)
+        _set_elastic(self)
 
 
 Material = _Material
+
+#: The material classes by model name (the names are the core's ``fepr._core.MATERIALS``; a test checks both agree).
+MATERIAL_TYPES = {cls.model: cls for cls in (NeoHookean, StableNeoHookean, Arap, ConstraintNeoHookean)}

@@ -17,12 +17,27 @@ import numpy as np
 from . import _core
 from ._validate import float_array, integer, real
 from .errors import ConfigError, SimulationError
-from .materials import Arap, ConstraintNeoHookean, NeoHookean, StableNeoHookean, _Material
+from .materials import MATERIAL_TYPES, _Material
 from .mesh import TetMesh
 from .world import OBSTACLE_TYPES, KinematicPins, Obstacle
 
-ROWS = ("auto", "energy", "energy_momentum", "all")
-METRICS = ("auto", "mass", "stiffness")
+# The name lists are the core's (``fepr._core``); the settings objects below are checked there too
+# (``_core.check_projection``, ``_core.check_integrator``), with messages that name the key.
+ROWS = tuple(_core.PROJECTION_ROWS)
+METRICS = tuple(_core.METRICS)
+SLACK_MODES = tuple(_core.SLACK_MODES)
+
+
+def _checked(check, settings: dict) -> None:
+    """Run one of the core's settings checks, raising its ValueError as ConfigError."""
+    try:
+        check(settings)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _fields(obj) -> dict:
+    return {f: getattr(obj, f) for f in obj.__dataclass_fields__}
 
 
 @dataclass(frozen=True)
@@ -52,7 +67,7 @@ class Projection:
         When the slack variables s and t may move: ``"auto"`` (only in steps with impulsive events whose
         impulses are uncertain, such as contact), ``"on"`` or ``"off"``. With slack the projection may keep part
         of the base step's own momentum change instead of the target.
-    warm_start : float, "auto" or None
+    warm_start : float, "auto", "off" or None
         Scaled energy error above which (and above ``tolerance``) the projection first moves the velocities
         alone to the closest point with the positions held: the rigid part goes to the momentum targets (whole
         body free, no slack) and the deformational rest is scaled to meet the energy. Then it iterates (usually
@@ -63,7 +78,8 @@ class Projection:
         start its projection costs one energy + gradient evaluation instead of 5.6 iterations and never has to
         restart around tets it would have inverted (a third of the steps without it). XPBD loses a quarter of H
         per step on sliver-rich meshes; with the warm start every projection of a 10 s bunny run converges.
-        ``None``: off.
+        ``None`` or ``"off"``: off. The thresholds of ``"auto"`` are the core's (``fepr._core.PD_WARM_START``,
+        ``XPBD_WARM_START``).
     metric : str
         Position block W of the projection's metric ``D = diag(W, h^2 M, eps, eps)``: ``"mass"`` (W = M,
         fepr-spec section 3), ``"stiffness"`` (W = M + h^2 diag(K_0), K_0 the rest-state stiffness: stiff local
@@ -101,26 +117,11 @@ class Projection:
     quality_margin: float = 0.05
 
     def __post_init__(self):
-        real(self.tolerance, "projection tolerance", lo=0, hi=1, lo_open=True, hi_open=True)
-        integer(self.max_iterations, "projection max_iterations", lo=1, hi=10000)
-        if self.rows not in ROWS:
-            raise ConfigError(f"projection rows must be one of {', '.join(ROWS)}, got {self.rows!r}")
-        real(self.c_eps, "projection c_eps", lo=0, lo_open=True)
-        real(self.regularization, "projection regularization", lo=0, hi=1, hi_open=True)
-        integer(self.max_halvings, "projection max_halvings", lo=0, hi=60)
-        if self.impact_bound is not None:
-            real(self.impact_bound, "projection impact_bound", lo=0, lo_open=True)
-        if isinstance(self.warm_start, str) and self.warm_start != "auto":
-            raise ConfigError(f"projection warm_start must be a number >= 0, 'auto' or None, got {self.warm_start!r}")
-        if not isinstance(self.warm_start, str) and self.warm_start is not None:
-            real(self.warm_start, "projection warm_start", lo=0)
-        if self.metric not in METRICS:
-            raise ConfigError(f"projection metric must be one of {', '.join(METRICS)}, got {self.metric!r}")
-        if self.slack not in ("auto", "on", "off"):
-            raise ConfigError(f"projection slack must be 'auto', 'on' or 'off', got {self.slack!r}")
-        if not isinstance(self.quality_guard, bool):
-            raise ConfigError(f"projection quality_guard must be true or false, got {self.quality_guard!r}")
-        real(self.quality_margin, "projection quality_margin", lo=0, hi=1, lo_open=True)
+        _checked(_core.check_projection, self._settings())
+
+    def _settings(self) -> dict:
+        """The settings as the core reads them (``_core.Simulation(projection=...)``)."""
+        return _fields(self)
 
 
 @dataclass(frozen=True)
@@ -131,6 +132,9 @@ class SymplecticEuler:
     """
 
     name = "symplectic_euler"
+
+    def _settings(self) -> dict:
+        return {"name": self.name}
 
 
 @dataclass(frozen=True)
@@ -155,8 +159,10 @@ class ImplicitEuler:
     name = "implicit_euler"
 
     def __post_init__(self):
-        real(self.tolerance, "implicit Euler tolerance", lo=0, hi=1, lo_open=True, hi_open=True)
-        integer(self.max_iterations, "implicit Euler max_iterations", lo=1, hi=1000)
+        _checked(_core.check_integrator, self._settings())
+
+    def _settings(self) -> dict:
+        return {"name": self.name, **_fields(self)}
 
 
 @dataclass(frozen=True)
@@ -177,7 +183,10 @@ class ProjectiveDynamics:
     name = "projective_dynamics"
 
     def __post_init__(self):
-        integer(self.iterations, "projective dynamics iterations", lo=1, hi=10000)
+        _checked(_core.check_integrator, self._settings())
+
+    def _settings(self) -> dict:
+        return {"name": self.name, **_fields(self)}
 
 
 @dataclass(frozen=True)
@@ -204,16 +213,14 @@ class Xpbd:
     name = "xpbd"
 
     def __post_init__(self):
-        integer(self.substeps, "xpbd substeps", lo=1, hi=10000)
-        integer(self.iterations, "xpbd iterations", lo=1, hi=10000)
+        _checked(_core.check_integrator, self._settings())
+
+    def _settings(self) -> dict:
+        return {"name": self.name, **_fields(self)}
 
 
-INTEGRATOR_TYPES = {
-    "symplectic_euler": SymplecticEuler,
-    "implicit_euler": ImplicitEuler,
-    "projective_dynamics": ProjectiveDynamics,
-    "xpbd": Xpbd,
-}
+#: The integrator classes by name (the names are the core's ``fepr._core.INTEGRATORS``; a test checks both agree).
+INTEGRATOR_TYPES = {cls.name: cls for cls in (SymplecticEuler, ImplicitEuler, ProjectiveDynamics, Xpbd)}
 
 
 class Energy(NamedTuple):
@@ -282,26 +289,7 @@ class History:
     """
 
     #: The columns that hold counts or 0/1 flags (written as integers by :meth:`to_csv`).
-    INTEGER_COLUMNS: FrozenSet[str] = frozenset(
-        {
-            "base_iterations",
-            "base_line_search",
-            "base_substeps",
-            "step",
-            "proj_iterations",
-            "proj_converged",
-            "proj_fallback",
-            "proj_bound_hit",
-            "proj_warm_start",
-            "proj_frozen",
-            "proj_evaluations",
-            "proj_trials",
-            "proj_metric_switched",
-            "inverted",
-            "runaway",
-            "contacts",
-        }
-    )
+    INTEGER_COLUMNS: FrozenSet[str] = frozenset(_core.HISTORY_INTEGER_COLUMNS)
 
     def __init__(self, data: np.ndarray, columns: Sequence[str]):
         self._data = data
@@ -339,17 +327,11 @@ class History:
         return f"History({len(self)} rows, columns={self.columns})"
 
 
-#: The projection's warm-start thresholds of ``Projection(warm_start="auto")``: after Projective Dynamics always
-#: (any energy error above the tolerance), after XPBD above 5% of the energy scale.
-PD_WARM_START = 0.0
-XPBD_WARM_START = 0.05
-
-
-def _warm_start_threshold(warm_start, integrator) -> float:
-    """The core's warm-start threshold for a ``Projection.warm_start`` value (inf: off)."""
-    if warm_start == "auto":
-        warm_start = {ProjectiveDynamics: PD_WARM_START, Xpbd: XPBD_WARM_START}.get(type(integrator))
-    return float("inf") if warm_start is None else float(warm_start)
+#: The projection's warm-start thresholds of ``Projection(warm_start="auto")`` (the core's policy,
+#: ``fepr_core::simulation::auto_warm_start_threshold``): after Projective Dynamics always (any energy error above
+#: the tolerance), after XPBD above 5% of the energy scale.
+PD_WARM_START = _core.PD_WARM_START
+XPBD_WARM_START = _core.XPBD_WARM_START
 
 
 def _as_float3(value, name: str) -> tuple:
@@ -439,7 +421,7 @@ class Simulation:
     ):
         if not isinstance(mesh, TetMesh):
             raise ConfigError(f"mesh must be a fepr.TetMesh, got {type(mesh).__name__}")
-        if not isinstance(material, (NeoHookean, StableNeoHookean, Arap, ConstraintNeoHookean)):
+        if not isinstance(material, tuple(MATERIAL_TYPES.values())):
             raise ConfigError(
                 "material must be fepr.NeoHookean(...), fepr.StableNeoHookean(...), fepr.Arap(...) or "
                 f"fepr.ConstraintNeoHookean(...), got {material!r}"
@@ -467,15 +449,11 @@ class Simulation:
             integrator = INTEGRATOR_TYPES[integrator]()
         elif not isinstance(integrator, tuple(INTEGRATOR_TYPES.values())):
             raise ConfigError(f"integrator must be a name or an integrator object, got {integrator!r}")
-        newton = integrator if isinstance(integrator, ImplicitEuler) else ImplicitEuler()
-        pd = integrator if isinstance(integrator, ProjectiveDynamics) else ProjectiveDynamics()
-        if isinstance(integrator, ProjectiveDynamics) and not isinstance(material, Arap):
-            # PD minimises the ARAP energy; H must be that energy (fepr-spec section 5).
-            material = Arap(material.youngs_modulus, material.poisson_ratio)
-        elif isinstance(integrator, Xpbd) and not isinstance(material, ConstraintNeoHookean):
-            # XPBD's constraints encode the constraint Neo-Hookean energy; H must be that energy.
-            material = ConstraintNeoHookean(material.youngs_modulus, material.poisson_ratio)
-        xpbd = integrator if isinstance(integrator, Xpbd) else Xpbd()
+        # PD minimises the ARAP energy, XPBD's constraints encode the constraint Neo-Hookean energy: H must be
+        # that energy (fepr-spec section 5). The core's policy says which; ``sim.material`` shows it.
+        conserved = _core.conserved_material(integrator.name)
+        if conserved is not None and material.model != conserved:
+            material = MATERIAL_TYPES[conserved](material.youngs_modulus, material.poisson_ratio)
         if projection is True:
             proj = Projection()
         elif projection is False or projection is None:
@@ -507,41 +485,17 @@ class Simulation:
         damping = real(damping, "damping", lo=0, hi=1, hi_open=True)
         if threads is not None:
             threads = integer(threads, "threads", lo=1, hi=4096)
-        p = proj or Projection()
         try:
             self._sim = _core.Simulation(
                 mesh.vertices,
                 mesh.tets,
-                material=material.model,
-                youngs_modulus=material.youngs_modulus,
-                poisson_ratio=material.poisson_ratio,
-                j0=material._j0,
-                mass_kind=mass_kind,
-                mass_value=mass_value,
-                node_masses=node_masses,
-                integrator=integrator.name,
+                material=material._settings(),
+                mass={"node_masses": node_masses} if node_masses is not None else {mass_kind: mass_value},
+                integrator=integrator._settings(),
                 dt=dt,
-                projection=proj is not None,
-                tolerance=float(p.tolerance),
-                max_iterations=int(p.max_iterations),
-                rows=p.rows,
-                c_eps=float(p.c_eps),
-                regularization=float(p.regularization),
-                max_halvings=int(p.max_halvings),
-                impact_bound=None if p.impact_bound is None else float(p.impact_bound),
-                gravity=gravity,
-                pinned=pinned_idx,
-                damping=float(damping),
+                projection=None if proj is None else proj._settings(),
+                world={"gravity": gravity, "pinned": pinned_idx, "damping": float(damping)},
                 threads=threads,
-                slack=p.slack,
-                newton_tolerance=float(newton.tolerance),
-                newton_max_iterations=int(newton.max_iterations),
-                pd_iterations=int(pd.iterations),
-                warm_start_threshold=_warm_start_threshold(p.warm_start, integrator),
-                metric=p.metric,
-                xpbd_substeps=int(xpbd.substeps),
-                xpbd_iterations=int(xpbd.iterations),
-                quality_margin=float(p.quality_margin) if p.quality_guard else None,
             )
         except ValueError as exc:
             raise ConfigError(str(exc)) from None

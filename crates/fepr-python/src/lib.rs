@@ -10,25 +10,27 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
-use fepr_core::integrators::{integrator_by_name, INTEGRATOR_NAMES};
-use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
-use fepr_core::integrators::{PdSettings, ProjectiveDynamics};
-use fepr_core::integrators::{Xpbd, XpbdSettings};
+use fepr_core::integrators::INTEGRATOR_NAMES;
 use fepr_core::invariants::measure;
-use fepr_core::material::{
-    Arap, ConstraintNeoHookean, Hyperelastic, Material, NeoHookean, StableNeoHookean,
-};
+use fepr_core::material::{Hyperelastic, MATERIAL_NAMES};
 use fepr_core::math::Vec3;
 use fepr_core::mesh::VertexOrder;
 use fepr_core::mesh::{MassSpec, TetMesh};
 use fepr_core::model::{ModelBuilder, State};
 use fepr_core::projection::{
-    ActiveRows, Metric, ProjectionReport, ProjectionSettings, Projector, Slack,
+    report_values, ProjectionReport, Projector, ReportValue, METRIC_NAMES, REPORT_FIELDS,
+    ROW_NAMES, SLACK_NAMES, WARM_START_MODES,
 };
-use fepr_core::simulation::{Simulation as CoreSimulation, StepDiagnostics};
+use fepr_core::simulation::{
+    auto_warm_start_threshold, conserved_material_name, history_row, material_for_integrator,
+    Simulation as CoreSimulation, HISTORY_COLUMNS, HISTORY_INTEGER_COLUMNS, PD_WARM_START,
+    XPBD_WARM_START,
+};
 use fepr_core::world::{Drag, KinematicPins, PinMotion};
 use fepr_core::world::{Obstacle, Shape};
 use fepr_core::FeprError;
+
+mod settings;
 
 /// A kinematic pin group from Python: `(vertices, motion kind, motion parameters, keyframe times)`.
 type PinGroupArgs = (Vec<usize>, String, Vec<f64>, Vec<f64>);
@@ -101,31 +103,6 @@ fn validate_mesh<'py>(
     Ok((out.into_pyarray(py), report.flipped, report.unreferenced))
 }
 
-fn make_material(
-    model: &str,
-    youngs_modulus: f64,
-    poisson_ratio: f64,
-    j0: f64,
-) -> PyResult<Material> {
-    match model {
-        "neo_hookean" => Ok(Material::NeoHookean(
-            NeoHookean::with_j0(youngs_modulus, poisson_ratio, j0).map_err(value_error)?,
-        )),
-        "stable_neo_hookean" => Ok(Material::StableNeoHookean(
-            StableNeoHookean::new(youngs_modulus, poisson_ratio).map_err(value_error)?,
-        )),
-        "arap" => Ok(Material::Arap(
-            Arap::new(youngs_modulus, poisson_ratio).map_err(value_error)?,
-        )),
-        "constraint_neo_hookean" => Ok(Material::ConstraintNeoHookean(
-            ConstraintNeoHookean::new(youngs_modulus, poisson_ratio).map_err(value_error)?,
-        )),
-        other => Err(PyValueError::new_err(format!(
-            "material: unknown model '{other}' (known: neo_hookean, stable_neo_hookean, arap, constraint_neo_hookean)"
-        ))),
-    }
-}
-
 /// Energy densities (n,), stresses (n, 3, 3) and optional stress derivatives (n, 9, 9).
 type MaterialArrays<'py> = (
     Bound<'py, PyArray1<f64>>,
@@ -146,7 +123,7 @@ fn material_eval<'py>(
     f: PyReadonlyArray3<'py, f64>,
     derivative: bool,
 ) -> PyResult<MaterialArrays<'py>> {
-    let mat = make_material(model, youngs_modulus, poisson_ratio, j0)?;
+    let mat = settings::build_material(model, youngs_modulus, poisson_ratio, j0)?;
     let f = f.as_array();
     if f.shape()[1] != 3 || f.shape()[2] != 3 {
         return Err(PyValueError::new_err(format!(
@@ -245,225 +222,75 @@ impl Threads {
 
 fn report_dict<'py>(py: Python<'py>, r: &ProjectionReport) -> PyResult<Bound<'py, PyDict>> {
     let d = PyDict::new(py);
-    d.set_item("iterations", r.iterations)?;
-    d.set_item("converged", r.converged)?;
-    d.set_item("residual", r.final_residual)?;
-    d.set_item("initial_residual", r.initial_residual)?;
-    d.set_item("correction", r.correction)?;
-    d.set_item("s", r.s)?;
-    d.set_item("t", r.t)?;
-    d.set_item("fallback", r.fallback)?;
-    d.set_item("bound_hit", r.bound_hit)?;
-    d.set_item("least_squares_solves", r.least_squares_solves)?;
-    d.set_item("halvings", r.halvings)?;
-    d.set_item("active_rows", r.active_rows)?;
-    d.set_item("base_energy", r.base_energy)?;
-    d.set_item("warm_start", r.warm_start)?;
-    d.set_item("stiffness_metric", r.stiffness_metric)?;
-    d.set_item("system_metric", r.system_metric)?;
-    d.set_item("restarts", r.restarts)?;
-    d.set_item("frozen_vertices", r.frozen_vertices)?;
-    d.set_item("evaluations", r.evaluations)?;
-    d.set_item("restored", r.restored)?;
-    d.set_item("unresolved", r.unresolved)?;
-    d.set_item("trials", r.trials)?;
-    d.set_item("metric_switched", r.metric_switched)?;
-    d.set_item("quality_excess", r.quality_excess)?;
-    d.set_item("gap", r.gap)?;
-    d.set_item("translated", r.translated)?;
+    for (name, value) in REPORT_FIELDS.iter().zip(report_values(r)) {
+        match value {
+            ReportValue::Count(n) => d.set_item(name, n)?,
+            ReportValue::Flag(b) => d.set_item(name, b)?,
+            ReportValue::Real(x) => d.set_item(name, x)?,
+        }
+    }
     Ok(d)
-}
-
-/// Column names of `history()`, in order.
-const HISTORY_COLUMNS: &[&str] = &[
-    "base_iterations",
-    "base_residual",
-    "base_line_search",
-    "step",
-    "time",
-    "kinetic",
-    "elastic",
-    "gravitational",
-    "total",
-    "px",
-    "py",
-    "pz",
-    "lx",
-    "ly",
-    "lz",
-    "cx",
-    "cy",
-    "cz",
-    "proj_iterations",
-    "proj_converged",
-    "proj_residual",
-    "proj_initial_residual",
-    "proj_correction",
-    "proj_fallback",
-    "proj_bound_hit",
-    "proj_s",
-    "proj_t",
-    "base_ms",
-    "proj_ms",
-    "min_j",
-    "inverted",
-    "budget",
-    "base_energy_error",
-    "runaway",
-    "proj_warm_start",
-    "budget_total",
-    "contacts",
-    "penetration",
-    "work_contact",
-    "work_damping",
-    "work_pins",
-    "work_forces",
-    "proj_frozen",
-    "base_substeps",
-    "proj_evaluations",
-    "work_unresolved",
-    "proj_restored",
-    "proj_trials",
-    "proj_metric_switched",
-    "proj_quality_excess",
-    "px_target",
-    "py_target",
-    "pz_target",
-    "lx_target",
-    "ly_target",
-    "lz_target",
-    "proj_gap",
-];
-
-fn history_row(d: &StepDiagnostics) -> [f64; 57] {
-    let i = &d.invariants;
-    let lt = d.angular_momentum_target();
-    let p = d.projection.unwrap_or_default();
-    let has = d.projection.is_some();
-    let nan_if = |x: f64| if has { x } else { f64::NAN };
-    [
-        d.base.iterations as f64,
-        d.base.residual,
-        d.base.line_search_steps as f64,
-        d.step as f64,
-        d.time,
-        i.kinetic,
-        i.elastic,
-        i.gravitational,
-        i.total,
-        i.momentum[0],
-        i.momentum[1],
-        i.momentum[2],
-        i.angular_momentum[0],
-        i.angular_momentum[1],
-        i.angular_momentum[2],
-        i.center_of_mass[0],
-        i.center_of_mass[1],
-        i.center_of_mass[2],
-        if has { p.iterations as f64 } else { 0.0 },
-        if has { p.converged as u8 as f64 } else { 0.0 },
-        nan_if(p.final_residual),
-        nan_if(p.initial_residual),
-        nan_if(p.correction),
-        if has { p.fallback as u8 as f64 } else { 0.0 },
-        if has { p.bound_hit as u8 as f64 } else { 0.0 },
-        nan_if(p.s),
-        nan_if(p.t),
-        d.base_ms,
-        d.proj_ms,
-        i.min_j,
-        i.inverted as f64,
-        d.energy_budget,
-        d.base_energy_error,
-        d.runaway as u8 as f64,
-        if has { p.warm_start as u8 as f64 } else { 0.0 },
-        d.budget_total,
-        d.contacts as f64,
-        d.penetration,
-        d.work.contact,
-        d.work.damping,
-        d.work.pins,
-        d.work.forces,
-        if has { p.frozen_vertices as f64 } else { 0.0 },
-        d.base.substeps as f64,
-        if has { p.evaluations as f64 } else { 0.0 },
-        d.work.unresolved,
-        nan_if(p.restored),
-        if has { p.trials as f64 } else { 0.0 },
-        if has {
-            p.metric_switched as u8 as f64
-        } else {
-            0.0
-        },
-        nan_if(p.quality_excess),
-        d.references.momentum[0],
-        d.references.momentum[1],
-        d.references.momentum[2],
-        lt[0],
-        lt[1],
-        lt[2],
-        nan_if(p.gap),
-    ]
 }
 
 #[pymethods]
 impl Simulation {
+    /// Settings cross as one dict per concern, each checked once here and in the core (`settings`): errors
+    /// name the key as `section.key`. `material`: model, youngs_modulus, poisson_ratio, j0; `mass`: exactly one
+    /// of density (kg/m^3), node_mass (kg per vertex), node_masses ((m,) kg); `integrator`: name and its
+    /// settings; `projection`: the fields of `fepr.Projection`, or None for no projection; `world`: gravity,
+    /// pinned, damping. Under the integrators that fix the energy they minimise (Projective Dynamics, XPBD)
+    /// the material is that energy's, built from the given moduli (`fepr_core::simulation::
+    /// material_for_integrator`).
     #[new]
-    #[pyo3(signature = (
-        vertices, tets, *, material, youngs_modulus, poisson_ratio, j0, mass_kind, mass_value, node_masses,
-        integrator, dt, projection, tolerance, max_iterations, rows, c_eps, regularization, max_halvings,
-        impact_bound, gravity, pinned, damping, threads, slack = "auto", newton_tolerance = 1e-6,
-        newton_max_iterations = 20, pd_iterations = 10, warm_start_threshold = f64::INFINITY,
-        metric = "auto", xpbd_substeps = 20, xpbd_iterations = 1,
-        quality_margin = Some(fepr_core::projection::DEFAULT_QUALITY_MARGIN)
-    ))]
+    #[pyo3(signature = (vertices, tets, *, material, mass, integrator, dt, projection, world, threads = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         vertices: PyReadonlyArray2<'_, f64>,
         tets: PyReadonlyArray2<'_, i64>,
-        material: &str,
-        youngs_modulus: f64,
-        poisson_ratio: f64,
-        j0: f64,
-        mass_kind: &str,
-        mass_value: f64,
-        node_masses: Option<PyReadonlyArray1<'_, f64>>,
-        integrator: &str,
+        material: &Bound<'_, PyAny>,
+        mass: &Bound<'_, PyAny>,
+        integrator: &Bound<'_, PyAny>,
         dt: f64,
-        projection: bool,
-        tolerance: f64,
-        max_iterations: usize,
-        rows: &str,
-        c_eps: f64,
-        regularization: f64,
-        max_halvings: usize,
-        impact_bound: Option<f64>,
-        gravity: [f64; 3],
-        pinned: Vec<usize>,
-        damping: f64,
+        projection: Option<&Bound<'_, PyAny>>,
+        world: &Bound<'_, PyAny>,
         threads: Option<usize>,
-        slack: &str,
-        newton_tolerance: f64,
-        newton_max_iterations: usize,
-        pd_iterations: usize,
-        warm_start_threshold: f64,
-        metric: &str,
-        xpbd_substeps: usize,
-        xpbd_iterations: usize,
-        quality_margin: Option<f64>,
     ) -> PyResult<Self> {
-        let (user_mesh, _) = build_mesh(&vertices, &tets)?;
-        let mat = make_material(material, youngs_modulus, poisson_ratio, j0)?;
-        let mass = match (mass_kind, node_masses) {
-            ("density", _) => MassSpec::Density(mass_value),
-            ("node_mass", Some(arr)) => MassSpec::PerVertex(arr.as_array().to_vec()),
-            ("node_mass", None) => MassSpec::NodeMass(mass_value),
-            (other, _) => {
-                return Err(PyValueError::new_err(format!(
-                    "mass_kind: unknown '{other}'"
-                )))
+        let (model_name, youngs_modulus, poisson_ratio, j0) = settings::material(material)?;
+        let choice = settings::integrator(integrator)?;
+        let projection = projection.map(settings::projection).transpose()?;
+        let (gravity, pinned, damping) = settings::world(world)?;
+        let mass = {
+            let s = settings::Section::new("mass", mass, &["density", "node_mass", "node_masses"])?;
+            let given = ["density", "node_mass", "node_masses"]
+                .iter()
+                .filter(|k| mass.get_item(**k).is_ok_and(|v| !v.is_none()))
+                .count();
+            if given != 1 {
+                return Err(PyValueError::new_err(
+                    "mass: give exactly one of density (kg/m^3), node_mass (kg per vertex) and node_masses",
+                ));
+            }
+            if let Some(v) = s.opt_real("density")? {
+                MassSpec::Density(v)
+            } else if let Some(v) = s.opt_real("node_mass")? {
+                MassSpec::NodeMass(v)
+            } else {
+                let a: PyReadonlyArray1<'_, f64> =
+                    mass.get_item("node_masses")?.extract().map_err(|_| {
+                        PyValueError::new_err("mass.node_masses must be a float64 array (m,)")
+                    })?;
+                MassSpec::PerVertex(a.as_array().to_vec())
             }
         };
+        let (user_mesh, _) = build_mesh(&vertices, &tets)?;
+        let mat = material_for_integrator(
+            choice.name(),
+            &model_name,
+            youngs_modulus,
+            poisson_ratio,
+            j0,
+        )
+        .map_err(|e| PyValueError::new_err(format!("material.{e}")))?;
         let build = |mesh: TetMesh, mass: MassSpec, pinned: Vec<usize>| {
             ModelBuilder::new(mesh, mat)
                 .mass(mass)
@@ -493,66 +320,10 @@ impl Simulation {
                 ));
             }
         };
-        let integ: Box<dyn fepr_core::integrators::Integrator> = match integrator {
-            "implicit_euler" => Box::new(
-                ImplicitEuler::new(NewtonSettings {
-                    tolerance: newton_tolerance,
-                    max_iterations: newton_max_iterations,
-                    project_psd: true,
-                })
-                .map_err(value_error)?,
-            ),
-            "projective_dynamics" => Box::new(
-                ProjectiveDynamics::new(PdSettings {
-                    iterations: pd_iterations,
-                    tolerance: None,
-                })
-                .map_err(value_error)?,
-            ),
-            "xpbd" => Box::new(
-                Xpbd::new(XpbdSettings {
-                    substeps: xpbd_substeps,
-                    iterations: xpbd_iterations,
-                })
-                .map_err(value_error)?,
-            ),
-            other => integrator_by_name(other).ok_or_else(|| {
-                PyValueError::new_err(format!(
-                    "integrator: unknown '{other}' (known: {})",
-                    INTEGRATOR_NAMES.join(", ")
-                ))
-            })?,
-        };
-        let projector = if projection {
-            let rows = ActiveRows::from_name(rows).ok_or_else(|| {
-                PyValueError::new_err(format!(
-                    "rows: unknown '{rows}' (known: auto, energy, energy_momentum, all)"
-                ))
-            })?;
-            let settings = ProjectionSettings {
-                tolerance,
-                max_iterations,
-                c_eps,
-                regularization,
-                max_halvings,
-                rows,
-                impact_bound,
-                warm_start_threshold,
-                metric: Metric::from_name(metric).ok_or_else(|| {
-                    PyValueError::new_err(format!(
-                        "metric: unknown '{metric}' (known: auto, mass, stiffness)"
-                    ))
-                })?,
-                slack: Slack::from_name(slack).ok_or_else(|| {
-                    PyValueError::new_err(format!(
-                        "slack: unknown '{slack}' (known: auto, on, off)"
-                    ))
-                })?,
-                quality_margin,
-            };
-            Some(Projector::new(settings).map_err(value_error)?)
-        } else {
-            None
+        let integ = choice.build().map_err(value_error)?;
+        let projector = match projection {
+            Some(p) => Some(Projector::new(p.settings_for(choice.name())).map_err(value_error)?),
+            None => None,
         };
         let threads = Threads::new(threads)?;
         let state = State::at_rest(&model);
@@ -1025,13 +796,61 @@ fn bench_sync_floor(py: Python<'_>, threads: usize) -> PyResult<(f64, f64)> {
     Ok((floor.region_s, floor.round_trip_s))
 }
 
+/// Check a material dict (`settings::material`): raises ValueError naming the key as `material.key`.
+#[pyfunction]
+fn check_material(material: &Bound<'_, PyAny>) -> PyResult<()> {
+    settings::material(material).map(|_| ())
+}
+
+/// Check an integrator dict (`settings::integrator`): raises ValueError naming the key as `integrator.key`.
+#[pyfunction]
+fn check_integrator(integrator: &Bound<'_, PyAny>) -> PyResult<()> {
+    settings::integrator(integrator).map(|_| ())
+}
+
+/// Check a projection dict (`settings::projection`): raises ValueError naming the key as `projection.key`.
+#[pyfunction]
+fn check_projection(projection: &Bound<'_, PyAny>) -> PyResult<()> {
+    settings::projection(projection).map(|_| ())
+}
+
+/// The material model the integrator named `integrator` fixes (its energy is the one the projection
+/// conserves), or None (`fepr_core::simulation::conserved_material_name`).
+#[pyfunction]
+fn conserved_material(integrator: &str) -> Option<&'static str> {
+    conserved_material_name(integrator)
+}
+
+/// The projection's warm-start threshold under `warm_start="auto"` after the integrator named `integrator`
+/// (infinity: off; `fepr_core::simulation::auto_warm_start_threshold`).
+#[pyfunction]
+fn warm_start_threshold(integrator: &str) -> f64 {
+    auto_warm_start_threshold(integrator)
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(validate_mesh, m)?)?;
     m.add_function(wrap_pyfunction!(material_eval, m)?)?;
     m.add_function(wrap_pyfunction!(bench_sync_floor, m)?)?;
     m.add_class::<Simulation>()?;
+    m.add_function(wrap_pyfunction!(check_material, m)?)?;
+    m.add_function(wrap_pyfunction!(check_integrator, m)?)?;
+    m.add_function(wrap_pyfunction!(check_projection, m)?)?;
+    m.add_function(wrap_pyfunction!(conserved_material, m)?)?;
+    m.add_function(wrap_pyfunction!(warm_start_threshold, m)?)?;
+    // The name lists, each defined once in the core.
     m.add("INTEGRATORS", INTEGRATOR_NAMES.to_vec())?;
+    m.add("MATERIALS", MATERIAL_NAMES.to_vec())?;
+    m.add("PROJECTION_ROWS", ROW_NAMES.to_vec())?;
+    m.add("METRICS", METRIC_NAMES.to_vec())?;
+    m.add("SLACK_MODES", SLACK_NAMES.to_vec())?;
+    m.add("WARM_START_MODES", WARM_START_MODES.to_vec())?;
+    m.add("HISTORY_COLUMNS", HISTORY_COLUMNS.to_vec())?;
+    m.add("HISTORY_INTEGER_COLUMNS", HISTORY_INTEGER_COLUMNS.to_vec())?;
+    m.add("PROJECTION_REPORT_FIELDS", REPORT_FIELDS.to_vec())?;
+    m.add("PD_WARM_START", PD_WARM_START)?;
+    m.add("XPBD_WARM_START", XPBD_WARM_START)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

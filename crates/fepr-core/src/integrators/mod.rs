@@ -9,6 +9,8 @@ mod xpbd;
 pub use implicit_euler::*;
 pub use projective_dynamics::*;
 pub use xpbd::*;
+mod choice;
+pub use choice::*;
 
 use crate::elasticity::{elastic_energy_gradient, ElasticSummary, ElasticWorkspace};
 use crate::exec::row_tasks2;

@@ -9,6 +9,8 @@
 mod psd;
 
 pub use psd::*;
+mod names;
+pub use names::*;
 
 use crate::error::{invalid, Result};
 use crate::math::{

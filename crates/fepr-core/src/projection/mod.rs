@@ -22,6 +22,8 @@ mod trial_steps;
 
 pub(crate) use moments::*;
 pub(crate) use trial_steps::*;
+mod names;
+pub use names::*;
 
 use crate::exec::{
     for_each_chunk_mut, for_each_chunk_mut2, for_each_chunk_mut3, for_each_chunk_mut4,

@@ -1,6 +1,11 @@
 //! `Simulation`: a model, a state, a base integrator and an optional projection, stepped together; keeps
 //! the running references of fepr-spec section 2 and one diagnostics row per step.
 
+mod history;
+mod policy;
+pub use history::*;
+pub use policy::*;
+
 use std::time::Instant;
 
 use crate::error::{FeprError, Result};
