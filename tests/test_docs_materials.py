@@ -23,7 +23,7 @@ def python_materials() -> list:
 
 
 def rust_materials() -> list:
-    src = (ROOT / "crates" / "fepr-core" / "src" / "material.rs").read_text(encoding="utf-8")
+    src = (ROOT / "crates" / "fepr-core" / "src" / "material" / "mod.rs").read_text(encoding="utf-8")
     body = src.split("pub enum Material {", 1)[1].split("}", 1)[0]
     return re.findall(r"^\s*([A-Z][A-Za-z]*)\(", body, flags=re.M)
 

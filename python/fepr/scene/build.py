@@ -160,17 +160,11 @@ def make_body_material(scene: Scene, body: BodySettings):
 
     mat = body.material
     try:
-        if mat.model == "neo_hookean":
-            kw: Dict[str, Any] = {}
-            if mat.j0 is not None:
-                kw["j0"] = mat.j0
-            return fepr.NeoHookean(youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio, **kw)
-        types = {
-            "stable_neo_hookean": fepr.StableNeoHookean,
-            "arap": fepr.Arap,
-            "constraint_neo_hookean": fepr.ConstraintNeoHookean,
-        }
-        return types[mat.model](youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio)
+        kw: Dict[str, Any] = {}
+        if mat.j0 is not None:
+            kw["j0"] = mat.j0
+        cls = fepr.materials.MATERIAL_TYPES[mat.model]
+        return cls(youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio, **kw)
     except ConfigError as exc:
         raise ConfigError(f"{scene._where()}{body.section('material')} {exc}") from None
 

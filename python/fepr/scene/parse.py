@@ -25,11 +25,13 @@ from .schema import (
     INTEGRATORS,
     KINEMATIC_PIN_KEYS,
     MATERIAL_MODELS,
+    METRICS,
     MOTIONS,
     OBSTACLE_COMMON_KEYS,
     OBSTACLE_KEYS,
     PROJECTION_ROWS,
     SCENE_KEYS,
+    SLACK_MODES,
     BodySettings,
     ExportSettings,
     InitialSettings,
@@ -174,17 +176,6 @@ def _as_vec3(value: Any, err: Callable[[], ConfigError]) -> Vec3:
             raise err()
         out.append(float(c))
     return (out[0], out[1], out[2])
-
-
-def _known_integrators() -> Tuple[str, ...]:
-    """The integrators the compiled core provides (``fepr._core.INTEGRATORS``), else :data:`INTEGRATORS`."""
-    try:
-        from .. import _core
-
-        names = tuple(str(n) for n in _core.INTEGRATORS)
-    except (ImportError, AttributeError):
-        return INTEGRATORS
-    return names or INTEGRATORS
 
 
 def _mesh_file_exists(p: Path) -> bool:
@@ -348,9 +339,9 @@ def _parse_projection(t: _Table) -> ProjectionSettings:
         regularization=t.number("regularization", None),
         max_halvings=t.integer("max_halvings", None, minimum=0),
         impact_bound=t.number("impact_bound", None, positive=True),
-        slack=t.string("slack", None, choices=("auto", "on", "off")),
+        slack=t.string("slack", None, choices=SLACK_MODES),
         warm_start=t.number("warm_start", None, nonnegative=True),
-        metric=t.string("metric", None, choices=("auto", "mass", "stiffness")),
+        metric=t.string("metric", None, choices=METRICS),
         quality_guard=t.boolean("quality_guard", None),
         quality_margin=t.number("quality_margin", None, positive=True),
     )
@@ -670,7 +661,7 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
         bodies=bodies,
         **one,
         integrator=IntegratorSettings(
-            name=integ.string("name", "symplectic_euler", choices=_known_integrators()),
+            name=integ.string("name", "symplectic_euler", choices=INTEGRATORS),
             dt=integ.number("dt", 1.0 / 30.0, positive=True),
             tolerance=integ.number("tolerance", None, positive=True),
             max_iterations=integ.integer("max_iterations", None, minimum=1),

@@ -17,6 +17,7 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
+from .. import _core
 from ..errors import ConfigError
 from . import build as _build
 
@@ -109,10 +110,12 @@ KINEMATIC_PIN_KEYS: Tuple[str, ...] = (
 )
 MOTIONS = {"sinusoidal": ("amplitude", "frequency", "phase"), "keyframes": ("times", "offsets")}
 
-MATERIAL_MODELS = ("neo_hookean", "stable_neo_hookean", "arap", "constraint_neo_hookean")
-#: Integrator names planned by the design; the ones actually accepted come from the compiled core.
-INTEGRATORS = ("symplectic_euler", "implicit_euler", "projective_dynamics", "xpbd")
-PROJECTION_ROWS = ("auto", "energy", "energy_momentum", "all")
+#: Name lists, defined once in the core (``fepr._core``) and read here.
+MATERIAL_MODELS: Tuple[str, ...] = tuple(_core.MATERIALS)
+INTEGRATORS: Tuple[str, ...] = tuple(_core.INTEGRATORS)
+PROJECTION_ROWS: Tuple[str, ...] = tuple(_core.PROJECTION_ROWS)
+SLACK_MODES: Tuple[str, ...] = tuple(_core.SLACK_MODES)
+METRICS: Tuple[str, ...] = tuple(_core.METRICS)
 #: The ``[mesh]`` options each builtin mesh takes (its keyword arguments in :func:`fepr.meshes.builtin`).
 _BUILTIN_OPTIONS = {
     "box": ("size", "resolution", "center"),
