@@ -1,18 +1,23 @@
 //! Base integrators. Each takes `(model, state, dt)`, advances the state, and reports what the step is
 //! *supposed* to change physically (the energy budget and the external impulses of fepr-spec section 2),
 //! which the projection turns into targets.
+//!
+//! This file holds the [`Integrator`] trait, the step report, the helpers the integrators share and the
+//! names the scene files use; each integrator has its own file, and [`HandOver`] (in `hand_over`) is what a
+//! step and the projection around it share.
 
+mod hand_over;
 mod implicit_euler;
 mod projective_dynamics;
 mod symplectic_euler;
 mod xpbd;
 
+pub use hand_over::*;
 pub use implicit_euler::*;
 pub use projective_dynamics::*;
 pub use symplectic_euler::*;
 pub use xpbd::*;
 
-use crate::elasticity::ElasticSummary;
 use crate::math::Vec3;
 use crate::model::{Model, State};
 
@@ -38,12 +43,20 @@ pub struct StepReport {
     pub substeps: usize,
 }
 
-/// A base time integrator.
+/// A base time integrator: the physics of a step. What a step and the projection around it can share instead
+/// of evaluating twice goes through the [`HandOver`] passed to [`Integrator::step`] (see its module).
 pub trait Integrator: Send + Sync {
     /// Short name (as used in scene files).
     fn name(&self) -> &'static str;
-    /// Advance `state` by `dt` seconds.
-    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport;
+    /// Advance `state` by `dt` seconds. `hand_over` is the simulation's (a caller stepping an integrator on its
+    /// own passes one it keeps, or a new one: the step's result is the same bits either way).
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        dt: f64,
+        hand_over: &mut HandOver,
+    ) -> StepReport;
     /// Check that this integrator can run on `model` (called once when a simulation is built).
     fn check(&self, _model: &Model) -> crate::error::Result<()> {
         Ok(())
@@ -57,38 +70,6 @@ pub trait Integrator: Send + Sync {
     /// stiffness metric by default (see [`crate::projection::Metric`]).
     fn is_implicit(&self) -> bool {
         false
-    }
-    /// Offer the elastic gradient `grad` (J/m, shape (m, 3)) of `model` at positions `x`, computed by the
-    /// projection at the end of a step, for the **next** call of [`Integrator::step`] only. An integrator that
-    /// starts its step with the gradient at the current positions may take the buffer (swap it) and skip that
-    /// evaluation when the positions it then sees are still bit-identical to `x` and the model's
-    /// [`Model::elastic_key`] (mesh and material) is still the one of `model` (so the result is the same bits
-    /// either way). Default: ignore the offer.
-    fn offer_elastic_gradient(&mut self, _model: &Model, _x: &[Vec3], _grad: &mut Vec<Vec3>) {}
-    /// [`Integrator::offer_elastic_gradient`] with `x_copy`, a buffer that holds `x` bit for bit (shape (m, 3)):
-    /// an integrator that keeps the offer's positions may take it by a swap instead of copying `x`. Default:
-    /// the offer without it.
-    fn offer_elastic_gradient_with_positions(
-        &mut self,
-        model: &Model,
-        x: &[Vec3],
-        _x_copy: &mut Vec<Vec3>,
-        grad: &mut Vec<Vec3>,
-    ) {
-        self.offer_elastic_gradient(model, x, grad);
-    }
-    /// The elastic energy summary and gradient (J/m, shape (m, 3)) that the last [`Integrator::step`]
-    /// evaluated at the positions it ended on, with those positions, if it did (backward Euler's converged
-    /// Newton iterate): the projection that follows may take the buffer (swap it) and skip its first elastic
-    /// evaluation when the state's positions are still bit-identical to them (so the result is the same
-    /// bits either way). Valid until the next step. Default: none.
-    fn result_elastic_gradient(&mut self) -> Option<(ElasticSummary, &[Vec3], &mut Vec<Vec3>)> {
-        None
-    }
-    /// The position metric this integrator has factorised for the projection that follows its step, if any
-    /// (Projective Dynamics: its global matrix; see [`crate::projection::SystemMetric`]). Default: none.
-    fn system_metric(&mut self) -> Option<&mut dyn crate::projection::SystemMetric> {
-        None
     }
 }
 

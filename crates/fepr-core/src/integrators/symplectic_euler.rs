@@ -2,10 +2,10 @@
 
 use crate::elasticity::{elastic_energy_gradient, ElasticWorkspace};
 use crate::exec::row_tasks2;
-use crate::integrators::{Integrator, StepReport};
+use crate::integrators::{HandOver, Integrator, StepReport};
 use crate::invariants::{angular_momentum, center_of_mass, kinetic_energy, linear_momentum};
-use crate::math::{same_bits, scale, Vec3};
-use crate::model::{Model, ModelKey, State};
+use crate::math::{scale, Vec3};
+use crate::model::{Model, State};
 
 /// Symplectic (semi-implicit) Euler, the seed's integrator:
 /// `v <- (1 - d) (v + h M^-1 f(x))`, `x <- x + h v`, with `f = -grad E_el + m g` and damping factor `d`.
@@ -14,13 +14,7 @@ use crate::model::{Model, ModelKey, State};
 pub struct SymplecticEuler {
     grad: Vec<Vec3>,
     ws: ElasticWorkspace,
-    /// Positions of a gradient offered by the projection (see [`Integrator::offer_elastic_gradient`]), valid
-    /// while `offered_key` is set (the buffer keeps its length between offers: no fill before each copy). The
-    /// gradient itself is then in `grad`.
-    offered_x: Vec<Vec3>,
-    /// [`Model::elastic_key`] of the model the offered gradient belongs to; `None` when there is no offer.
-    offered_key: Option<ModelKey>,
-    /// Steps that reused an offered gradient instead of evaluating it (for tests and benchmarks).
+    /// Steps that took the gradient from the hand-over instead of evaluating it (for tests and benchmarks).
     pub reused_gradients: usize,
 }
 
@@ -39,16 +33,17 @@ impl Integrator for SymplecticEuler {
         true
     }
 
-    fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        hand_over: &mut HandOver,
+    ) -> StepReport {
         let m = model.num_vertices();
         // The projection's last evaluation is usually at exactly these positions (fepr-spec: symplectic Euler
-        // + FEPR would otherwise evaluate the gradient at x_{n+1} twice); reuse it only when every bit agrees.
-        let offered_key = self.offered_key.take();
-        if offered_key == Some(model.elastic_key())
-            && self.offered_x.len() == m
-            && self.grad.len() == m
-            && same_bits(&self.offered_x, &state.x)
-        {
+        // + FEPR would otherwise evaluate the gradient at x_{n+1} twice).
+        if hand_over.take_start_gradient(model, &state.x, &mut self.grad) {
             self.reused_gradients += 1;
         } else {
             self.grad.resize(m, [0.0; 3]);
@@ -120,37 +115,14 @@ impl Integrator for SymplecticEuler {
         state.time += h;
         report
     }
-
-    fn offer_elastic_gradient(&mut self, model: &Model, x: &[Vec3], grad: &mut Vec<Vec3>) {
-        if x.len() != grad.len() {
-            return;
-        }
-        std::mem::swap(&mut self.grad, grad);
-        crate::exec::copy_rows(x, &mut self.offered_x);
-        self.offered_key = Some(model.elastic_key());
-    }
-
-    fn offer_elastic_gradient_with_positions(
-        &mut self,
-        model: &Model,
-        x: &[Vec3],
-        x_copy: &mut Vec<Vec3>,
-        grad: &mut Vec<Vec3>,
-    ) {
-        if x_copy.len() != x.len() || grad.len() != x.len() {
-            return self.offer_elastic_gradient(model, x, grad);
-        }
-        debug_assert!(same_bits(x, x_copy), "the offered copy holds x bit for bit");
-        std::mem::swap(&mut self.grad, grad);
-        std::mem::swap(&mut self.offered_x, x_copy);
-        self.offered_key = Some(model.elastic_key());
-    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::elasticity::{elastic_energy_gradient, ElasticWorkspace};
     use crate::material::{Material, NeoHookean};
+    use crate::math::same_bits;
     use crate::mesh::{tests::cube, MassSpec, TetMesh};
     use crate::model::ModelBuilder;
 
@@ -179,55 +151,49 @@ mod tests {
     }
 
     #[test]
-    fn offered_gradient_is_reused_only_at_bit_identical_positions() {
+    fn handed_over_gradient_is_reused_only_at_bit_identical_positions() {
         let model = cube_model();
         let h = 1e-4;
         let start = stretched_state(&model);
         let mut fresh = start.clone();
-        SymplecticEuler::new().step(&model, &mut fresh, h);
+        SymplecticEuler::new().step(&model, &mut fresh, h, &mut HandOver::new());
+        let exact = || {
+            let mut g = vec![[0.0; 3]; model.num_vertices()];
+            elastic_energy_gradient(&model, &start.x, &mut ElasticWorkspace::default(), &mut g);
+            g
+        };
 
-        // The exact gradient at the start positions, offered: reused, and the step is the same bits.
-        let mut exact = vec![[0.0; 3]; model.num_vertices()];
-        elastic_energy_gradient(
-            &model,
-            &start.x,
-            &mut ElasticWorkspace::default(),
-            &mut exact,
-        );
+        // The exact gradient at the start positions, handed over: reused, and the step is the same bits.
+        let mut hand_over = HandOver::new();
+        hand_over.put_final_gradient(&model, &start.x, None, &mut exact());
         let mut se = SymplecticEuler::new();
-        se.offer_elastic_gradient(&model, &start.x, &mut exact);
         let mut reused = start.clone();
-        se.step(&model, &mut reused, h);
+        se.step(&model, &mut reused, h, &mut hand_over);
         assert_eq!(se.reused_gradients, 1);
         assert!(same_state(&fresh, &reused));
 
-        // An offer for other positions (one coordinate one ulp away) is ignored: a garbage gradient there
+        // A gradient for other positions (one coordinate one ulp away) is ignored: a garbage gradient there
         // changes nothing.
         let mut other = start.x.clone();
         other[5][1] = f64::from_bits(other[5][1].to_bits() + 1);
         let mut garbage = vec![[1e30; 3]; model.num_vertices()];
+        let mut hand_over = HandOver::new();
+        hand_over.put_final_gradient(&model, &other, None, &mut garbage);
         let mut se = SymplecticEuler::new();
-        se.offer_elastic_gradient(&model, &other, &mut garbage);
         let mut ignored = start.clone();
-        se.step(&model, &mut ignored, h);
+        se.step(&model, &mut ignored, h, &mut hand_over);
         assert_eq!(se.reused_gradients, 0);
         assert!(same_state(&fresh, &ignored));
 
-        // An offer is good for one step only.
+        // An entry is good for one step only.
         let mut twice = start.clone();
         let mut se = SymplecticEuler::new();
-        let mut exact2 = vec![[0.0; 3]; model.num_vertices()];
-        elastic_energy_gradient(
-            &model,
-            &start.x,
-            &mut ElasticWorkspace::default(),
-            &mut exact2,
-        );
-        se.offer_elastic_gradient(&model, &start.x, &mut exact2);
-        se.step(&model, &mut twice, h);
+        let mut hand_over = HandOver::new();
+        hand_over.put_final_gradient(&model, &start.x, None, &mut exact());
+        se.step(&model, &mut twice, h, &mut hand_over);
         twice.x.clone_from(&start.x);
         twice.v.clone_from(&start.v);
-        se.step(&model, &mut twice, h);
+        se.step(&model, &mut twice, h, &mut hand_over);
         assert_eq!(se.reused_gradients, 1);
         assert!(same_state(&fresh, &twice));
     }
