@@ -130,9 +130,10 @@ impl fepr_core::integrators::Integrator for Verbose {
         model: &fepr_core::model::Model,
         state: &mut fepr_core::model::State,
         dt: f64,
+        hand_over: &mut fepr_core::integrators::HandOver,
     ) -> fepr_core::integrators::StepReport {
         let t0 = Instant::now();
-        let r = self.0.step(model, state, dt);
+        let r = self.0.step(model, state, dt, hand_over);
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         let d0 = self.0.last_decrements.first().copied().unwrap_or(0.0);
         let rel: Vec<String> = self
@@ -233,7 +234,12 @@ fn cold_projection_study(stem: &str, threads: usize) {
             // As `Simulation::step` holds it: for one step, base step and projection.
             let _awake = fepr_core::exec::KeepAwake::new();
             let mut base = state.clone();
-            ie.step(&model, &mut base, h);
+            ie.step(
+                &model,
+                &mut base,
+                h,
+                &mut fepr_core::integrators::HandOver::new(),
+            );
             let mut results = Vec::with_capacity(2);
             for total in totals.iter_mut() {
                 let mut s = base.clone();
@@ -277,8 +283,9 @@ impl fepr_core::integrators::Integrator for TimedPd {
         model: &fepr_core::model::Model,
         state: &mut fepr_core::model::State,
         dt: f64,
+        hand_over: &mut fepr_core::integrators::HandOver,
     ) -> fepr_core::integrators::StepReport {
-        let r = self.0.step(model, state, dt);
+        let r = self.0.step(model, state, dt, hand_over);
         let t = self.0.timing;
         print!(
             "local {:.2} ms, rhs {:.2} ms, solve {:.2} ms; ",
@@ -653,7 +660,12 @@ fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
     let targets = targets_at(&inv);
     let h = 1e-3;
     let mut base = start.clone();
-    SymplecticEuler::new().step(&model, &mut base, h);
+    SymplecticEuler::new().step(
+        &model,
+        &mut base,
+        h,
+        &mut fepr_core::integrators::HandOver::new(),
+    );
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()

@@ -124,7 +124,12 @@ fn steps(c: &mut Criterion) {
         let mut se = SymplecticEuler::new();
         g.bench_function(BenchmarkId::new("symplectic_euler", &name), |b| {
             b.iter(|| {
-                se.step(&model, &mut state, 1e-3);
+                se.step(
+                    &model,
+                    &mut state,
+                    1e-3,
+                    &mut fepr_core::integrators::HandOver::new(),
+                );
             })
         });
         let mut state = State::at_rest(&model);

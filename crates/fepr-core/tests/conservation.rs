@@ -2,7 +2,7 @@
 
 mod common;
 use common::*;
-use fepr_core::integrators::SymplecticEuler;
+use fepr_core::integrators::{HandOver, SymplecticEuler};
 use fepr_core::model::State;
 use fepr_core::projection::{ProjectionSettings, Projector};
 use fepr_core::simulation::Simulation;
@@ -638,7 +638,7 @@ fn correction_is_finite_with_frozen_positions() {
     };
     let h = 1.0 / 30.0;
     let mut state = start.clone();
-    SymplecticEuler::new().step(&model, &mut state, h);
+    SymplecticEuler::new().step(&model, &mut state, h, &mut HandOver::new());
     let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
     proj.set_frozen_positions(&[0, 1]);
     let (x0, x1) = (state.x[0], state.x[1]);

@@ -5,8 +5,8 @@
 
 mod common;
 use common::*;
+use fepr_core::integrators::{HandOver, Integrator, StepReport, SymplecticEuler};
 use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
-use fepr_core::integrators::{Integrator, StepReport, SymplecticEuler};
 use fepr_core::mesh::TetMesh;
 use fepr_core::model::{Model, State};
 use fepr_core::projection::{ProjectionSettings, Projector};
@@ -14,70 +14,46 @@ use fepr_core::simulation::Simulation;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
-/// Symplectic Euler that declines every offered gradient (the trait's default), i.e. always evaluates.
+/// Symplectic Euler stepped with a hand-over of its own, new at every step: it finds no gradient there and
+/// always evaluates.
 struct WithoutHandoff(SymplecticEuler);
 
 impl Integrator for WithoutHandoff {
     fn name(&self) -> &'static str {
         self.0.name()
     }
-    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport {
-        self.0.step(model, state, dt)
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        dt: f64,
+        _hand_over: &mut HandOver,
+    ) -> StepReport {
+        self.0.step(model, state, dt, &mut HandOver::new())
     }
 }
 
-/// Symplectic Euler that takes offers, and publishes how many steps reused one.
+/// Symplectic Euler with the simulation's hand-over, publishing how many steps reused its gradient.
 struct Counting(SymplecticEuler, Arc<AtomicUsize>);
 
 impl Integrator for Counting {
     fn name(&self) -> &'static str {
         self.0.name()
     }
-    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport {
-        let r = self.0.step(model, state, dt);
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        dt: f64,
+        hand_over: &mut HandOver,
+    ) -> StepReport {
+        let r = self.0.step(model, state, dt, hand_over);
         self.1.store(self.0.reused_gradients, Ordering::Relaxed);
         r
     }
-    fn offer_elastic_gradient(&mut self, model: &Model, x: &[[f64; 3]], grad: &mut Vec<[f64; 3]>) {
-        self.0.offer_elastic_gradient(model, x, grad);
-    }
 }
 
-/// Symplectic Euler that takes offers with the projection's copy of their positions too, and publishes how many
-/// steps reused an offer and how many offers came with a copy.
-struct CountingCopies(SymplecticEuler, Arc<[AtomicUsize; 2]>);
-
-impl Integrator for CountingCopies {
-    fn name(&self) -> &'static str {
-        self.0.name()
-    }
-    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport {
-        let r = self.0.step(model, state, dt);
-        self.1[0].store(self.0.reused_gradients, Ordering::Relaxed);
-        r
-    }
-    fn offer_elastic_gradient(&mut self, model: &Model, x: &[[f64; 3]], grad: &mut Vec<[f64; 3]>) {
-        self.0.offer_elastic_gradient(model, x, grad);
-    }
-    fn offer_elastic_gradient_with_positions(
-        &mut self,
-        model: &Model,
-        x: &[[f64; 3]],
-        x_copy: &mut Vec<[f64; 3]>,
-        grad: &mut Vec<[f64; 3]>,
-    ) {
-        // The copy is x's, bit for bit (the projection's own debug check asserts the same).
-        assert!(x
-            .iter()
-            .zip(x_copy.iter())
-            .all(|(p, q)| (0..3).all(|k| p[k].to_bits() == q[k].to_bits())));
-        self.1[1].fetch_add(1, Ordering::Relaxed);
-        self.0
-            .offer_elastic_gradient_with_positions(model, x, x_copy, grad);
-    }
-}
-
-/// Backward Euler that keeps its last gradient to itself (the trait's default), so the projection
+/// Backward Euler stepped with a hand-over of its own: its last gradient does not reach the projection, which
 /// evaluates it again.
 struct BackwardWithoutHandoff(ImplicitEuler);
 
@@ -85,8 +61,14 @@ impl Integrator for BackwardWithoutHandoff {
     fn name(&self) -> &'static str {
         self.0.name()
     }
-    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport {
-        self.0.step(model, state, dt)
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        dt: f64,
+        _hand_over: &mut HandOver,
+    ) -> StepReport {
+        self.0.step(model, state, dt, &mut HandOver::new())
     }
     fn is_implicit(&self) -> bool {
         true
@@ -108,6 +90,15 @@ fn run_on(
     integrator: Box<dyn Integrator>,
     steps: usize,
 ) -> (Vec<State>, Vec<usize>) {
+    run_counting_copies(mesh, integrator, steps).0
+}
+
+/// [`run_on`], and the hand-over's entries whose positions were the projection's own copy.
+fn run_counting_copies(
+    mesh: TetMesh,
+    integrator: Box<dyn Integrator>,
+    steps: usize,
+) -> ((Vec<State>, Vec<usize>), usize) {
     let model = model(mesh, neo_hookean(1e3, 0.3), 5.0, [0.0, 0.0, -9.81]);
     let mut state = State::at_rest(&model);
     scaled(&mut state, 1.3, [0.0; 3]);
@@ -116,12 +107,13 @@ fn run_on(
     }
     let proj = Projector::new(ProjectionSettings::default()).unwrap();
     let mut sim = Simulation::new(model, state, integrator, 1.0 / 60.0, Some(proj)).unwrap();
-    (0..steps)
+    let run = (0..steps)
         .map(|_| {
             let evaluations = sim.step().unwrap().projection.unwrap().evaluations;
             (sim.state.clone(), evaluations)
         })
-        .unzip()
+        .unzip();
+    (run, sim.hand_over().positions_swapped())
 }
 
 fn assert_same_bits(a: &[State], b: &[State]) {
@@ -147,23 +139,23 @@ fn gradient_handoff_leaves_the_projected_trajectory_bit_identical() {
     assert_same_bits(&with, &without);
 }
 
-/// The projection's trial pass writes a copy of the positions it returns, which symplectic Euler takes by a swap
-/// instead of copying them after every projection (from `parallel::SERIAL_ROWS` vertices: a 10^3 block of
-/// cubes, 1,331): every offer but the first comes with it, every step after the first still reuses the offered
-/// gradient, and the trajectory keeps its bits. On a mesh below that size no offer comes with a copy.
+/// The projection's trial pass writes a copy of the positions it returns, which the hand-over takes by a swap
+/// instead of copying them after every projection (from `exec::SERIAL_ROWS` vertices: a 10^3 block of cubes,
+/// 1,331): every entry but the first comes with it, every step after the first still reuses the gradient, and
+/// the trajectory keeps its bits. On a mesh below that size no entry comes with a copy.
 #[test]
 fn projected_positions_copy_is_handed_over_and_leaves_the_trajectory_bit_identical() {
     let cells: Vec<[i64; 3]> = (0..1000).map(|c| [c % 10, c / 10 % 10, c / 100]).collect();
     let block = || cubes_mesh(&cells, 0.1);
     assert!(block().num_vertices() >= fepr_core::exec::SERIAL_ROWS);
     let steps = 12;
-    let counts = Arc::new([AtomicUsize::new(0), AtomicUsize::new(0)]);
-    let counting = CountingCopies(SymplecticEuler::new(), counts.clone());
-    let (with, _) = run_on(block(), Box::new(counting), steps);
-    assert_eq!(counts[0].load(Ordering::Relaxed), steps - 1);
-    // The first projection has no copy (the caller had not asked for one yet); the later ones return their
-    // accepted trial point here.
-    assert_eq!(counts[1].load(Ordering::Relaxed), steps - 1);
+    let reused = Arc::new(AtomicUsize::new(0));
+    let counting = Counting(SymplecticEuler::new(), reused.clone());
+    let ((with, _), swapped) = run_counting_copies(block(), Box::new(counting), steps);
+    assert_eq!(reused.load(Ordering::Relaxed), steps - 1);
+    // The first projection has no copy (nobody had asked for one yet); the later ones return their accepted
+    // trial point here.
+    assert_eq!(swapped, steps - 1);
     let (without, _) = run_on(
         block(),
         Box::new(WithoutHandoff(SymplecticEuler::new())),
@@ -171,13 +163,14 @@ fn projected_positions_copy_is_handed_over_and_leaves_the_trajectory_bit_identic
     );
     assert_same_bits(&with, &without);
 
-    let small = Arc::new([AtomicUsize::new(0), AtomicUsize::new(0)]);
-    run(
-        Box::new(CountingCopies(SymplecticEuler::new(), small.clone())),
+    let small = Arc::new(AtomicUsize::new(0));
+    let ((_, _), swapped) = run_counting_copies(
+        ell_mesh(),
+        Box::new(Counting(SymplecticEuler::new(), small.clone())),
         10,
     );
-    assert_eq!(small[0].load(Ordering::Relaxed), 9);
-    assert_eq!(small[1].load(Ordering::Relaxed), 0);
+    assert_eq!(small.load(Ordering::Relaxed), 9);
+    assert_eq!(swapped, 0);
 }
 
 #[test]

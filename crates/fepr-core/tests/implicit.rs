@@ -2,7 +2,7 @@
 
 mod common;
 use common::*;
-use fepr_core::integrators::Integrator;
+use fepr_core::integrators::{HandOver, Integrator};
 use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
 use fepr_core::model::State;
 
@@ -17,7 +17,7 @@ fn newton_converges_quadratically_near_the_solution() {
         project_psd: true,
     })
     .unwrap();
-    let report = ie.step(&model, &mut state, 0.05);
+    let report = ie.step(&model, &mut state, 0.05, &mut HandOver::new());
     let d = &ie.last_decrements;
     eprintln!("Newton decrements: {d:?}");
     assert!(
@@ -43,7 +43,7 @@ fn symbolic_factorisation_is_done_once_per_run() {
     scaled(&mut state, 1.2, [0.0; 3]);
     let mut ie = ImplicitEuler::default();
     for _ in 0..30 {
-        ie.step(&model, &mut state, 1.0 / 30.0);
+        ie.step(&model, &mut state, 1.0 / 30.0, &mut HandOver::new());
     }
     assert_eq!(ie.symbolic_analyses, 1);
 }
@@ -88,7 +88,7 @@ fn pinned_vertices_stay_put_under_gravity() {
     let x0 = state.x.clone();
     let mut ie = ImplicitEuler::default();
     for _ in 0..20 {
-        ie.step(&m, &mut state, 0.02);
+        ie.step(&m, &mut state, 0.02, &mut HandOver::new());
     }
     for &p in &pinned {
         assert_eq!(state.x[p], x0[p]);
@@ -155,7 +155,7 @@ fn implicit_euler_is_bit_identical_for_any_thread_count() {
             scaled(&mut state, 1.1, [0.2; 3]);
             let mut ie = ImplicitEuler::default();
             for _ in 0..3 {
-                ie.step(&model, &mut state, 1.0 / 30.0);
+                ie.step(&model, &mut state, 1.0 / 30.0, &mut HandOver::new());
             }
             state
                 .x

@@ -11,7 +11,7 @@ use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
 use fepr_core::integrators::ImplicitEuler;
 use fepr_core::integrators::ProjectiveDynamics;
 use fepr_core::integrators::Xpbd;
-use fepr_core::integrators::{Integrator, StepReport, SymplecticEuler};
+use fepr_core::integrators::{HandOver, Integrator, StepReport, SymplecticEuler};
 use fepr_core::invariants::measure;
 use fepr_core::material::{Arap, ConstraintNeoHookean, Material};
 use fepr_core::model::{Model, State};
@@ -85,8 +85,8 @@ fn compare_with_new(
     what: &str,
 ) {
     let (mut a, mut b) = (state.clone(), state.clone());
-    used.step(m, &mut a, h);
-    new.step(m, &mut b, h);
+    used.step(m, &mut a, h, &mut HandOver::new());
+    new.step(m, &mut b, h, &mut HandOver::new());
     assert_same_bits(&a, &b, what);
 }
 
@@ -97,7 +97,7 @@ fn implicit_euler_rebuilds_its_pattern_after_a_pin_change() {
     let mut s = moving_state(&m);
     let mut ie = ImplicitEuler::default();
     for _ in 0..3 {
-        ie.step(&m, &mut s, h);
+        ie.step(&m, &mut s, h, &mut HandOver::new());
     }
     let base = bottom(&m);
     pin(&mut m, &mut s, &base, true);
@@ -169,7 +169,7 @@ fn projective_dynamics_refactorises_after_a_material_mass_or_pin_change() {
     let mut m = model(ell_mesh(), arap(1e3), 1.0, [0.0, 0.0, -9.81]);
     let mut s = moving_state(&m);
     let mut pd = ProjectiveDynamics::default();
-    pd.step(&m, &mut s, h);
+    pd.step(&m, &mut s, h, &mut HandOver::new());
     m.material = arap(4e3);
     compare_with_new(
         &mut pd,
@@ -233,7 +233,7 @@ fn projective_dynamics_serves_two_models_in_turn() {
     );
     let mut pd = ProjectiveDynamics::default();
     let mut sa = moving_state(&a);
-    pd.step(&a, &mut sa, h);
+    pd.step(&a, &mut sa, h, &mut HandOver::new());
     let sb = moving_state(&b);
     compare_with_new(
         &mut pd,
@@ -252,7 +252,7 @@ fn xpbd_prepares_again_after_a_material_mass_or_pin_change() {
     let mut m = model(ell_mesh(), cnh(1e3), 1.0, [0.0, 0.0, -9.81]);
     let mut s = moving_state(&m);
     let mut xpbd = Xpbd::default();
-    xpbd.step(&m, &mut s, h);
+    xpbd.step(&m, &mut s, h, &mut HandOver::new());
     m.material = cnh(5e3);
     compare_with_new(&mut xpbd, &mut Xpbd::default(), &m, &s, h, "material");
     m.masses[2] *= 4.0;
@@ -364,7 +364,7 @@ fn rayleigh_damping_rebuilds_its_pattern_after_a_pin_change() {
     assert_same_bits(&used.state, &new.state, "Rayleigh damping");
 }
 
-/// Symplectic Euler that declines every offered gradient (the trait's default): it always evaluates.
+/// Symplectic Euler stepped with a hand-over of its own, new at every step: it always evaluates.
 struct Declining(SymplecticEuler);
 
 impl Integrator for Declining {
@@ -374,8 +374,14 @@ impl Integrator for Declining {
     fn applies_step_damping(&self) -> bool {
         true
     }
-    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport {
-        self.0.step(model, state, dt)
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        dt: f64,
+        _hand_over: &mut HandOver,
+    ) -> StepReport {
+        self.0.step(model, state, dt, &mut HandOver::new())
     }
 }
 
@@ -405,16 +411,13 @@ fn offered_gradient_is_reused_by_the_same_model_only() {
     let start = moving_state(&soft);
     let mut grad = vec![[0.0; 3]; soft.num_vertices()];
     elastic_energy_gradient(&soft, &start.x, &mut ElasticWorkspace::default(), &mut grad);
+    let mut hand_over = HandOver::new();
+    hand_over.put_final_gradient(&soft, &start.x, None, &mut grad);
     let mut se = SymplecticEuler::new();
-    se.offer_elastic_gradient(&soft, &start.x, &mut grad);
-    compare_with_new(
-        &mut se,
-        &mut SymplecticEuler::new(),
-        &stiff,
-        &start,
-        1e-3,
-        "offer",
-    );
+    let (mut a, mut b) = (start.clone(), start.clone());
+    se.step(&stiff, &mut a, 1e-3, &mut hand_over);
+    SymplecticEuler::new().step(&stiff, &mut b, 1e-3, &mut HandOver::new());
+    assert_same_bits(&a, &b, "handed-over gradient");
     assert_eq!(se.reused_gradients, 0);
 }
 

@@ -2,7 +2,7 @@
 
 mod common;
 use common::*;
-use fepr_core::integrators::ProjectiveDynamics;
+use fepr_core::integrators::{HandOver, ProjectiveDynamics};
 use fepr_core::material::{Arap, Material};
 use fepr_core::model::State;
 use fepr_core::simulation::Simulation;
@@ -54,7 +54,7 @@ fn pd_factorises_once_and_pins_hold() {
     let mut pd = ProjectiveDynamics::default();
     use fepr_core::integrators::Integrator;
     for _ in 0..20 {
-        pd.step(&m, &mut state, 0.02);
+        pd.step(&m, &mut state, 0.02, &mut HandOver::new());
     }
     assert_eq!(pd.factorizations, 1);
     for &p in &pinned {
@@ -148,12 +148,13 @@ fn pd_fepr_in_the_pd_matrix_metric_is_bit_identical_for_any_thread_count() {
 #[test]
 fn pd_system_metric_solves_with_the_matrix_of_its_norm() {
     use fepr_core::integrators::Integrator;
-    use fepr_core::projection::SystemMetric;
     let sim = pd_cantilever(false);
     let (model, h) = (&sim.model, 1.0 / 30.0);
     let mut pd = ProjectiveDynamics::default();
     let mut state = State::at_rest(model);
-    pd.step(model, &mut state, h);
+    let mut hand_over = HandOver::new();
+    pd.step(model, &mut state, h, &mut hand_over);
+    let mut metric = hand_over.metric().expect("PD shares its matrix");
     let m = model.num_vertices();
     let rhs: Vec<[f64; 3]> = (0..m)
         .map(|i| {
@@ -166,9 +167,9 @@ fn pd_system_metric_solves_with_the_matrix_of_its_norm() {
         })
         .collect();
     let mut z = vec![[f64::NAN; 3]; m];
-    assert!(pd.solve(model, h, &rhs, &mut z));
+    assert!(metric.solve(model, h, &rhs, &mut z));
     assert!(
-        !pd.solve(model, 0.5 * h, &rhs, &mut vec![[0.0; 3]; m]),
+        !metric.solve(model, 0.5 * h, &rhs, &mut vec![[0.0; 3]; m]),
         "another step size"
     );
     let dot: f64 = rhs
@@ -176,7 +177,7 @@ fn pd_system_metric_solves_with_the_matrix_of_its_norm() {
         .zip(&z)
         .map(|(r, z)| r[0] * z[0] + r[1] * z[1] + r[2] * z[2])
         .sum();
-    let quad = pd.norm_sq(model, h, &z);
+    let quad = metric.norm_sq(model, h, &z);
     assert!(
         (quad - dot).abs() <= 1e-10 * dot.abs(),
         "z^T W z {quad} against z . r {dot}"
@@ -187,7 +188,7 @@ fn pd_system_metric_solves_with_the_matrix_of_its_norm() {
             let mut minus = z.clone();
             plus[i][a] += 1.0;
             minus[i][a] -= 1.0;
-            let wz = (pd.norm_sq(model, h, &plus) - pd.norm_sq(model, h, &minus)) / 4.0;
+            let wz = (metric.norm_sq(model, h, &plus) - metric.norm_sq(model, h, &minus)) / 4.0;
             assert!(
                 (wz - rhs[i][a]).abs() <= 1e-8 * (1.0 + rhs[i][a].abs()),
                 "vertex {i}: (W z)_{a} = {wz} against {}",

@@ -6,7 +6,7 @@
 
 mod common;
 use common::*;
-use fepr_core::integrators::{Integrator, StepReport, SymplecticEuler};
+use fepr_core::integrators::{HandOver, Integrator, StepReport, SymplecticEuler};
 use fepr_core::model::{Model, State};
 use fepr_core::projection::{ProjectionSettings, Projector};
 use fepr_core::simulation::Simulation;
@@ -19,9 +19,15 @@ impl Integrator for Recording {
     fn name(&self) -> &'static str {
         self.0.name()
     }
-    fn step(&mut self, model: &Model, state: &mut State, dt: f64) -> StepReport {
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        dt: f64,
+        hand_over: &mut HandOver,
+    ) -> StepReport {
         self.1.lock().unwrap().push(rayon::current_thread_index());
-        self.0.step(model, state, dt)
+        self.0.step(model, state, dt, hand_over)
     }
 }
 

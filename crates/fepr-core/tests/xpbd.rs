@@ -3,8 +3,8 @@
 
 mod common;
 use common::*;
-use fepr_core::integrators::Integrator;
 use fepr_core::integrators::{colour_tets, Xpbd, XpbdSettings};
+use fepr_core::integrators::{HandOver, Integrator};
 use fepr_core::material::{ConstraintNeoHookean, Material};
 use fepr_core::model::State;
 use fepr_core::simulation::Simulation;
@@ -54,7 +54,7 @@ fn rest_state_stays_at_rest_at_a_large_step() {
     let x0 = state.x.clone();
     let mut xpbd = Xpbd::default();
     for _ in 0..10 {
-        xpbd.step(&m, &mut state, 1.0 / 30.0);
+        xpbd.step(&m, &mut state, 1.0 / 30.0, &mut HandOver::new());
     }
     let moved = state
         .x
@@ -104,7 +104,7 @@ fn xpbd_pins_hold_under_gravity() {
     })
     .unwrap();
     for _ in 0..20 {
-        xpbd.step(&m, &mut state, 0.02);
+        xpbd.step(&m, &mut state, 0.02, &mut HandOver::new());
     }
     for &p in &pinned {
         assert_eq!(state.x[p], x0[p]);

@@ -22,7 +22,7 @@ use crate::elasticity::{
     elastic_energy, elastic_energy_gradient, ElasticSummary, ElasticWorkspace,
 };
 use crate::error::{invalid, Result};
-use crate::integrators::{finish_positional_step, Integrator, StepReport};
+use crate::integrators::{finish_positional_step, HandOver, Integrator, StepReport};
 use crate::math::SparseCholesky;
 use crate::math::{dot, scale, Vec3};
 use crate::model::{Model, ModelKey, State};
@@ -83,11 +83,9 @@ pub struct ImplicitEuler {
     values: Vec<f64>,
     /// The gradient of `Phi` at the current iterate.
     grad: Vec<Vec3>,
-    /// Its elastic part, and the elastic energy summary (for [`Integrator::result_elastic_gradient`]).
+    /// Its elastic part, and the elastic energy summary (handed over where the step ends on the iterate).
     elastic_grad: Vec<Vec3>,
     elastic: ElasticSummary,
-    /// The positions the last step ended on, when `elastic_grad` was evaluated there.
-    result_x: Option<Vec<Vec3>>,
     ws: ElasticWorkspace,
     y: Vec<Vec3>,
     x_trial: Vec<Vec3>,
@@ -153,7 +151,13 @@ impl Integrator for ImplicitEuler {
         true
     }
 
-    fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        hand_over: &mut HandOver,
+    ) -> StepReport {
         let m = model.num_vertices();
         // The pattern and the symbolic analysis depend on the mesh and the pin set only (masses and material
         // are read at every assembly): rebuild them when either changed since they were built.
@@ -200,7 +204,7 @@ impl Integrator for ImplicitEuler {
         };
         self.last_decrements.clear();
         let mut dec0 = 0.0;
-        // `elastic_grad` was evaluated at `x` (for the projection: `result_elastic_gradient`).
+        // `elastic_grad` was evaluated at `x` (then handed over to the projection).
         let mut elastic_at_x = false;
         for it in 0..self.settings.max_iterations {
             let (phi, phi_magnitude) = self.objective_gradient(model, &x, h);
@@ -300,12 +304,9 @@ impl Integrator for ImplicitEuler {
             elastic_at_x = false;
         }
         finish_positional_step(model, state, &x, &x_n, h);
-        self.result_x = elastic_at_x.then_some(x);
+        if elastic_at_x {
+            hand_over.put_result_gradient(model, self.elastic, &mut x, &mut self.elastic_grad);
+        }
         report
-    }
-
-    fn result_elastic_gradient(&mut self) -> Option<(ElasticSummary, &[Vec3], &mut Vec<Vec3>)> {
-        let x = self.result_x.as_deref()?;
-        Some((self.elastic, x, &mut self.elastic_grad))
     }
 }

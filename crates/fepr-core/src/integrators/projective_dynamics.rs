@@ -17,11 +17,13 @@ use std::time::Instant;
 
 use crate::elasticity::shape_gradients;
 use crate::error::{invalid, FeprError, Result};
-use crate::integrators::{finish_positional_step, Integrator, StepReport};
+use crate::integrators::{finish_positional_step, HandOver, Integrator, SharedMetric, StepReport};
 use crate::material::Material;
 use crate::math::{scale, Vec3};
 use crate::math::{LowerPattern, SparseCholesky};
 use crate::model::{Model, ModelKey, State};
+use crate::projection::SystemMetric;
+use std::sync::{Arc, Mutex};
 
 /// Projective Dynamics settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -39,6 +41,15 @@ impl Default for PdSettings {
             tolerance: None,
         }
     }
+}
+
+/// The global matrix and the scratch of its solves as a [`SystemMetric`]: shared by the integrator and the
+/// hand-over, locked by whichever of them solves with it.
+#[derive(Default)]
+struct PdMatrix {
+    pre: Option<Prefactored>,
+    /// Right-hand sides, then solutions, of [`SystemMetric::solve`]: one row per free vertex.
+    rhs: Vec<Vec3>,
 }
 
 struct Prefactored {
@@ -71,7 +82,8 @@ pub struct ProjectiveDynamics {
     pub settings: PdSettings,
     /// Phase times of the last step.
     pub timing: PdTiming,
-    pre: Option<Prefactored>,
+    /// The factorised global matrix, shared with the hand-over as the projection's position metric.
+    matrix: Arc<Mutex<PdMatrix>>,
     /// Symbolic analyses and numeric factorisations performed (one each per run, step size and model key).
     pub factorizations: usize,
     /// Per tet in the model's block order, the right-hand side terms `w_e R_e g_k` on its 4 corners (from the
@@ -191,7 +203,7 @@ impl ProjectiveDynamics {
 /// the global step solves with; `L = sum_e w_e G_e G_e^T`, per coordinate), factorised already. After a PD step
 /// the projection's energy correction then moves the positions as a global step would (smooth modes first),
 /// where the diagonal stiffness metric moved each vertex on its own.
-impl crate::projection::SystemMetric for ProjectiveDynamics {
+impl SystemMetric for PdMatrix {
     fn solve(&mut self, model: &Model, h: f64, rhs: &[Vec3], out: &mut [Vec3]) -> bool {
         let Some(pre) = self.pre.as_mut() else {
             return false;
@@ -256,10 +268,6 @@ impl Integrator for ProjectiveDynamics {
         true
     }
 
-    fn system_metric(&mut self) -> Option<&mut dyn crate::projection::SystemMetric> {
-        Some(self)
-    }
-
     fn check(&self, model: &Model) -> Result<()> {
         match model.material {
             Material::Arap(_) => Ok(()),
@@ -271,20 +279,32 @@ impl Integrator for ProjectiveDynamics {
         }
     }
 
-    fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        hand_over: &mut HandOver,
+    ) -> StepReport {
+        hand_over.share_metric(&(Arc::clone(&self.matrix) as SharedMetric));
+        let mut matrix = self.matrix.lock().unwrap_or_else(|e| e.into_inner());
         // The matrix depends on h, the masses, the pins and the material's mu: refactorise when the simulation
         // changes h (impact substeps) or the model changed since the factorisation (a user of the Rust API may
         // change `Model`'s public fields between steps, or step this integrator with another model).
-        if self.pre.is_some() {
+        if matrix.pre.is_some() {
             let key = model.key();
-            if self.pre.as_ref().is_some_and(|p| p.h != h || p.key != key) {
-                self.pre = None;
+            if matrix
+                .pre
+                .as_ref()
+                .is_some_and(|p| p.h != h || p.key != key)
+            {
+                matrix.pre = None;
             }
         }
-        if self.pre.is_none() {
+        if matrix.pre.is_none() {
             match Self::prefactor(model, h) {
                 Ok(p) => {
-                    self.pre = Some(p);
+                    matrix.pre = Some(p);
                     self.factorizations += 1;
                 }
                 Err(_) => {
@@ -295,7 +315,7 @@ impl Integrator for ProjectiveDynamics {
                 }
             }
         }
-        let pre = self.pre.as_mut().expect("prefactored");
+        let pre = matrix.pre.as_mut().expect("prefactored");
         let m = model.num_vertices();
         let n = pre.free_vertices.len();
         let inv_h2 = 1.0 / (h * h);

@@ -12,7 +12,7 @@
 
 use crate::elasticity::shape_gradients;
 use crate::error::{invalid, Result};
-use crate::integrators::{Integrator, StepReport};
+use crate::integrators::{HandOver, Integrator, StepReport};
 use crate::material::{ConstraintNeoHookean, Material};
 use crate::math::{cofactor, det, scale, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
@@ -344,7 +344,13 @@ impl Integrator for Xpbd {
         }
     }
 
-    fn step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
+    fn step(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        _hand_over: &mut HandOver,
+    ) -> StepReport {
         let Some(mat) = Self::material(model) else {
             // Only reachable without `check`: poison the state so that the simulation reports it.
             state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);

@@ -1,5 +1,9 @@
 //! `Simulation`: a model, a state, a base integrator and an optional projection, stepped together; keeps
 //! the running references of fepr-spec section 2 and one diagnostics row per step.
+//!
+//! The simulation owns the [`HandOver`] between the base step and the projection (what one evaluated that the
+//! other would evaluate again): it passes it to every base step and moves its entries to and from the
+//! projection; [`crate::integrators::HandOver`]'s module says what it carries and when an entry is valid.
 
 mod history;
 mod policy;
@@ -10,12 +14,11 @@ use std::time::Instant;
 
 use crate::error::{FeprError, Result};
 use crate::exec::copy_rows;
-use crate::integrators::{Integrator, StepReport};
+use crate::integrators::{HandOver, Integrator, StepReport};
 use crate::invariants::{center_of_mass, measure, Invariants};
-use crate::math::same_bits;
 use crate::math::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, State};
-use crate::projection::{ProjectionReport, Projector, Targets};
+use crate::projection::{ProjectionReport, Projector, SystemMetric, Targets};
 use crate::world::{max_penetration, near_obstacles, resolve_contacts, Obstacle};
 use crate::world::{Drag, KinematicPins, Work, World};
 
@@ -152,6 +155,8 @@ pub struct Simulation {
     pub state: State,
     integrator: Box<dyn Integrator>,
     projector: Option<Projector>,
+    /// What the base step and the projection share (see [`HandOver`]).
+    hand_over: HandOver,
     dt: f64,
     references: References,
     /// Energy scale of the initial state, `K + |E_el|` (J; see [`Simulation::step_energy_scale`]).
@@ -221,6 +226,7 @@ impl Simulation {
             state,
             integrator,
             projector,
+            hand_over: HandOver::new(),
             dt,
             references: References {
                 energy: 0.0,
@@ -338,6 +344,10 @@ impl Simulation {
     pub fn projector(&self) -> Option<&Projector> {
         self.projector.as_ref()
     }
+    /// What the base step and the projection share between them (see [`HandOver`]).
+    pub fn hand_over(&self) -> &HandOver {
+        &self.hand_over
+    }
     pub fn references(&self) -> &References {
         &self.references
     }
@@ -452,7 +462,9 @@ impl Simulation {
             }
             None => false,
         };
-        let mut report = self.integrator.step(&self.model, &mut self.state, h);
+        let mut report = self
+            .integrator
+            .step(&self.model, &mut self.state, h, &mut self.hand_over);
         work.damping += report.energy_budget;
         if self.world.has_pins() {
             // The integrator left the kinematic vertices in place with zero velocity: give them the path's.
@@ -602,28 +614,22 @@ impl Simulation {
                 p.set_frozen_positions(&self.contact_vertices);
                 // Backward Euler ends on an iterate whose elastic gradient it evaluated: the projection's first
                 // evaluation is then that one, if pins, obstacles and forces left the positions untouched.
-                if let Some((summary, x, grad)) = self.integrator.result_elastic_gradient() {
-                    if same_bits(x, &self.state.x) {
-                        p.offer_base_gradient(summary, grad);
-                    }
+                let hand_over = &mut self.hand_over;
+                if let Some((summary, grad)) =
+                    hand_over.take_result_gradient(&self.model, &self.state.x)
+                {
+                    p.offer_base_gradient(summary, grad);
                 }
-                let system = self.integrator.system_metric();
-                let (rep, inv) =
-                    p.project_with(&self.model, &mut self.state, self.dt, &targets, system);
-                match p.take_final_hand_over() {
-                    Some((grad, Some(x_copy))) => {
-                        self.integrator.offer_elastic_gradient_with_positions(
-                            &self.model,
-                            &self.state.x,
-                            x_copy,
-                            grad,
-                        )
+                let (rep, inv) = {
+                    let mut metric = hand_over.metric();
+                    let system = metric.as_deref_mut().map(|m| m as &mut dyn SystemMetric);
+                    p.project_with(&self.model, &mut self.state, self.dt, &targets, system)
+                };
+                // The projection's final gradient, for an integrator that starts its next step with it.
+                if let Some((grad, x_copy)) = p.take_final_hand_over() {
+                    if hand_over.reads_start_gradient() {
+                        hand_over.put_final_gradient(&self.model, &self.state.x, x_copy, grad);
                     }
-                    Some((grad, None)) => {
-                        self.integrator
-                            .offer_elastic_gradient(&self.model, &self.state.x, grad)
-                    }
-                    None => {}
                 }
                 (Some(rep), inv, rep.base_energy)
             }
