@@ -232,11 +232,10 @@ pub(super) fn evaluate_sums<const S: bool>(
 
 /// [`evaluate`] at the trial point of `step` (`q - alpha D^-1 G lambda`, written to `x_out`, `v_out`, its
 /// elastic gradient to `g_out`), with the slack values `(s, t)` of that point; with the moments for `S` only
-/// if `moments` (`Eval::s_moments`). The trial point is written by a pass of its own: computing each position where the
-/// elastic chunks gather it (no pass, 1.5 times the work) measured slower on bunny2, its arrays read in
-/// the user's vertex order. Without the moments, that pass also sums the constraints and the D-norm distance
-/// as it writes each task's rows (a symplectic Euler step's only trial point): 1.3-2% off a two-thread
-/// projection of 2 iterations (bunny, elephant, armadillo; `eg_loop proj`, alternated).
+/// if `moments` (`Eval::s_moments`). The trial point is written by a pass of its own (computing each position
+/// where the elastic chunks gather it is 1.5 times the work, and was slower). Without the moments, that pass
+/// also sums the constraints and the D-norm distance as it writes each task's rows, while they are in
+/// registers (a symplectic Euler step's only trial point).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn evaluate_step(
     pb: &Problem,

@@ -1,28 +1,82 @@
 //! The iteration of fepr-spec section 3 for one projection: the first evaluation and the rows' scales, the
 //! rigid translation onto the centre-of-mass target, the warm start, the iterations (solve, step length,
-//! halvings, acceptance), the restarts with frozen vertices, and the choice and measurement of the result.
+//! halvings, acceptance) and the restarts with frozen vertices; `result` chooses and measures what it returns.
 
 use super::evaluate::{
-    d_norm, d_norm_from, evaluate, evaluate_energy, evaluate_step, evaluate_with_elastic,
-    vertex_chunk, Eval,
+    evaluate, evaluate_energy, evaluate_step, evaluate_with_elastic, vertex_chunk, Eval,
 };
 use super::metric::system_direction;
 use super::problem::{max_scaled, norm_scaled, Problem};
-use super::rounding_terms;
 use super::step::Step;
 use super::system::{solve_multipliers, Multipliers};
 use super::warm_start::warm_start_velocities;
-use super::{
-    Metric, Mirror, ProjectionReport, Projector, Slack, SystemMetric, Targets, ROUNDING_ULPS, ROWS,
-};
-use crate::elasticity::deformation_gradient;
+use super::{Metric, Mirror, ProjectionReport, Projector, Slack, SystemMetric, Targets, ROWS};
+use crate::elasticity::{deformation_gradient, ElasticSummary};
 use crate::exec::for_each_chunk_mut;
 use crate::invariants::Invariants;
-use crate::math::{cross, dot, sub, Vec3};
+use crate::math::{sub, Vec3};
 use crate::model::{Model, State};
 
 /// Attempts per projection (the first plus restarts with frozen vertices, see [`ProjectionReport::restarts`]).
 pub(super) const MAX_ATTEMPTS: usize = 3;
+
+/// A trial point: its evaluation, scaled residual norm and slack values `(s, t)`.
+type Candidate = (Eval, f64, f64, f64);
+
+/// The best iterate of a projection so far (kept as the fallback where it does not converge).
+pub(super) struct Best {
+    pub(super) norm: f64,
+    /// The best is q~ itself.
+    pub(super) is_base: bool,
+    pub(super) eval: Eval,
+    pub(super) s: f64,
+    pub(super) t: f64,
+    /// The best iterate lives in `x`/`v` while it is the current one, and is moved to `x_best`/`v_best` by a
+    /// buffer swap only when a later iterate replaces it: no copies per iteration.
+    pub(super) in_x: bool,
+}
+
+/// What the stages of one projection ([`Projector::project_once`]) share: the problem, the current iterate's
+/// evaluation and slack values, the best iterate and the report being filled.
+pub(super) struct Run<'a, 's, 'd> {
+    pub(super) pb: Problem<'a>,
+    /// The base integrator's factorised position metric, while it is used (see [`SystemMetric`]).
+    pub(super) system: Option<&'s mut (dyn SystemMetric + 'd)>,
+    pub(super) report: ProjectionReport,
+    pub(super) cur: Eval,
+    pub(super) cur_norm: f64,
+    pub(super) s: f64,
+    pub(super) t: f64,
+    /// `grad` holds the elastic gradient at the current iterate (the first evaluation may skip it).
+    pub(super) grad_at_x: bool,
+    /// The scaled residual norm, the inverted tets and the finiteness of q~.
+    pub(super) base_norm: f64,
+    pub(super) base_inverted: usize,
+    pub(super) base_finite: bool,
+    pub(super) best: Best,
+    pub(super) tol: f64,
+    /// The attempt stops where the diagonal stiffness metric stalls (`stalled`; see
+    /// [`Projector::project_with`]).
+    pub(super) stall_exit: bool,
+    pub(super) stalled: bool,
+}
+
+impl Run<'_, '_, '_> {
+    /// Make the current iterate the best if it is better and finite (after a translation or a warm start).
+    fn keep_if_better(&mut self) {
+        if self.cur_norm < self.best.norm && self.cur.c.iter().all(|c| c.is_finite()) {
+            self.best.norm = self.cur_norm;
+            self.best.is_base = false;
+            self.best.eval = self.cur;
+            self.best.in_x = true;
+        }
+    }
+
+    /// The current iterate meets every active row and inverts no tet the base step had upright.
+    fn on_manifold(&self) -> bool {
+        max_scaled(&self.pb, &self.cur.c) <= self.tol && self.cur.el.inverted <= self.base_inverted
+    }
+}
 
 impl Projector {
     /// One projection of `state` onto `targets` (the iteration of fepr-spec section 3, with its restarts), in
@@ -36,7 +90,42 @@ impl Projector {
         targets: &Targets,
         system: Option<&mut (dyn SystemMetric + 'd)>,
     ) -> (ProjectionReport, Invariants) {
-        let m = model.num_vertices();
+        self.take_base(model.num_vertices(), state);
+        let mut run = self.start(model, h, targets, system);
+        // Attempts: if an attempt ends with tets inverted that the base step had upright (a near-degenerate
+        // sliver flipped by the position correction), freeze the positions of those tets' vertices (their
+        // velocities stay free) and restart from q~. fepr-spec section 6, pitfall 5: the projection must not
+        // create inverted elements.
+        let mut attempt = 0;
+        loop {
+            self.translate_onto_center(&mut run);
+            self.warm_start(&mut run);
+            if run.base_finite {
+                self.iterate(&mut run);
+            }
+            attempt += 1;
+            if run.report.converged
+                || run.stalled
+                || !run.base_finite
+                || attempt >= MAX_ATTEMPTS
+                || run.cur.el.inverted <= run.base_inverted
+                || !self.restart_with_frozen(&mut run)
+            {
+                break;
+            }
+        }
+        let (mut fin, base_returned) = self.choose_result(&mut run, state);
+        run.report.correction = self.correction(&mut run, state, &fin, base_returned);
+        if !base_returned {
+            self.bound_impact(&mut run, state, &mut fin);
+        }
+        self.finish(run, state, &fin, base_returned)
+    }
+
+    /// Size the iteration's buffers for `m` vertices and take q~ from `state`: it moves into `x_base`/`v_base`
+    /// by a buffer swap (no copy), and is the current iterate itself until a trial point is accepted
+    /// (`at_base`, see `current!`); the state's buffers get the result at the end.
+    fn take_base(&mut self, m: usize, state: &mut State) {
         self.grad_is_final = false;
         for buf in [
             &mut self.grad,
@@ -48,9 +137,6 @@ impl Projector {
         ] {
             buf.resize(m, [0.0; 3]);
         }
-        // q~ moves into x_base/v_base by a buffer swap (no copy), and is the current iterate itself until a
-        // trial point is accepted (`at_base`, see `current!`): four fewer copies of the state per step
-        // (bunny2: about 14 us on one thread). The state's buffers get the result at the end.
         std::mem::swap(&mut self.x_base, &mut state.x);
         std::mem::swap(&mut self.v_base, &mut state.v);
         self.at_base = true;
@@ -59,6 +145,17 @@ impl Projector {
         if self.mirror_rows {
             self.x_mirror.resize(m, [0.0; 3]);
         }
+    }
+
+    /// The problem of this projection, the metric it uses, and q~'s evaluation: the run the attempts start from.
+    fn start<'a, 's, 'd>(
+        &mut self,
+        model: &'a Model,
+        h: f64,
+        targets: &'a Targets,
+        system: Option<&'s mut (dyn SystemMetric + 'd)>,
+    ) -> Run<'a, 's, 'd> {
+        let m = model.num_vertices();
         let r = model.length_scale;
         let mt = model.total_mass;
         let slack = match self.settings.slack {
@@ -82,7 +179,7 @@ impl Projector {
             pb.refresh_rows();
         }
         let energy_only = pb.active[0] && pb.active[1..].iter().all(|&a| !a);
-        let mut system = system.filter(|_| {
+        let system = system.filter(|_| {
             self.settings.metric == Metric::Auto
                 && self.metric_override.is_none()
                 && energy_only
@@ -92,55 +189,16 @@ impl Projector {
             self.system_rhs.resize(m, [0.0; 3]);
             self.system_dir.resize(m, [0.0; 3]);
         }
-        let (mut s, mut t) = (0.0, 0.0);
-        // With a warm start possible, the first evaluation skips the elastic gradient: the warm start changes
-        // the velocities alone and often leaves nothing to iterate (after PD, every step on the bunny), so the
-        // gradient is computed only when an iteration needs it (`grad_at_x`).
-        let lazy_gradient = self.settings.warm_start_threshold.is_finite();
         let offered = self.base_elastic.take();
-        let mut cur = if let Some(el) = offered {
-            // The base step evaluated the elastic energy and gradient here (the same bits as evaluating).
-            let (x, v) = current!(self);
-            let grad = Some(&self.grad[..]);
-            evaluate_with_elastic(&pb, x, v, s, t, el, grad, &mut self.scratch.parts)
-        } else if lazy_gradient {
-            let (x, v) = current!(self);
-            evaluate_energy(&pb, x, v, s, t, &mut self.scratch.parts)
-        } else {
-            let (x, v) = current!(self);
-            evaluate(&pb, x, v, s, t, &mut self.scratch, &mut self.grad)
-        };
-        let mut grad_at_x = offered.is_some() || !lazy_gradient;
+        let (cur, grad_at_x) = self.first_evaluation(&pb, offered);
         if slack {
             // P* and L* (about C_target) of the base step's state, summed by that evaluation. Without slack the
             // s and t columns vanish (their gradients are -(P* - P_t) and -(L* - L_t)).
             pb.dp_star = sub(cur.momentum, targets.momentum);
             pb.dl_star = sub(cur.angular_momentum, targets.angular_momentum);
         }
-        // Row scales (fepr-spec section 3), from the targets and the start-of-step state, not from the base
-        // step's result: a wild base step must not loosen the energy tolerance.
-        pb.row_scale[0] = targets.energy_scale.max(1e-300);
-        // Far from the origin (a body that has fallen for minutes) the positions themselves carry less than
-        // tolerance * r: the centre of mass's scale is at least the rounding of its sum.
-        let com_floor = ROUNDING_ULPS
-            * rounding_terms(m)
-            * f64::EPSILON
-            * crate::math::norm(targets.center_of_mass)
-            / self.settings.tolerance;
-        // The momenta's scales are those of the motion, `sqrt(2 m_tot S)` with `S` the energy row's scale (and
-        // `r` times that for L), not `m_tot r / h` (the momentum that moves the body by its size in one step):
-        // at a small step or a slow motion the latter is hundreds of times the momenta the body has, and a
-        // tolerance on it let P and L drift by 1e-8 of them.
-        let momentum_scale = (2.0 * mt * pb.row_scale[0]).sqrt();
-        for a in 0..3 {
-            pb.row_scale[1 + a] = momentum_scale;
-            pb.row_scale[4 + a] = momentum_scale * r;
-            pb.row_scale[7 + a] = r.max(com_floor);
-        }
-        let tol = self.settings.tolerance;
-        let base_inverted = cur.el.inverted;
-        let base_finite = cur.c.iter().all(|c| c.is_finite());
-        let mut report = ProjectionReport {
+        pb.set_row_scales(self.settings.tolerance);
+        let report = ProjectionReport {
             active_rows: pb.active.iter().filter(|a| **a).count(),
             initial_residual: max_scaled(&pb, &cur.c),
             base_energy: cur.kinetic + cur.el.energy + cur.gravitational,
@@ -150,456 +208,349 @@ impl Projector {
             evaluations: usize::from(offered.is_none()),
             ..Default::default()
         };
-        let mut cur_norm = norm_scaled(&pb, &cur.c);
-        let base_norm = cur_norm;
-        let mut best_norm = cur_norm;
-        let mut best_is_base = true;
-        let mut best_eval = cur;
-        let (mut best_s, mut best_t) = (0.0, 0.0);
-        // The best iterate lives in `x`/`v` while it is the current one (`best_in_x`), and is moved to
-        // `x_best`/`v_best` by a buffer swap only when a later iterate replaces it: no copies per iteration.
-        let mut best_in_x = false;
+        let cur_norm = norm_scaled(&pb, &cur.c);
         self.x_best.resize(m, [0.0; 3]);
         self.v_best.resize(m, [0.0; 3]);
-
-        // Attempts: if an attempt ends with tets inverted that the base step had upright (a near-degenerate
-        // sliver flipped by the position correction), freeze the positions of those tets' vertices (their
-        // velocities stay free) and restart from q~. fepr-spec section 6, pitfall 5: the projection must not
-        // create inverted elements.
-        let mut attempt = 0;
         let stall_exit = self.switch_on_stall && report.stiffness_metric;
-        let mut stalled = false;
-        loop {
-            // The centre-of-mass rows alone have a rigid closest point: translate the body onto C_target (the
-            // mass metric's first step would; the diagonal stiffness metric cannot move a body rigidly, and its
-            // iterates would deform a falling body to meet these rows). A translation changes neither the
-            // elastic energy nor its gradient.
-            if base_finite
-                && pb.active[7..10].iter().all(|&a| a)
-                && rigid_translation_allowed(model, &self.frozen_positions)
-            {
-                let d = sub(targets.center_of_mass, cur.com);
-                if (0..3).any(|a| (d[a] / pb.row_scale[7 + a]).abs() > tol) {
-                    self.leave_base();
-                    for_each_chunk_mut(&mut self.x, vertex_chunk(m), |_, xs| {
-                        for xi in xs.iter_mut() {
-                            *xi = [xi[0] + d[0], xi[1] + d[1], xi[2] + d[2]];
-                        }
-                    });
-                    let grad = grad_at_x.then_some(&self.grad[..]);
-                    cur = evaluate_with_elastic(
-                        &pb,
-                        &self.x,
-                        &self.v,
-                        s,
-                        t,
-                        cur.el,
-                        grad,
-                        &mut self.scratch.parts,
-                    );
-                    cur_norm = norm_scaled(&pb, &cur.c);
-                    report.translated = true;
-                    if cur_norm < best_norm && cur.c.iter().all(|c| c.is_finite()) {
-                        best_norm = cur_norm;
-                        best_is_base = false;
-                        best_eval = cur;
-                        best_in_x = true;
-                    }
-                }
-            }
-            // Opt-in warm start for large energy errors (a dissipative base step at a large dt can lose most of H
-            // in one step): scale the deformational velocities, which meets the energy row and keeps P and L; the
-            // iterations then fix the rest from nearby instead of linearising a stiff position correction far
-            // from the manifold.
-            if base_finite
-                && pb.active[0]
-                && (cur.c[0] / pb.row_scale[0]).abs() > self.settings.warm_start_threshold.max(tol)
-                && {
-                    // The warm start changes the velocities in place: the iterate gets buffers of its own.
-                    self.leave_base();
-                    let parts = &mut self.scratch.kinetic;
-                    warm_start_velocities(&pb, &cur, &self.x, &mut self.v, parts)
-                }
-            {
-                // Only the velocities changed: the elastic energy (and gradient, if computed) at x still hold.
-                let grad = grad_at_x.then_some(&self.grad[..]);
-                cur = evaluate_with_elastic(
-                    &pb,
-                    &self.x,
-                    &self.v,
-                    s,
-                    t,
-                    cur.el,
-                    grad,
-                    &mut self.scratch.parts,
-                );
-                cur_norm = norm_scaled(&pb, &cur.c);
-                report.warm_start = true;
-                if cur_norm < best_norm && cur.c.iter().all(|c| c.is_finite()) {
-                    best_norm = cur_norm;
-                    best_is_base = false;
-                    best_eval = cur;
-                    best_in_x = true;
-                }
-            }
+        Run {
+            system,
+            report,
+            cur,
+            cur_norm,
+            s: 0.0,
+            t: 0.0,
+            grad_at_x,
+            base_norm: cur_norm,
+            base_inverted: cur.el.inverted,
+            base_finite: cur.c.iter().all(|c| c.is_finite()),
+            best: Best {
+                norm: cur_norm,
+                is_base: true,
+                eval: cur,
+                s: 0.0,
+                t: 0.0,
+                in_x: false,
+            },
+            tol: self.settings.tolerance,
+            stall_exit,
+            stalled: false,
+            pb,
+        }
+    }
 
-            if base_finite {
-                for _ in 0..self.settings.max_iterations {
-                    if max_scaled(&pb, &cur.c) <= tol {
-                        // On the manifold; with new inversions, iterating further cannot help: restart.
-                        report.converged = cur.el.inverted <= base_inverted;
-                        break;
-                    }
-                    if !grad_at_x {
-                        // The same constraint values (the same bits for Neo-Hookean and ARAP, whose energy-only
-                        // and gradient passes are gated bit-identical), now with the gradient and S's moments.
-                        report.evaluations += 1;
-                        let (x, v) = current!(self);
-                        cur = evaluate(&pb, x, v, s, t, &mut self.scratch, &mut self.grad);
-                        grad_at_x = true;
-                    } else if !cur.s_moments {
-                        // An accepted trial point (summed without S's moments, which most trial points, ending
-                        // the projection, never need): sum them now; the constraint values keep their bits.
-                        let grad = Some(&self.grad[..]);
-                        let parts = &mut self.scratch.parts;
-                        let (x, v) = current!(self);
-                        cur = evaluate_with_elastic(&pb, x, v, s, t, cur.el, grad, parts);
-                    }
-                    if let Some(sys) = system.as_deref_mut() {
-                        // The energy row's position block in the metric W: its direction W^-1 grad U and
-                        // S_HH's position part grad U . W^-1 grad U (in place of the diagonal metric's moment).
-                        let (rhs, dir) = (&mut self.system_rhs, &mut self.system_dir);
-                        let parts = &mut self.scratch.norms;
-                        match system_direction(&pb, sys, &self.grad, rhs, dir, parts) {
-                            Some(gz) => cur.grad_sq_over_w = gz,
-                            None => {
-                                system = None;
-                                report.system_metric = false;
-                                report.stiffness_metric = self.uses_stiffness_metric();
-                            }
-                        }
-                    }
-                    let dir = system.is_some();
-                    let Multipliers {
-                        lambda,
-                        least_squares,
-                        offset,
-                    } = solve_multipliers(&pb, &cur, self.settings.regularization);
-                    report.least_squares_solves += least_squares as usize;
-                    let mut alpha = 1.0;
-                    let mut accepted = None;
-                    report.evaluations += 1;
-                    // Sum S's moments with the trial point where another iteration is expected after this
-                    // one (backward Euler takes two per step): the pass after an accepted trial is then not
-                    // needed. Which pass sums them changes no bits (the same task sums in the same order).
-                    let moments = report.iterations + 1 < self.expected_iterations;
-                    let mut cand = self.trial(&pb, s, t, &lambda, 1.0, moments, dir);
-                    // Curvature-aware step length: along the step, P and C are linear in alpha, L is quadratic,
-                    // so c(alpha) = (1 - alpha) c(0) + alpha^2 e with e = c(1) holds for them exactly and models H's
-                    // curvature (its row with the second-order offset, see `model_step_length`). Where the full
-                    // step overshoots (stiff materials), take the model's best alpha.
-                    // A full step that already lands within the tolerance (without inverting more tets than the
-                    // base step) is taken as it is: the model's shorter step could only improve on a converged
-                    // point, for a serial search (0.55 us) and, where it proposes one, a second evaluation.
-                    let full_step_done =
-                        max_scaled(&pb, &cand.0.c) <= tol && cand.0.el.inverted <= base_inverted;
-                    if !full_step_done && cand.0.c.iter().all(|c| c.is_finite()) {
-                        let a_star = model_step_length(&pb, &cur.c, &offset, &cand.0.c);
-                        if a_star < 0.95 {
-                            // Keep the full step's buffers aside, so that falling back to it needs no
-                            // second evaluation.
-                            self.swap_trial_spare();
-                            report.evaluations += 1;
-                            let alt = self.trial(&pb, s, t, &lambda, a_star, moments, dir);
-                            if alt.0.c.iter().all(|c| c.is_finite()) && alt.1 < cand.1 {
-                                cand = alt;
-                                alpha = a_star;
-                            } else {
-                                self.swap_trial_spare();
-                            }
-                        }
-                    }
-                    for halving in 0..=self.settings.max_halvings {
-                        if halving > 0 {
-                            report.evaluations += 1;
-                            cand = self.trial(&pb, s, t, &lambda, alpha, moments, dir);
-                        }
-                        let (trial, n, s_new, t_new) = cand;
-                        // Intermediate iterates may pass through states with more inverted tets (the
-                        // linearisation does not know about inversion); only the returned state must not have
-                        // more than the base step (checked below).
-                        let admissible = trial.c.iter().all(|c| c.is_finite());
-                        if admissible && (n < cur_norm || halving == self.settings.max_halvings) {
-                            accepted = Some((trial, n, s_new, t_new));
-                            break;
-                        }
-                        if halving < self.settings.max_halvings {
-                            report.halvings += 1;
-                        }
-                        alpha *= 0.5;
-                    }
-                    report.iterations += 1;
-                    let Some((trial, n, s_new, t_new)) = accepted else {
-                        break; // no admissible step: stop, keep the best so far
-                    };
-                    // From q~ itself, the trial buffers get x/v's stale rows (overwritten by the next trial).
-                    std::mem::swap(&mut self.x, &mut self.x_trial);
-                    self.mirror = match self.mirror {
-                        Mirror::Trial => Mirror::Iterate,
-                        _ => Mirror::None,
-                    };
-                    std::mem::swap(&mut self.v, &mut self.v_trial);
-                    std::mem::swap(&mut self.grad, &mut self.grad_trial);
-                    // (`best_in_x` implies the iterate was in x/v, never q~: see `leave_base`.)
-                    self.at_base = false;
-                    cur = trial;
-                    let previous_norm = std::mem::replace(&mut cur_norm, n);
-                    s = s_new;
-                    t = t_new;
-                    if n < best_norm && cur.el.inverted <= base_inverted {
-                        best_norm = n;
-                        best_is_base = false;
-                        best_eval = cur;
-                        best_s = s;
-                        best_t = t;
-                        best_in_x = true;
-                    } else if best_in_x {
-                        // The best iterate was just swapped into the trial buffers: keep it.
-                        std::mem::swap(&mut self.x_trial, &mut self.x_best);
-                        std::mem::swap(&mut self.v_trial, &mut self.v_best);
-                        best_in_x = false;
-                    }
-                    // The diagonal stiffness metric cannot move the body rigidly (its position directions are
-                    // scaled per vertex): where the rows need a rigid correction that the translation before the
-                    // iteration did not make, its iterates deform the body and stall. Under `Metric::Auto` the
-                    // caller then tries the mass metric (`stalled`).
-                    if stall_exit
-                        && report.iterations >= 2
-                        && n > 0.9 * previous_norm
-                        && max_scaled(&pb, &cur.c) > tol
-                    {
-                        stalled = true;
-                        break;
-                    }
-                }
-                if !report.converged
-                    && max_scaled(&pb, &cur.c) <= tol
-                    && cur.el.inverted <= base_inverted
-                {
-                    report.converged = true;
-                }
-            }
-            attempt += 1;
-            if report.converged
-                || stalled
-                || !base_finite
-                || attempt >= MAX_ATTEMPTS
-                || cur.el.inverted <= base_inverted
-            {
-                break;
-            }
-            let (x, _) = current!(self);
-            let frozen = freeze_newly_inverted(model, &self.x_base, x, &mut pb.metric_factor);
-            if frozen > 0 {
-                self.metric_source = None;
-            }
-            pb.refresh_rows();
-            if frozen == 0 {
-                break;
-            }
-            // Frozen positions are outside what the factorised metric can hold: the diagonal one restarts.
-            if system.take().is_some() {
-                report.system_metric = false;
-                report.stiffness_metric = self.uses_stiffness_metric();
-            }
-            report.restarts += 1;
-            report.frozen_vertices += frozen;
-            if best_in_x {
-                self.x_best.copy_from_slice(&self.x);
-                self.v_best.copy_from_slice(&self.v);
-                best_in_x = false;
-            }
-            self.at_base = true;
-            self.mirror = Mirror::None;
-            s = 0.0;
-            t = 0.0;
-            report.evaluations += 1;
+    /// q~'s evaluation (at s = t = 0), and whether it left the elastic gradient in `grad`: the base step's
+    /// own where it `offered` it, none where a warm start is possible.
+    fn first_evaluation(&mut self, pb: &Problem, offered: Option<ElasticSummary>) -> (Eval, bool) {
+        let (s, t) = (0.0, 0.0);
+        // With a warm start possible, the first evaluation skips the elastic gradient: the warm start changes
+        // the velocities alone and often leaves nothing to iterate (after Projective Dynamics, most steps), so the
+        // gradient is computed only when an iteration needs it (`grad_at_x`).
+        let lazy_gradient = self.settings.warm_start_threshold.is_finite();
+        let cur = if let Some(el) = offered {
+            // The base step evaluated the elastic energy and gradient here (the same bits as evaluating).
             let (x, v) = current!(self);
-            cur = evaluate(&pb, x, v, s, t, &mut self.scratch, &mut self.grad);
-            grad_at_x = true;
-            cur_norm = norm_scaled(&pb, &cur.c);
-        }
-
-        // Choose the result: the converged iterate, else the best iterate if it improved on q~, else q~.
-        let mut fin = cur;
-        // `grad` is at `x` (every evaluation into it is at the iterate it belongs to).
-        self.grad_is_final = report.converged && grad_at_x;
-        // Whether the result is q~ itself, handed back by a buffer swap: x_base/v_base then hold stale rows,
-        // and the correction is 0 (s = t = 0 at q~).
-        let mut base_returned = false;
-        if report.converged {
-            // The result's buffers become the state's (the old ones are overwritten next time).
-            if self.at_base {
-                std::mem::swap(&mut state.x, &mut self.x_base);
-                std::mem::swap(&mut state.v, &mut self.v_base);
-                base_returned = true;
-            } else {
-                std::mem::swap(&mut state.x, &mut self.x);
-                std::mem::swap(&mut state.v, &mut self.v);
-            }
+            let grad = Some(&self.grad[..]);
+            evaluate_with_elastic(pb, x, v, s, t, el, grad, &mut self.scratch.parts)
+        } else if lazy_gradient {
+            let (x, v) = current!(self);
+            evaluate_energy(pb, x, v, s, t, &mut self.scratch.parts)
         } else {
-            report.fallback = true;
-            if !best_is_base && best_norm < base_norm {
-                let (xb, vb) = if best_in_x {
-                    (&self.x, &self.v)
-                } else {
-                    (&self.x_best, &self.v_best)
-                };
-                state.x.clear();
-                state.x.extend_from_slice(xb);
-                state.v.clear();
-                state.v.extend_from_slice(vb);
-                fin = best_eval;
-                s = best_s;
-                t = best_t;
-            } else {
-                std::mem::swap(&mut state.x, &mut self.x_base);
-                std::mem::swap(&mut state.v, &mut self.v_base);
-                base_returned = true;
-                report.evaluations += 1;
-                fin = evaluate(
-                    &pb,
-                    &state.x,
-                    &state.v,
-                    0.0,
-                    0.0,
-                    &mut self.scratch,
-                    &mut self.grad,
-                );
-                s = 0.0;
-                t = 0.0;
-                self.grad_is_final = true;
-            }
-        }
-
-        // D-norm of the correction; optional impact bound (never hit by q~ itself: its correction is 0).
-        report.correction = if base_returned {
-            debug_assert!(s == 0.0 && t == 0.0, "q~ has s = t = 0");
-            0.0
-        } else if let Some(sys) = system.as_deref() {
-            let dx = &mut self.system_rhs;
-            for (d, (x, xb)) in dx.iter_mut().zip(state.x.iter().zip(&self.x_base)) {
-                *d = sub(*x, *xb);
-            }
-            let h2 = h * h;
-            let velocity: f64 = (0..m)
-                .filter(|&i| !model.pinned[i])
-                .map(|i| {
-                    let dv = sub(state.v[i], self.v_base[i]);
-                    model.masses[i] * h2 * dot(dv, dv)
-                })
-                .sum();
-            (sys.norm_sq(model, h, dx) + velocity + pb.eps * (s * s + t * t)).sqrt()
-        } else if let Some(sum) = fin.correction_sq {
-            // The result is a trial point, whose evaluation summed its distance from q~ (the same task sums
-            // in the same order as the pass below: the same bits).
-            d_norm_from(&pb, s, t, sum)
-        } else {
-            d_norm(
-                &pb,
-                &state.x,
-                &state.v,
-                s,
-                t,
-                &self.x_base,
-                &self.v_base,
-                &mut self.scratch.norms,
-            )
+            let (x, v) = current!(self);
+            evaluate(pb, x, v, s, t, &mut self.scratch, &mut self.grad)
         };
-        if let (Some(bound), false) = (self.settings.impact_bound, base_returned) {
-            let cap = bound * mt.sqrt() * r;
-            if report.correction > cap && report.correction.is_finite() {
-                let beta = cap / report.correction;
-                for i in 0..m {
-                    for a in 0..3 {
-                        let (xb, vb) = (self.x_base[i][a], self.v_base[i][a]);
-                        state.x[i][a] = xb + beta * (state.x[i][a] - xb);
-                        state.v[i][a] = vb + beta * (state.v[i][a] - vb);
-                    }
-                }
-                s *= beta;
-                t *= beta;
-                report.bound_hit = true;
-                report.correction = cap;
-                self.grad_is_final = true; // both branches below evaluate at the returned state
-                report.evaluations += 1;
-                fin = evaluate(
-                    &pb,
-                    &state.x,
-                    &state.v,
-                    s,
-                    t,
-                    &mut self.scratch,
-                    &mut self.grad,
-                );
-                if fin.el.inverted > base_inverted || !fin.c.iter().all(|c| c.is_finite()) {
-                    // The scaled-back state inverts tets the base step did not: keep the base state.
-                    state.x.copy_from_slice(&self.x_base);
-                    state.v.copy_from_slice(&self.v_base);
-                    s = 0.0;
-                    t = 0.0;
-                    report.correction = 0.0;
-                    report.evaluations += 1;
-                    fin = evaluate(
-                        &pb,
-                        &state.x,
-                        &state.v,
-                        s,
-                        t,
-                        &mut self.scratch,
-                        &mut self.grad,
-                    );
-                }
-                report.converged = max_scaled(&pb, &fin.c) <= tol;
-                report.fallback |= !report.converged;
+        (cur, offered.is_some() || !lazy_gradient)
+    }
+
+    /// The centre-of-mass rows alone have a rigid closest point: translate the body onto C_target (the mass
+    /// metric's first step would; the diagonal stiffness metric cannot move a body rigidly, and its iterates
+    /// would deform a falling body to meet these rows). A translation changes neither the elastic energy nor
+    /// its gradient.
+    fn translate_onto_center(&mut self, run: &mut Run) {
+        let (model, tol) = (run.pb.model, run.tol);
+        if !(run.base_finite
+            && run.pb.active[7..10].iter().all(|&a| a)
+            && rigid_translation_allowed(model, &self.frozen_positions))
+        {
+            return;
+        }
+        let d = sub(run.pb.targets.center_of_mass, run.cur.com);
+        if !(0..3).any(|a| (d[a] / run.pb.row_scale[7 + a]).abs() > tol) {
+            return;
+        }
+        self.leave_base();
+        let m = model.num_vertices();
+        for_each_chunk_mut(&mut self.x, vertex_chunk(m), |_, xs| {
+            for xi in xs.iter_mut() {
+                *xi = [xi[0] + d[0], xi[1] + d[1], xi[2] + d[2]];
+            }
+        });
+        let grad = run.grad_at_x.then_some(&self.grad[..]);
+        run.cur = evaluate_with_elastic(
+            &run.pb,
+            &self.x,
+            &self.v,
+            run.s,
+            run.t,
+            run.cur.el,
+            grad,
+            &mut self.scratch.parts,
+        );
+        run.cur_norm = norm_scaled(&run.pb, &run.cur.c);
+        run.report.translated = true;
+        run.keep_if_better();
+    }
+
+    /// Opt-in warm start for large energy errors (a dissipative base step at a large dt can lose most of H in
+    /// one step): scale the deformational velocities, which meets the energy row and keeps P and L; the
+    /// iterations then fix the rest from nearby instead of linearising a stiff position correction far from
+    /// the manifold.
+    fn warm_start(&mut self, run: &mut Run) {
+        let pb = &run.pb;
+        let threshold = self.settings.warm_start_threshold.max(run.tol);
+        if !(run.base_finite && pb.active[0] && (run.cur.c[0] / pb.row_scale[0]).abs() > threshold)
+        {
+            return;
+        }
+        // The warm start changes the velocities in place: the iterate gets buffers of its own.
+        self.leave_base();
+        let parts = &mut self.scratch.kinetic;
+        if !warm_start_velocities(pb, &run.cur, &self.x, &mut self.v, parts) {
+            return;
+        }
+        // Only the velocities changed: the elastic energy (and gradient, if computed) at x still hold.
+        let grad = run.grad_at_x.then_some(&self.grad[..]);
+        run.cur = evaluate_with_elastic(
+            &run.pb,
+            &self.x,
+            &self.v,
+            run.s,
+            run.t,
+            run.cur.el,
+            grad,
+            &mut self.scratch.parts,
+        );
+        run.cur_norm = norm_scaled(&run.pb, &run.cur.c);
+        run.report.warm_start = true;
+        run.keep_if_better();
+    }
+
+    /// The iterations of one attempt: until every row is within tolerance, no admissible step is left, the
+    /// diagonal stiffness metric stalls, or `max_iterations`.
+    fn iterate(&mut self, run: &mut Run) {
+        for _ in 0..self.settings.max_iterations {
+            if max_scaled(&run.pb, &run.cur.c) <= run.tol {
+                // On the manifold; with new inversions, iterating further cannot help: restart.
+                run.report.converged = run.cur.el.inverted <= run.base_inverted;
+                break;
+            }
+            self.prepare_solve(run);
+            let Multipliers {
+                lambda,
+                least_squares,
+                offset,
+            } = solve_multipliers(&run.pb, &run.cur, self.settings.regularization);
+            run.report.least_squares_solves += least_squares as usize;
+            let accepted = self.search_step(run, &lambda, &offset);
+            run.report.iterations += 1;
+            let Some(candidate) = accepted else {
+                break; // no admissible step: stop, keep the best so far
+            };
+            let previous_norm = self.accept(run, candidate);
+            // The diagonal stiffness metric cannot move the body rigidly (its position directions are scaled
+            // per vertex): where the rows need a rigid correction that the translation before the iteration
+            // did not make, its iterates deform the body and stall. Under `Metric::Auto` the caller then tries
+            // the mass metric (`stalled`).
+            if run.stall_exit
+                && run.report.iterations >= 2
+                && run.cur_norm > 0.9 * previous_norm
+                && max_scaled(&run.pb, &run.cur.c) > run.tol
+            {
+                run.stalled = true;
+                break;
             }
         }
-        // The copy of the trial positions is the state's exactly when the result is an accepted trial point
-        // returned by the swap above, untouched by the impact bound.
-        let returned_iterate = report.converged && !base_returned && !report.bound_hit;
+        if !run.report.converged && run.on_manifold() {
+            run.report.converged = true;
+        }
+    }
+
+    /// What the solve needs at the current iterate: the elastic gradient and S's moments where the evaluation
+    /// skipped them, and with a [`SystemMetric`] the energy row's direction in it.
+    fn prepare_solve(&mut self, run: &mut Run) {
+        let (pb, s, t) = (&run.pb, run.s, run.t);
+        if !run.grad_at_x {
+            // The same constraint values (the same bits for Neo-Hookean and ARAP, whose energy-only and
+            // gradient passes are gated bit-identical), now with the gradient and S's moments.
+            run.report.evaluations += 1;
+            let (x, v) = current!(self);
+            run.cur = evaluate(pb, x, v, s, t, &mut self.scratch, &mut self.grad);
+            run.grad_at_x = true;
+        } else if !run.cur.s_moments {
+            // An accepted trial point (summed without S's moments, which most trial points, ending the
+            // projection, never need): sum them now; the constraint values keep their bits.
+            let grad = Some(&self.grad[..]);
+            let parts = &mut self.scratch.parts;
+            let (x, v) = current!(self);
+            run.cur = evaluate_with_elastic(pb, x, v, s, t, run.cur.el, grad, parts);
+        }
+        if let Some(sys) = run.system.as_deref_mut() {
+            // The energy row's position block in the metric W: its direction W^-1 grad U and S_HH's position
+            // part grad U . W^-1 grad U (in place of the diagonal metric's moment).
+            let (rhs, dir) = (&mut self.system_rhs, &mut self.system_dir);
+            let parts = &mut self.scratch.norms;
+            match system_direction(&run.pb, sys, &self.grad, rhs, dir, parts) {
+                Some(gz) => run.cur.grad_sq_over_w = gz,
+                None => {
+                    run.system = None;
+                    run.report.system_metric = false;
+                    run.report.stiffness_metric = self.uses_stiffness_metric();
+                }
+            }
+        }
+    }
+
+    /// The step along the multipliers `lambda` (with the solve's second-order `offset`): the full step, or the
+    /// model's step length where the full step overshoots, halved while it does not lower the scaled residual
+    /// norm. `None` where no step is admissible (finite).
+    fn search_step(
+        &mut self,
+        run: &mut Run,
+        lambda: &[f64; ROWS],
+        offset: &[f64; ROWS],
+    ) -> Option<Candidate> {
+        let (pb, s, t, tol) = (&run.pb, run.s, run.t, run.tol);
+        let dir = run.system.is_some();
+        let report = &mut run.report;
+        let mut alpha = 1.0;
+        report.evaluations += 1;
+        // Sum S's moments with the trial point where another iteration is expected after this one (backward
+        // Euler takes two per step): the pass after an accepted trial is then not needed. Which pass sums them
+        // changes no bits (the same task sums in the same order).
+        let moments = report.iterations + 1 < self.expected_iterations;
+        let mut cand = self.trial(pb, s, t, lambda, 1.0, moments, dir);
+        // Curvature-aware step length: along the step, P and C are linear in alpha, L is quadratic, so
+        // c(alpha) = (1 - alpha) c(0) + alpha^2 e with e = c(1) holds for them exactly and models H's curvature
+        // (its row with the second-order offset, see `model_step_length`). Where the full step overshoots
+        // (stiff materials), take the model's best alpha. A full step that already lands within the tolerance
+        // (without inverting more tets than the base step) is taken as it is: the model's shorter step could
+        // only improve on a converged point, for a serial search and, where it proposes one, a second
+        // evaluation.
+        let full_step_done =
+            max_scaled(pb, &cand.0.c) <= tol && cand.0.el.inverted <= run.base_inverted;
+        if !full_step_done && cand.0.c.iter().all(|c| c.is_finite()) {
+            let a_star = model_step_length(pb, &run.cur.c, offset, &cand.0.c);
+            if a_star < 0.95 {
+                // Keep the full step's buffers aside, so that falling back to it needs no second evaluation.
+                self.swap_trial_spare();
+                report.evaluations += 1;
+                let alt = self.trial(pb, s, t, lambda, a_star, moments, dir);
+                if alt.0.c.iter().all(|c| c.is_finite()) && alt.1 < cand.1 {
+                    cand = alt;
+                    alpha = a_star;
+                } else {
+                    self.swap_trial_spare();
+                }
+            }
+        }
+        let max_halvings = self.settings.max_halvings;
+        for halving in 0..=max_halvings {
+            if halving > 0 {
+                report.evaluations += 1;
+                cand = self.trial(pb, s, t, lambda, alpha, moments, dir);
+            }
+            // Intermediate iterates may pass through states with more inverted tets (the linearisation does
+            // not know about inversion); only the returned state must not have more than the base step
+            // (checked by the attempts).
+            let admissible = cand.0.c.iter().all(|c| c.is_finite());
+            if admissible && (cand.1 < run.cur_norm || halving == max_halvings) {
+                return Some(cand);
+            }
+            if halving < max_halvings {
+                report.halvings += 1;
+            }
+            alpha *= 0.5;
+        }
+        None
+    }
+
+    /// Make the accepted trial point the current iterate (by buffer swaps), and the best if it is; returns the
+    /// previous iterate's scaled residual norm.
+    fn accept(&mut self, run: &mut Run, (trial, n, s_new, t_new): Candidate) -> f64 {
+        // From q~ itself, the trial buffers get x/v's stale rows (overwritten by the next trial).
+        std::mem::swap(&mut self.x, &mut self.x_trial);
         self.mirror = match self.mirror {
-            Mirror::Iterate if returned_iterate => Mirror::Returned,
+            Mirror::Trial => Mirror::Iterate,
             _ => Mirror::None,
         };
-        debug_assert!(
-            self.mirror != Mirror::Returned || crate::math::same_bits(&self.x_mirror, &state.x),
-            "the projection's copy of the returned positions is theirs bit for bit"
+        std::mem::swap(&mut self.v, &mut self.v_trial);
+        std::mem::swap(&mut self.grad, &mut self.grad_trial);
+        // (`best.in_x` implies the iterate was in x/v, never q~: see `leave_base`.)
+        self.at_base = false;
+        run.cur = trial;
+        let previous_norm = std::mem::replace(&mut run.cur_norm, n);
+        run.s = s_new;
+        run.t = t_new;
+        let best = &mut run.best;
+        if n < best.norm && run.cur.el.inverted <= run.base_inverted {
+            best.norm = n;
+            best.is_base = false;
+            best.eval = run.cur;
+            best.s = run.s;
+            best.t = run.t;
+            best.in_x = true;
+        } else if best.in_x {
+            // The best iterate was just swapped into the trial buffers: keep it.
+            std::mem::swap(&mut self.x_trial, &mut self.x_best);
+            std::mem::swap(&mut self.v_trial, &mut self.v_best);
+            best.in_x = false;
+        }
+        previous_norm
+    }
+
+    /// After an attempt that inverted tets the base step had upright: freeze the positions of their vertices
+    /// and restart from q~. False where no vertex was newly frozen (then the attempts end).
+    fn restart_with_frozen(&mut self, run: &mut Run) -> bool {
+        let (x, _) = current!(self);
+        let model = run.pb.model;
+        let frozen = freeze_newly_inverted(model, &self.x_base, x, &mut run.pb.metric_factor);
+        if frozen > 0 {
+            self.metric_source = None;
+        }
+        run.pb.refresh_rows();
+        if frozen == 0 {
+            return false;
+        }
+        let report = &mut run.report;
+        // Frozen positions are outside what the factorised metric can hold: the diagonal one restarts.
+        if run.system.take().is_some() {
+            report.system_metric = false;
+            report.stiffness_metric = self.uses_stiffness_metric();
+        }
+        report.restarts += 1;
+        report.frozen_vertices += frozen;
+        if run.best.in_x {
+            self.x_best.copy_from_slice(&self.x);
+            self.v_best.copy_from_slice(&self.v);
+            run.best.in_x = false;
+        }
+        self.at_base = true;
+        self.mirror = Mirror::None;
+        run.s = 0.0;
+        run.t = 0.0;
+        report.evaluations += 1;
+        let (x, v) = current!(self);
+        run.cur = evaluate(
+            &run.pb,
+            x,
+            v,
+            run.s,
+            run.t,
+            &mut self.scratch,
+            &mut self.grad,
         );
-        report.final_residual = max_scaled(&pb, &fin.c);
-        report.s = s;
-        report.t = t;
-        let com = fin.com;
-        // L about the actual centre of mass: L_C = L_Ct - (C - C_t) x P.
-        let l_com = sub(
-            fin.angular_momentum,
-            cross(sub(com, targets.center_of_mass), fin.momentum),
-        );
-        let inv = Invariants {
-            kinetic: fin.kinetic,
-            elastic: fin.el.energy,
-            gravitational: fin.gravitational,
-            total: fin.kinetic + fin.el.energy + fin.gravitational,
-            momentum: fin.momentum,
-            angular_momentum: l_com,
-            center_of_mass: com,
-            min_j: fin.el.min_j,
-            inverted: fin.el.inverted,
-        };
-        self.metric_factor = std::mem::take(&mut pb.metric_factor);
-        self.metric_rows = std::mem::take(&mut pb.rows);
-        self.expected_iterations = report.iterations;
-        self.stalled = stalled;
-        (report, inv)
+        run.grad_at_x = true;
+        run.cur_norm = norm_scaled(&run.pb, &run.cur.c);
+        true
     }
 }
 
@@ -679,8 +630,7 @@ pub(super) fn model_step_length(
 ) -> f64 {
     // Per row, c(alpha) = k0 + k1 alpha + k2 alpha^2 with k0 = c0, k1 = -(c0 + d), k2 = d + e (scaled), so the
     // squared norm is a quartic in alpha with the six sums of products of k0, k1, k2: computed once, not
-    // ten rows (and ten divisions) at each of the search's 125 points (about 2 us less per iteration, serial,
-    // on every mesh).
+    // ten rows (and ten divisions) at each of the search's 125 points (the search is serial).
     let mut sums = [[0.0; 3]; 3];
     for i in (0..ROWS).filter(|&i| pb.active[i]) {
         let inv = 1.0 / pb.row_scale[i];

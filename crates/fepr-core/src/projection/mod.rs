@@ -27,8 +27,10 @@
 //! - `system`: the small system `S lambda = c` with its second-order terms;
 //! - `step`: the trial point `q - alpha D^-1 G lambda`;
 //! - `warm_start`: the velocity warm start;
-//! - `iteration`: the iteration, step acceptance, restarts and the choice of the result;
-//! - `restoration` (with `certificate`): the quality guard and the metric switch around it;
+//! - `iteration`: the iteration, step acceptance and restarts; `result`: the choice of the result, its
+//!   correction and the impact bound;
+//! - `guard`: [`Projector::project_with`], the metric switch and the search over the restored fraction;
+//! - `restoration` (with `certificate`): the quality guard's rule and its per-tet check;
 //! - `moments`, `trial_steps`: the vertex kernels (lanes) that `evaluate` and `step` sum with.
 
 /// The current iterate's `(x, v)` of a [`Projector`] inside `project`: q~ itself (`x_base`, `v_base`) until
@@ -45,12 +47,14 @@ macro_rules! current {
 
 mod certificate;
 mod evaluate;
+mod guard;
 mod iteration;
 mod metric;
 mod moments;
 mod problem;
 mod report;
 mod restoration;
+mod result;
 mod settings;
 mod step;
 mod system;
@@ -145,14 +149,12 @@ pub struct Projector {
 }
 
 /// Which positions [`Projector`]'s `x_mirror` holds a bit-for-bit copy of. Symplectic Euler keeps the positions
-/// of the gradient the projection hands over, to check at its next step that the state still has them; it
-/// copied them in a pass of its own after each projection, a parallel region that counts in the projection's
-/// time (two threads: the armadillo 2.5-2.6 us, the elephant 6.2-6.9 us per step). The trial pass writes the
-/// copy instead, task by task, from the rows it has just written (in L1), for 0.3-0.5 us (armadillo) and a few
-/// us (elephant) more, and the buffer is handed over by a swap. The tracking is conservative: anything but an
-/// accepted trial point that the projection returns as it is leaves no copy, and the caller then copies as
-/// before. A wrong copy could only cost a reuse (symplectic Euler still compares the positions bit for bit);
-/// debug builds assert it is right.
+/// of the gradient the projection hands over, to check at its next step that the state still has them. A copy
+/// in a pass of its own after each projection is a parallel region of its own; the trial pass writes the copy
+/// instead, task by task, from the rows it has just written (still in L1), and the buffer is handed over by a
+/// swap. The tracking is conservative: anything but an accepted trial point that the projection returns as it
+/// is leaves no copy, and the caller then copies as before. A wrong copy could only cost a reuse (symplectic
+/// Euler still compares the positions bit for bit); debug builds assert it is right.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 enum Mirror {
     /// Nothing usable.
@@ -200,8 +202,8 @@ impl Projector {
     /// The rows this projection enforces. `Auto` also drops the centre-of-mass rows in a step with an
     /// impulsive event (contact): its centre of mass comes from impulses that act at unknown times within the
     /// step, and with the contact vertices' positions frozen, holding it at the base step's value
-    /// over-constrains the correction (the energy bookkeeping of a box rocking on a frictional corner was off by
-    /// 8.5e-3 of H0 with them, 1e-10 without).
+    /// over-constrains the correction (the energy books of a box rocking on a frictional corner do not close
+    /// with them).
     fn active_rows(&self, model: &Model, targets: &Targets) -> [bool; ROWS] {
         let mut m = self.settings.rows.mask(model.num_pinned() > 0);
         if self.settings.rows == ActiveRows::Auto && targets.uncertain_impulses {
@@ -239,8 +241,7 @@ impl Projector {
         if !std::mem::take(&mut self.grad_is_final) {
             return None;
         }
-        // Below `SERIAL_ROWS` the caller's copy is a serial one, cheaper than the trial tasks' (1k box: 0.3 us
-        // against 0.5-0.6 us more in the trial pass).
+        // Below `SERIAL_ROWS` the caller's serial copy is cheaper than the trial tasks' extra writes.
         self.mirror_wanted = self.grad.len() >= crate::exec::SERIAL_ROWS;
         let positions =
             (std::mem::take(&mut self.mirror) == Mirror::Returned).then_some(&mut self.x_mirror);

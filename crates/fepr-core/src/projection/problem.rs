@@ -1,7 +1,7 @@
 //! One projection's problem: the model, step size and targets, the active rows and their scales, the slack
 //! directions and the metric's per-vertex rows; and the scaled residuals the iteration measures progress by.
 
-use super::{Targets, ROWS};
+use super::{rounding_terms, Targets, ROUNDING_ULPS, ROWS};
 use crate::math::Vec3;
 use crate::model::Model;
 
@@ -70,14 +70,37 @@ impl<'a> Problem<'a> {
         self
     }
 
+    /// The rows' scales (fepr-spec section 3), from the targets and the start-of-step state, not from the base
+    /// step's result: a wild base step must not loosen the energy tolerance. `tolerance`: the settings'.
+    pub(super) fn set_row_scales(&mut self, tolerance: f64) {
+        let (model, targets) = (self.model, self.targets);
+        let (m, r, mt) = (model.num_vertices(), model.length_scale, model.total_mass);
+        self.row_scale[0] = targets.energy_scale.max(1e-300);
+        // Far from the origin (a body that has fallen for minutes) the positions themselves carry less than
+        // tolerance * r: the centre of mass's scale is at least the rounding of its sum.
+        let com_floor = ROUNDING_ULPS
+            * rounding_terms(m)
+            * f64::EPSILON
+            * crate::math::norm(targets.center_of_mass)
+            / tolerance;
+        // The momenta's scales are those of the motion, `sqrt(2 m_tot S)` with `S` the energy row's scale (and
+        // `r` times that for L), not `m_tot r / h` (the momentum that moves the body by its size in one step):
+        // at a small step or a slow motion the latter is hundreds of times the momenta the body has, and a
+        // tolerance on it let P and L drift.
+        let momentum_scale = (2.0 * mt * self.row_scale[0]).sqrt();
+        for a in 0..3 {
+            self.row_scale[1 + a] = momentum_scale;
+            self.row_scale[4 + a] = momentum_scale * r;
+            self.row_scale[7 + a] = r.max(com_floor);
+        }
+    }
+
     /// `rows` from `metric_factor`, the masses and the pins.
     pub(super) fn refresh_rows(&mut self) {
         let (model, rows, factor) = (self.model, &mut self.rows, &self.metric_factor[..]);
         let n = factor.len();
         // Sized first, then filled by plain loops over slices of one length (no `push`): they compile to
-        // packed divisions and selects. This runs on one thread once per projection; the pushing loop took
-        // 1.3% of a projection on the elephant (perf, one thread), and the projection 1-2% less time on two
-        // threads without it (elephant, bunny, alternated runs).
+        // packed divisions and selects (this runs on one thread once per projection).
         for row in [
             &mut rows.a_over_m,
             &mut rows.free_mass,

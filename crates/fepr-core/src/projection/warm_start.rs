@@ -46,7 +46,7 @@ impl RigidPart {
 /// The [`RigidPart`] of the free vertices' velocities, from the moments an evaluation `e` summed for `S`.
 pub(super) fn rigid_velocity(pb: &Problem, e: &Eval) -> RigidPart {
     // From the free vertices' moments about the target centre of mass C_t that the evaluation summed for S
-    // (no passes of its own: on the 1k box these were two serial passes of the warm start's four). With
+    // (no serial passes of its own). With
     // r = x - C_t, the centre of mass is c = C_t + d, d = sum m r / M; about c, the inertia is
     // [tr(R) I - R] - M (|d|^2 I - d d^T) (R = sum m r r^T), and the angular momentum of v - V is
     // sum m r x v - d x P.
@@ -128,7 +128,7 @@ pub(super) fn warm_start_velocities(
     let c_h = e.c[0];
     // Without momentum rows (the default with pins) nothing holds P or L, so no rigid part is kept: every free
     // velocity is scaled. A pinned body's swing is mostly a best-fit rigid rotation; scaling only the small
-    // rest amplified it up to 17x per step on the PD cantilever demo, and its energy error grew to 0.23.
+    // rest amplifies it many times per step (a Projective Dynamics cantilever's energy error then grows).
     let momenta_rows = pb.active[1..7].iter().any(|&a| a);
     let now = if momenta_rows {
         rigid_velocity(pb, e)
