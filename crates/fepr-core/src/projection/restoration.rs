@@ -2,8 +2,8 @@
 //!
 //! An implicit step at a game time step (1/60 s, 1/30 s) removes the energy of the modes it cannot resolve. The
 //! closest point that restores all of it puts the energy where it is cheapest in the projection's metric, and on a
-//! real mesh that is the stiffest, worst-shaped tets: the seed's bunny2 at dt = 1/60 got 200-284 inverted tets in
-//! 8 steps where the base step alone kept every tet upright. Conserving energy is no licence to destroy the mesh,
+//! real mesh that is the stiffest, worst-shaped tets, which it then inverts by the hundred where the base step
+//! alone kept every tet upright. Conserving energy is no licence to destroy the mesh,
 //! so restoration is constrained, per tet, on the quantity that inversion is about, the volume ratio `J = det F`
 //! (a trust region on each tet's volume ratio). With `J*` the base step's and `J` the projected state's:
 //!
@@ -32,33 +32,25 @@
 //! matter, it does not run at all.
 
 use super::certificate::{Certificate, Sensitivity};
-use super::{Metric, ProjectionReport, Projector, SystemMetric, Targets};
+use super::ProjectionReport;
 use crate::exec::{copy_rows, for_each_mut};
-use crate::invariants::Invariants;
 use crate::math::{cross, dot, norm, sub, Vec3};
 use crate::model::BLOCK;
 use crate::model::{Model, State};
 
-/// Projections tried after the full restoration failed the guard, before the fraction search stops.
-const MAX_FRACTION_TRIALS: usize = 4;
-/// The search stops when the bracket of the restored fraction is narrower than this share of its upper end.
-const FRACTION_PRECISION: f64 = 0.2;
-/// The regula falsi aims at this share of the margin, so that its estimate lands inside the trust region.
-const AIM: f64 = 0.8;
-
 /// A copy of a state's positions and velocities.
 #[derive(Clone, Debug, Default)]
-struct Snapshot {
-    x: Vec<Vec3>,
-    v: Vec<Vec3>,
+pub(super) struct Snapshot {
+    pub(super) x: Vec<Vec3>,
+    pub(super) v: Vec<Vec3>,
 }
 
 impl Snapshot {
-    fn save(&mut self, state: &State) {
+    pub(super) fn save(&mut self, state: &State) {
         copy_rows(&state.x, &mut self.x);
         copy_rows(&state.v, &mut self.v);
     }
-    fn restore(&self, state: &mut State) {
+    pub(super) fn restore(&self, state: &mut State) {
         state.x.copy_from_slice(&self.x);
         state.v.copy_from_slice(&self.v);
     }
@@ -68,12 +60,12 @@ impl Snapshot {
 #[derive(Clone, Debug, Default)]
 pub(super) struct Restoration {
     /// The base step's state `(x*, v*)`.
-    base: Snapshot,
+    pub(super) base: Snapshot,
     /// The state of the largest fraction accepted so far.
-    kept: Snapshot,
+    pub(super) kept: Snapshot,
     /// The full projection's state, where it did not converge (or the stiffness metric's, while the mass
     /// metric is tried).
-    full: Snapshot,
+    pub(super) full: Snapshot,
     parts: Vec<QualityCheck>,
     /// The bound that spares the full check where the correction is small (see [`Certificate`]).
     certificate: Certificate,
@@ -97,7 +89,7 @@ const MOTION_SHARE: f64 = 0.25;
 
 /// How far a state's volume ratios moved from the base step's.
 #[derive(Clone, Copy, Debug, PartialEq)]
-struct QualityCheck {
+pub(super) struct QualityCheck {
     /// Largest change `|J - J_base|` over the tets, at the end of the step and one step ahead, over the change
     /// that tet may undergo.
     excess: f64,
@@ -138,7 +130,7 @@ impl QualityCheck {
 
 /// What the guard asks of a projection, by the sign of the energy gap it closes.
 #[derive(Clone, Copy, Debug)]
-struct Rule {
+pub(super) struct Rule {
     /// The projection removes an excess (a base step that gained energy).
     removing: bool,
     /// The base step's smallest volume ratio.
@@ -152,14 +144,14 @@ impl Rule {
     /// it can move most). Removing an excess takes energy out, which does not concentrate it: there the
     /// worst tet may not end more than the margin below the base step's worst (an excess removed through the
     /// positions of a stiff mesh in the mass metric can crush a sliver all the same), and no tet may invert.
-    fn measure(&self, c: &QualityCheck) -> f64 {
+    pub(super) fn measure(&self, c: &QualityCheck) -> f64 {
         if self.removing {
             ((self.base_min - c.min_now) / self.margin).max(0.0)
         } else {
             c.excess
         }
     }
-    fn holds(&self, c: &QualityCheck) -> bool {
+    pub(super) fn holds(&self, c: &QualityCheck) -> bool {
         c.inverted == 0 && self.measure(c) <= 1.0
     }
 }
@@ -240,7 +232,7 @@ impl Restoration {
     /// Check `state` against the base step's volume ratios (from the saved `(x*, v*)`). `same_positions`: the
     /// projection moved no position but by a translation (it took no iteration). The first check of a step
     /// (`first`) also keeps what the [`Certificate`] needs, when its bound is due to be tried again soon.
-    fn check(
+    pub(super) fn check(
         &mut self,
         model: &Model,
         h: f64,
@@ -406,431 +398,55 @@ impl Restoration {
         }
         certified.then_some(check)
     }
-}
 
-/// The next restored fraction to try, inside the bracket `(lo, hi)`: `lo` is accepted (its largest change
-/// `e_lo`, 0 for the untried `lo = 0`), `hi` was not (`e_hi`, infinite where it did not converge). Regula falsi
-/// on `e(theta) = AIM`, kept off the bracket's ends; a halving of the distance to `hi` without a finite `e_hi`.
-fn next_fraction(lo: f64, e_lo: f64, hi: f64, e_hi: f64) -> f64 {
-    let w = hi - lo;
-    let s = if e_hi.is_finite() && e_hi > e_lo {
-        ((AIM - e_lo) / (e_hi - e_lo)).clamp(0.02, 0.7)
-    } else {
-        0.3
-    };
-    lo + s * w
-}
-
-/// What the fraction search tallies over its projections.
-#[derive(Clone, Copy, Debug, Default)]
-struct Tally {
-    trials: usize,
-    iterations: usize,
-    evaluations: usize,
-    halvings: usize,
-    least_squares_solves: usize,
-    restarts: usize,
-    frozen_vertices: usize,
-}
-
-impl Tally {
-    fn add(&mut self, r: &ProjectionReport) {
-        self.trials += 1;
-        self.iterations += r.iterations;
-        self.evaluations += r.evaluations;
-        self.halvings += r.halvings;
-        self.least_squares_solves += r.least_squares_solves;
-        self.restarts += r.restarts;
-        self.frozen_vertices += r.frozen_vertices;
-    }
-    /// `r` with the counts of every projection of the step.
-    fn into_report(self, mut r: ProjectionReport) -> ProjectionReport {
-        r.trials = self.trials;
-        r.iterations = self.iterations;
-        r.evaluations = self.evaluations;
-        r.halvings = self.halvings;
-        r.least_squares_solves = self.least_squares_solves;
-        r.restarts = self.restarts;
-        r.frozen_vertices = self.frozen_vertices;
-        r
-    }
-}
-
-impl Projector {
-    /// The change of kinetic energy that putting the rigid part of `v` on the momentum targets would make, J
-    /// (the warm start's rigid part: `V = P_target / m`, `omega = I^-1 L_target` about the centre of mass; the
-    /// deformational rest carries no momenta, so it keeps its energy). 0 where the momentum rows do not hold the
-    /// whole body (pins, rows off, slack free) or the body is degenerate.
-    fn momentum_energy(&self, model: &Model, x: &[Vec3], v: &[Vec3], targets: &Targets) -> f64 {
-        let rows = self.active_rows(model, targets);
-        let slack = match self.settings.slack {
-            super::Slack::On => true,
-            super::Slack::Off => false,
-            super::Slack::Auto => targets.uncertain_impulses,
-        };
-        if model.num_pinned() > 0 || !rows[1..7].iter().all(|&a| a) || slack {
-            return 0.0;
-        }
-        let rigid = crate::invariants::rigid_motion(&model.masses, x, v);
-        let Some(inv) = rigid.inertia_inv else {
-            return 0.0;
-        };
-        let m = rigid.mass;
-        let vt = targets.momentum.map(|p| p / m);
-        let offset = cross(sub(rigid.center, targets.center_of_mass), vt);
-        let l_t = [0, 1, 2].map(|a| targets.angular_momentum[a] - m * offset[a]);
-        let spin = |l: Vec3| {
-            let w = [0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * l[b]).sum::<f64>());
-            0.5 * dot(w, l)
-        };
-        let k_now = 0.5 * dot(rigid.momentum, rigid.momentum) / m + spin(rigid.angular_momentum);
-        let k_next = 0.5 * m * dot(vt, vt) + spin(l_t);
-        k_next - k_now
-    }
-
-    /// Project the base step's state (put back into `state` from `rs`) with the energy target
-    /// `anchor + theta (H_target - anchor)`, and check the result against the base step's volume ratios.
+    /// The rule for a projection that closes the energy gap `gap`, and its check of the full projection's
+    /// result in `state` (report `rep`, smallest volume ratio `min_now`): by the [`Certificate`]'s bound where that settles it, else by the per-tet
+    /// pass.
     #[allow(clippy::too_many_arguments)]
-    fn project_fraction<'d>(
+    pub(super) fn judge_full(
         &mut self,
         model: &Model,
-        state: &mut State,
         h: f64,
-        targets: &Targets,
-        rs: &mut Restoration,
-        theta: f64,
-        system: Option<&mut (dyn SystemMetric + 'd)>,
-        anchor: f64,
-    ) -> (ProjectionReport, Invariants, QualityCheck) {
-        rs.base.restore(state);
-        let t = Targets {
-            energy: anchor + theta * (targets.energy - anchor),
-            ..*targets
+        state: &State,
+        rep: &ProjectionReport,
+        min_now: f64,
+        margin: f64,
+        gap: f64,
+    ) -> (Rule, QualityCheck) {
+        let quick = Rule {
+            removing: gap < 0.0,
+            base_min: rep.base_min_j,
+            margin,
         };
-        let (r, i) = self.project_once(model, state, h, &t, system);
-        let margin = self
-            .settings
-            .quality_margin
-            .unwrap_or(super::DEFAULT_QUALITY_MARGIN);
-        let check = rs.check(model, h, state, margin, r.iterations == 0, false);
-        (r, i, check)
-    }
-
-    /// Project `state` (holding the base step's result `(x*, v*)`) in place, for step size `h` and the given
-    /// targets, with the base integrator's factorised position metric if it offers one
-    /// ([`crate::integrators::Integrator::system_metric`]; used under [`Metric::Auto`] where the energy is the
-    /// only active row and no position is frozen, see [`SystemMetric`]). Returns the report and the invariants
-    /// measured at the returned state.
-    ///
-    /// Around the iteration of fepr-spec section 3 (`project_once`):
-    /// - the metric switch: under [`Metric::Auto`] after an implicit base step, an iteration in the diagonal
-    ///   stiffness metric that makes no progress (its scaled residual falls by less than a tenth in an iteration
-    ///   after the first) restarts from `(x*, v*)` in the mass metric (`metric_switched`); the better result of
-    ///   the two is kept;
-    /// - the quality guard (see the module [`restoration`](self)): where closing the whole energy gap breaks
-    ///   [`super::ProjectionSettings::quality_margin`]'s rule or does not converge, the largest fraction that
-    ///   converges within the rule is closed, and the rest is reported as `unresolved` for the simulation to
-    ///   book; where nothing does, the step is a fallback.
-    pub fn project_with(
-        &mut self,
-        model: &Model,
-        state: &mut State,
-        h: f64,
-        targets: &Targets,
-        mut system: Option<&mut dyn SystemMetric>,
-    ) -> (ProjectionReport, Invariants) {
-        let margin = self.settings.quality_margin;
-        let switchable = self.settings.metric == Metric::Auto && self.implicit_base;
-        let mut rs = std::mem::take(&mut self.restoration);
-        if margin.is_some() || switchable {
-            rs.base.save(state);
-        }
-        let mut tally = Tally::default();
-        let (mut rep, mut inv, switched) = self.project_full(
-            model,
-            state,
-            h,
-            targets,
-            &mut rs,
-            &mut tally,
-            system.as_deref_mut(),
-        );
-        let base_energy = rep.base_energy;
-        // The energy the projection is asked to restore (positive) or remove (negative).
-        let gap = targets.energy - base_energy;
-        let mut restored = 1.0;
-        let mut excess = 0.0;
-        if let (Some(margin), true) = (margin, base_energy.is_finite()) {
-            let quick = Rule {
-                removing: gap < 0.0,
-                base_min: rep.base_min_j,
-                margin,
-            };
-            let certified = rep
-                .converged
-                .then(|| rs.certify(model, h, state, &quick, inv.min_j))
-                .flatten();
-            // The verdict without the per-tet pass is the pass's (checked in debug builds): the bound is
-            // conservative, and a removal's smallest ratio is the one the evaluations measured.
-            #[cfg(debug_assertions)]
-            if let Some(c) = &certified {
-                let full = rs.check(model, h, state, margin, rep.iterations == 0, false);
-                if quick.removing {
-                    assert_eq!(full.inverted, 0, "a removal certified with an inverted tet");
-                    assert!((full.min_now - c.min_now).abs() <= 1e-9 * c.min_now.abs().max(1.0));
-                } else {
-                    assert!(
-                        quick.holds(&full),
-                        "a certified step breaks the quality rule"
-                    );
-                }
-            }
-            let first = match certified {
-                Some(check) => check,
-                None => rs.check(model, h, state, margin, rep.iterations == 0, true),
-            };
-            let rule = Rule {
-                base_min: first.base_min,
-                ..quick
-            };
-            excess = rule.measure(&first);
-            if !(rep.converged && rule.holds(&first)) {
-                let tolerance = self.settings.tolerance * targets.energy_scale;
-                // The fractions run from the energy the momentum targets alone give the base step's state (its
-                // rigid motion put on them: a spinning body that lost angular momentum gets its rotational energy
-                // back with it) to the full target: only the rest, the internal energy, is the guard's to limit.
-                let anchor =
-                    base_energy + self.momentum_energy(model, &rs.base.x, &rs.base.v, targets);
-                let rest = targets.energy - anchor;
-                let search = Search {
-                    targets,
-                    anchor,
-                    rule,
-                    // An excess that the full projection could not remove (it did not converge) is not reduced:
-                    // keeping part of the energy a base step gained would feed a runaway.
-                    allowed: rest > tolerance || (rest < -tolerance && rep.converged),
-                    full_converged: rep.converged,
-                    full_excess: excess,
-                };
-                // A full projection that did not converge but keeps the rule is the fallback if no fraction
-                // converges either: then it was not the energy that stopped it.
-                let full = (!rep.converged && rule.holds(&first)).then(|| {
-                    rs.full.save(state);
-                    (rep, inv, excess)
-                });
-                let chosen =
-                    self.search_fraction(model, state, h, &search, &mut rs, &mut tally, system);
-                match (chosen, full) {
-                    (Some(((r, i, e), theta, in_state)), _) => {
-                        if !in_state {
-                            rs.kept.restore(state);
-                            // The hand-over buffers belong to the last projection, not to this state.
-                            self.invalidate_hand_over();
-                        }
-                        // The share of the whole gap closed.
-                        let left = (1.0 - theta) * rest;
-                        restored = if gap != 0.0 { 1.0 - left / gap } else { 1.0 };
-                        (rep, inv, excess) = (r, i, e);
-                    }
-                    (None, Some((r, i, e))) => {
-                        rs.full.restore(state);
-                        self.invalidate_hand_over();
-                        (rep, inv, excess) = (r, i, e);
-                    }
-                    (None, None) => {
-                        // Every projection broke the rule or failed: the base step's state, unprojected (the
-                        // references keep their targets, so the next step tries again).
-                        let base_residual = rep.initial_residual;
-                        rs.base.restore(state);
-                        self.invalidate_hand_over();
-                        inv = crate::invariants::measure(model, state);
-                        rep.converged = false;
-                        rep.fallback = true;
-                        rep.final_residual = base_residual;
-                        rep.correction = 0.0;
-                        rep.s = 0.0;
-                        rep.t = 0.0;
-                        excess = 0.0;
-                    }
-                }
-            }
-        }
-        self.restoration = rs;
-        let mut rep = tally.into_report(rep);
-        rep.base_energy = base_energy;
-        rep.restored = restored;
-        rep.gap = gap;
-        rep.unresolved = if restored != 1.0 {
-            -(1.0 - restored) * gap
-        } else {
-            0.0
-        };
-        rep.metric_switched = switched;
-        rep.quality_excess = excess;
-        (rep, inv)
-    }
-
-    /// The projection onto the full targets, with the metric switch (see [`Projector::project_with`]): the
-    /// report, the invariants and whether it switched to the mass metric.
-    #[allow(clippy::too_many_arguments)]
-    fn project_full<'d>(
-        &mut self,
-        model: &Model,
-        state: &mut State,
-        h: f64,
-        targets: &Targets,
-        rs: &mut Restoration,
-        tally: &mut Tally,
-        mut system: Option<&mut (dyn SystemMetric + 'd)>,
-    ) -> (ProjectionReport, Invariants, bool) {
-        self.switch_on_stall = self.settings.metric == Metric::Auto && self.implicit_base;
-        let (rep, inv) = self.project_once(model, state, h, targets, system.as_deref_mut());
-        tally.add(&rep);
-        self.switch_on_stall = false;
-        if !self.stalled {
-            return (rep, inv, false);
-        }
-        // Keep the stalled result aside, try the mass metric from q~, and keep whichever ends closer.
-        rs.full.save(state);
-        rs.base.restore(state);
-        self.metric_override = Some(Metric::Mass);
-        let (mass, mass_inv) = self.project_once(model, state, h, targets, system);
-        self.metric_override = None;
-        tally.add(&mass);
-        if mass.converged || mass.final_residual <= rep.final_residual {
-            (mass, mass_inv, true)
-        } else {
-            rs.full.restore(state);
-            self.invalidate_hand_over();
-            (rep, inv, false)
-        }
-    }
-
-    /// The search over the fraction theta of the energy gap (see the module docs): the accepted projection
-    /// (report, invariants, measure under the rule), its fraction, and whether `state` holds it (else it is in
-    /// `rs`'s kept buffers); `None` where no fraction converges within the rule.
-    #[allow(clippy::too_many_arguments)]
-    fn search_fraction<'d>(
-        &mut self,
-        model: &Model,
-        state: &mut State,
-        h: f64,
-        search: &Search,
-        rs: &mut Restoration,
-        tally: &mut Tally,
-        mut system: Option<&mut (dyn SystemMetric + 'd)>,
-    ) -> Option<((ProjectionReport, Invariants, f64), f64, bool)> {
-        if !search.allowed {
-            return None;
-        }
-        // `lo` is accepted (0: untried), `hi` is not.
-        let (mut lo, mut e_lo) = (0.0, 0.0);
-        let (mut hi, mut e_hi) = (1.0, search.full_excess);
-        let mut kept: Option<(ProjectionReport, Invariants, f64)> = None;
-        let mut last_is_kept = false;
-        if !search.full_converged {
-            // The full projection did not converge: try the base step's energy first. If that does not
-            // converge either, it was not the energy that stopped the projection: no fraction will.
-            let (r, i, e, holds) = self.project_judged(
-                model,
-                state,
-                h,
-                search,
-                rs,
-                tally,
-                0.0,
-                system.as_deref_mut(),
-            );
-            if !r.converged {
-                return None;
-            }
-            if !holds {
-                // Converged but broke the rule with the energy untouched (the momenta's correction did).
-                return Some(((r, i, e), 0.0, true));
-            }
-            (lo, e_lo, e_hi) = (0.0, e, f64::INFINITY);
-            rs.kept.save(state);
-            kept = Some((r, i, e));
-            last_is_kept = true;
-        }
-        for _ in 0..MAX_FRACTION_TRIALS {
-            let theta = next_fraction(lo, e_lo, hi, e_hi);
-            let (r, i, e, holds) = self.project_judged(
-                model,
-                state,
-                h,
-                search,
-                rs,
-                tally,
-                theta,
-                system.as_deref_mut(),
-            );
-            last_is_kept = holds;
-            if holds {
-                (lo, e_lo) = (theta, e);
-                rs.kept.save(state);
-                kept = Some((r, i, e));
+        let certified = rep
+            .converged
+            .then(|| self.certify(model, h, state, &quick, min_now))
+            .flatten();
+        // The verdict without the per-tet pass is the pass's (checked in debug builds): the bound is
+        // conservative, and a removal's smallest ratio is the one the evaluations measured.
+        #[cfg(debug_assertions)]
+        if let Some(c) = &certified {
+            let full = self.check(model, h, state, margin, rep.iterations == 0, false);
+            if quick.removing {
+                assert_eq!(full.inverted, 0, "a removal certified with an inverted tet");
+                assert!((full.min_now - c.min_now).abs() <= 1e-9 * c.min_now.abs().max(1.0));
             } else {
-                (hi, e_hi) = (theta, if r.converged { e } else { f64::INFINITY });
-            }
-            if hi - lo <= FRACTION_PRECISION * hi {
-                break;
+                assert!(
+                    quick.holds(&full),
+                    "a certified step breaks the quality rule"
+                );
             }
         }
-        if let Some(k) = kept {
-            return Some((k, lo, last_is_kept));
-        }
-        // Nothing of the gap fits: keep the base step's energy and fix the momenta.
-        let (r, i, e, holds) = self.project_judged(model, state, h, search, rs, tally, 0.0, system);
-        (r.converged && (holds || search.full_converged)).then_some(((r, i, e), 0.0, true))
+        let first = match certified {
+            Some(check) => check,
+            None => self.check(model, h, state, margin, rep.iterations == 0, true),
+        };
+        let rule = Rule {
+            base_min: first.base_min,
+            ..quick
+        };
+        (rule, first)
     }
-
-    /// [`Projector::project_fraction`] for `search`, tallied and judged: the report, the invariants, the rule's
-    /// measure and whether it converged within the rule.
-    #[allow(clippy::too_many_arguments)]
-    fn project_judged<'d>(
-        &mut self,
-        model: &Model,
-        state: &mut State,
-        h: f64,
-        search: &Search,
-        rs: &mut Restoration,
-        tally: &mut Tally,
-        theta: f64,
-        system: Option<&mut (dyn SystemMetric + 'd)>,
-    ) -> (ProjectionReport, Invariants, f64, bool) {
-        let (r, i, check) = self.project_fraction(
-            model,
-            state,
-            h,
-            search.targets,
-            rs,
-            theta,
-            system,
-            search.anchor,
-        );
-        tally.add(&r);
-        let rule = &search.rule;
-        (
-            r,
-            i,
-            rule.measure(&check),
-            r.converged && rule.holds(&check),
-        )
-    }
-}
-
-/// What the fraction search of one step works with.
-struct Search<'a> {
-    targets: &'a Targets,
-    /// The energy of fraction 0 (the base step's, with its rigid motion on the momentum targets), J.
-    anchor: f64,
-    rule: Rule,
-    /// Whether the gap may be closed in part at all.
-    allowed: bool,
-    /// The full projection converged (and broke the rule), with the rule's measure `full_excess`.
-    full_converged: bool,
-    full_excess: f64,
 }
 
 #[cfg(test)]
@@ -886,20 +502,5 @@ mod tests {
         assert!((removing.measure(&check(0.4, 0)) - 2.0).abs() < 1e-12);
         assert!(!removing.holds(&check(0.4, 0)));
         assert!(!removing.holds(&check(0.6, 1)));
-    }
-
-    #[test]
-    fn the_fraction_search_stays_inside_its_bracket() {
-        for (lo, e_lo, hi, e_hi) in [
-            (0.0, 0.0, 1.0, 40.0),
-            (0.0, 0.0, 1.0, f64::INFINITY),
-            (0.2, 0.9, 0.3, 1.2),
-            (0.5, 0.1, 0.6, 0.05),
-        ] {
-            let t = next_fraction(lo, e_lo, hi, e_hi);
-            assert!(t > lo && t < hi, "{t} outside ({lo}, {hi})");
-        }
-        // A linear change of 40 margins at theta = 1 aims at AIM margins.
-        assert!((next_fraction(0.0, 0.0, 1.0, 40.0) - AIM / 40.0).abs() < 1e-15);
     }
 }
