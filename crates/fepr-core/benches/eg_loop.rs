@@ -5,10 +5,8 @@
 //! `cargo bench -p fepr-core --bench eg_loop -- proj STEM THREADS REPEATS`: the FEPR projection alone after
 //! one symplectic Euler step (dt = 1 ms) from the same set-up, the same input every call: ms per call (best
 //! and median), iterations, and the energy + gradient in the same pool for the ratio.
-//! `EG_AWAKE=1` (with `eg` and `proj`): hold `parallel::KeepAwake` around the timed loop, as a step does.
 //! `cargo bench -p fepr-core --bench eg_loop -- sim STEM THREADS STEPS`: symplectic Euler + FEPR steps of a
-//! `Simulation` (`EG_BATCH=1`: one `KeepAwake` held around all of them, as the Python binding's `step(n)` does).
-//! `cargo bench -p fepr-core --bench eg_loop -- sync`: `parallel::measure_sync_floor` on two threads, five times.
+//! `Simulation`.
 //! `cargo bench -p fepr-core --bench eg_loop -- becold STEM [THREADS]`: the projection right after a backward
 //! Euler step (caches cold) against the same projection again at once, per elastic evaluation.
 //! `cargo bench -p fepr-core --bench eg_loop -- small` times the small dense kernels instead (polar
@@ -209,7 +207,7 @@ fn targets_at(inv: &fepr_core::invariants::Invariants) -> fepr_core::projection:
 
 /// The projection right after a backward Euler step (its caches cold from the Newton solve) against the same
 /// projection again at once (warm): microseconds per elastic evaluation of each, over steps 10-59 of the
-/// set-up of `newton_study` on `threads` threads, with a `KeepAwake` guard per step as `Simulation::step` holds.
+/// set-up of `newton_study` on `threads` threads.
 fn cold_projection_study(stem: &str, threads: usize) {
     use fepr_core::integrators::Integrator;
     use fepr_core::integrators::{ImplicitEuler, NewtonSettings};
@@ -231,8 +229,6 @@ fn cold_projection_study(stem: &str, threads: usize) {
         // (seconds, evaluations) of the cold and of the warm projections.
         let mut totals = [(0.0, 0); 2];
         for step in 0..60 {
-            // As `Simulation::step` holds it: for one step, base step and projection.
-            let _awake = fepr_core::exec::KeepAwake::new();
             let mut base = state.clone();
             ie.step(
                 &model,
@@ -455,22 +451,6 @@ fn main() {
         );
         return;
     }
-    if raw.first().map(String::as_str) == Some("sync") {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(2)
-            .build()
-            .unwrap();
-        for _ in 0..5 {
-            let budget = std::time::Duration::from_millis(100);
-            let f = pool.install(|| fepr_core::exec::measure_sync_floor(budget));
-            println!(
-                "region {:.3} us, round trip {:.1} ns",
-                f.region_s * 1e6,
-                f.round_trip_s * 1e9
-            );
-        }
-        return;
-    }
     if raw.first().map(String::as_str) == Some("proj") {
         let num =
             |i: usize, default: usize| raw.get(i).and_then(|s| s.parse().ok()).unwrap_or(default);
@@ -553,9 +533,6 @@ fn time_energy_gradient(mesh: TetMesh, threads: usize, repeats: usize) {
         .build()
         .unwrap();
     pool.install(|| {
-        let _awake = std::env::var("EG_AWAKE")
-            .is_ok()
-            .then(fepr_core::exec::KeepAwake::new);
         elastic_energy_gradient(model, &x, &mut ws, &mut grad);
         let t0 = Instant::now();
         for _ in 0..repeats {
@@ -600,13 +577,9 @@ fn time_simulation(mesh: TetMesh, threads: usize, steps: usize) {
             sim.step().unwrap();
         }
         let n0 = sim.num_steps();
-        let batch = std::env::var("EG_BATCH")
-            .is_ok()
-            .then(fepr_core::exec::KeepAwake::new);
         for _ in 0..steps {
             sim.step().unwrap();
         }
-        drop(batch);
         let h = &sim.history()[n0 + 1..];
         let mean = |f: &dyn Fn(&fepr_core::simulation::StepDiagnostics) -> f64| {
             h.iter().map(f).sum::<f64>() / h.len() as f64
@@ -623,7 +596,6 @@ fn time_simulation(mesh: TetMesh, threads: usize, steps: usize) {
             })
             .fold(f64::INFINITY, f64::min);
         let (mut grad, mut ws) = (vec![[0.0; 3]; x.len()], ElasticWorkspace::default());
-        let _awake = fepr_core::exec::KeepAwake::new();
         let mut eg = f64::INFINITY;
         for _ in 0..10 {
             let t0 = Instant::now();
@@ -671,7 +643,6 @@ fn time_projection(mesh: TetMesh, threads: usize, repeats: usize) {
         .build()
         .unwrap();
     pool.install(|| {
-        let _awake = std::env::var("EG_AWAKE").is_ok().then(fepr_core::exec::KeepAwake::new);
         let mut proj = Projector::new(ProjectionSettings::default()).unwrap();
         let mut state = base.clone();
         let (report, _) = proj.project(&model, &mut state, h, &targets);

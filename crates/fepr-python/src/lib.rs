@@ -9,6 +9,8 @@ use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
+mod sync_floor;
+
 use fepr_core::elasticity::{elastic_energy_gradient, ElasticWorkspace};
 use fepr_core::integrators::INTEGRATOR_NAMES;
 use fepr_core::invariants::measure;
@@ -339,11 +341,9 @@ impl Simulation {
     /// Returns the number of steps taken.
     fn step(&mut self, py: Python<'_>, n: usize) -> PyResult<usize> {
         let Self { inner, threads, .. } = self;
-        // Once for all `n` steps, with the pool's other threads kept polling across them (each step's own
-        // guard then keeps this one's team: `parallel::KeepAwake`).
+        // Onto the threads once for all `n` steps.
         let result = py.detach(|| {
             threads.run(|| -> Result<usize, FeprError> {
-                let _awake = (n > 1).then(fepr_core::exec::KeepAwake::new);
                 for _ in 0..n {
                     inner.step()?;
                 }
@@ -531,9 +531,8 @@ impl Simulation {
     }
     /// Benchmark helper: time `repeats` elastic energy + gradient evaluations at the current positions on
     /// `threads` worker threads (GIL released, workspace reused, after one warm-up evaluation), in up to ten
-    /// batches; the best batch's mean is the time (interference from other processes only ever adds). With
-    /// `awake`, the pool's threads are kept polling between evaluations (`parallel::KeepAwake`), as during a
-    /// simulation step; without, they park between evaluations, as between calls from Python. Returns
+    /// batches; the best batch's mean is the time (interference from other processes only ever adds).
+    /// `awake` is accepted for compatibility and changes nothing (the pool is plain rayon). Returns
     /// (seconds per evaluation, the energy's bits, a checksum of the gradient's bits) so callers can
     /// compare thread counts bit for bit.
     #[pyo3(signature = (repeats, threads, awake = false))]
@@ -556,7 +555,8 @@ impl Simulation {
         let (model, x) = (&self.inner.model, &self.inner.state.x);
         Ok(py.detach(|| {
             pool.install(|| {
-                let _awake = awake.then(fepr_core::exec::KeepAwake::new);
+                // Accepted for compatibility: the pool's threads are plain rayon workers either way.
+                let _ = awake;
                 let mut grad = vec![[0.0; 3]; x.len()];
                 let mut ws = ElasticWorkspace::default();
                 let mut s = elastic_energy_gradient(model, x, &mut ws, &mut grad);
@@ -779,9 +779,9 @@ impl Simulation {
     }
 }
 
-/// Measure what synchronising `threads` threads costs on this machine (`fepr_core::exec::SyncFloor`), in
-/// about 0.1 s: (seconds per parallel region that every thread must join, with no work in it and the threads
-/// kept awake, seconds per cache-line round trip between two threads; NaN on a single CPU).
+/// Measure what synchronising `threads` threads costs on this machine (`sync_floor::SyncFloor`), in
+/// about 0.1 s: (seconds per parallel region that every thread must join, with no work in it, back to back,
+/// seconds per cache-line round trip between two threads; NaN on a single CPU).
 #[pyfunction]
 fn bench_sync_floor(py: Python<'_>, threads: usize) -> PyResult<(f64, f64)> {
     if threads == 0 {
@@ -792,7 +792,7 @@ fn bench_sync_floor(py: Python<'_>, threads: usize) -> PyResult<(f64, f64)> {
         .build()
         .map_err(|e| PyRuntimeError::new_err(format!("cannot start {threads} threads: {e}")))?;
     let budget = std::time::Duration::from_millis(80);
-    let floor = py.detach(|| pool.install(|| fepr_core::exec::measure_sync_floor(budget)));
+    let floor = py.detach(|| pool.install(|| sync_floor::measure(budget)));
     Ok((floor.region_s, floor.round_trip_s))
 }
 

@@ -538,9 +538,6 @@ impl Simulation {
 
     /// [`Simulation::step`], on a thread of a rayon pool.
     fn step_on_pool(&mut self) -> Result<()> {
-        // A step enters 6-30 parallel regions with sequential work between them: keep the other threads
-        // polling for work meanwhile instead of parking and waking them for each region (`KeepAwake`).
-        let _awake = crate::exec::KeepAwake::new();
         copy_state(&self.state, &mut self.previous);
         let h = self.dt;
         let t0 = Instant::now();
