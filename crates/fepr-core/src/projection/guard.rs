@@ -125,7 +125,7 @@ impl Projector {
 
     /// Project `state` (holding the base step's result `(x*, v*)`) in place, for step size `h` and the given
     /// targets, with the base integrator's factorised position metric if it offers one
-    /// ([`crate::integrators::Integrator::system_metric`]; used under [`Metric::Auto`] where the energy is the
+    /// (handed over by the simulation; used under [`Metric::Auto`] where the energy is the
     /// only active row and no position is frozen, see [`SystemMetric`]). Returns the report and the invariants
     /// measured at the returned state.
     ///
@@ -134,7 +134,7 @@ impl Projector {
     ///   stiffness metric that makes no progress (its scaled residual falls by less than a tenth in an iteration
     ///   after the first) restarts from `(x*, v*)` in the mass metric (`metric_switched`); the better result of
     ///   the two is kept;
-    /// - the quality guard (see the module [`restoration`](super::restoration)): where closing the whole energy gap breaks
+    /// - the quality guard (module `restoration`): where closing the whole energy gap breaks
     ///   [`super::ProjectionSettings::quality_margin`]'s rule or does not converge, the largest fraction that
     ///   converges within the rule is closed, and the rest is reported as `unresolved` for the simulation to
     ///   book; where nothing does, the step is a fallback.

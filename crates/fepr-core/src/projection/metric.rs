@@ -42,7 +42,7 @@ impl Metric {
 }
 
 /// A position metric `W` that the base integrator has factorised (Projective Dynamics: `W = M + h^2 L`, its
-/// global matrix times `h^2`; see [`crate::integrators::Integrator::system_metric`]). Under [`Metric::Auto`]
+/// global matrix times `h^2`, handed over by the simulation). Under [`Metric::Auto`]
 /// the projection uses it for the position block where the energy is its only row (the default with pins)
 /// and no position is frozen: the diagonal stiffness metric moves each vertex on its own, and where the energy
 /// has to come out of the positions of a stiff body (the base step left more than the kinetic energy it could

@@ -229,15 +229,15 @@ impl Projector {
 
 impl Projector {
     /// The elastic gradient at the positions the last [`Projector::project`] returned (J/m, shape (m, 3)), if
-    /// it is at hand, as a buffer the caller may swap out (see `Integrator::offer_elastic_gradient`). A
+    /// it is at hand, as a buffer the caller may swap out (the simulation hands it to an integrator that reads it). A
     /// second call returns `None` until the next projection.
     pub fn take_final_gradient(&mut self) -> Option<&mut Vec<Vec3>> {
         std::mem::take(&mut self.grad_is_final).then_some(&mut self.grad)
     }
 
     /// [`Projector::take_final_gradient`], with a bit-for-bit copy of the positions the last projection returned
-    /// (shape (m, 3), m) where it has one, as a buffer the caller may swap out (see
-    /// `Integrator::offer_elastic_gradient_with_positions`). Taking it asks the next projection to write such a
+    /// (shape (m, 3), m) where it has one, as a buffer the caller may swap out (so that
+    /// the integrator can check the positions without a copy pass). Taking it asks the next projection to write such a
     /// copy as it writes its trial points (the first projection after the caller starts taking it has none).
     pub fn take_final_hand_over(&mut self) -> Option<(&mut Vec<Vec3>, Option<&mut Vec<Vec3>>)> {
         if !std::mem::take(&mut self.grad_is_final) {
@@ -252,7 +252,7 @@ impl Projector {
 
     /// Offer the elastic energy summary `summary` and gradient `grad` (J/m, shape (m, 3)) of the model at the
     /// positions the next [`Projector::project`] starts from (the base step's result), as the base step
-    /// evaluated them there ([`crate::integrators::Integrator::result_elastic_gradient`]): that call skips
+    /// evaluated them there (handed over by the simulation): that call skips
     /// its first elastic evaluation. The caller guarantees the positions are bit-identical to the ones they
     /// were evaluated at (then the projection's result has the same bits either way). The buffer is taken
     /// by a swap.

@@ -2,7 +2,7 @@
 //! choices, the metrics, the slack modes, the warm-start modes and the fields of a [`ProjectionReport`].
 //! These lists are the one source; the Python bindings export them (`fepr._core.PROJECTION_ROWS`, ...).
 
-use super::ProjectionReport;
+use super::{ActiveRows, Metric, ProjectionReport, Slack};
 
 /// The names [`ActiveRows::from_name`] accepts, in the order of the variants.
 pub const ROW_NAMES: &[&str] = &["auto", "energy", "energy_momentum", "all"];

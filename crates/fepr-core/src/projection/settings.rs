@@ -80,7 +80,7 @@ pub struct ProjectionSettings {
     /// any tet's volume ratio `J`, at the end of the step or one step ahead at the new velocities, by more than
     /// this from what the base step gave it, nor invert a tet the base step left upright. The projection then
     /// restores the largest fraction of the deficit it can within that, and books the rest as unresolved
-    /// energy ([`ProjectionReport::unresolved`]). `None`: restore everything (the model's own dynamics, which
+    /// energy ([`super::ProjectionReport::unresolved`]). `None`: restore everything (the model's own dynamics, which
     /// on sliver tets at large steps inverts them).
     pub quality_margin: Option<f64>,
 }
