@@ -17,6 +17,7 @@ use std::ops::Range;
 
 use crate::exec::reduce_chunks;
 use crate::material::{ln, ln_core, ln_core_applies, Hyperelastic, Material, NeoHookean, LANES};
+use crate::math::simd::{self, Kernel};
 use crate::math::{det, matmul, transpose, Mat3, Vec3, COFACTOR_PAIRS};
 use crate::mesh::edge_matrix;
 use crate::model::{Block, Model, TetBlock, TetBlocks, BLOCK};
@@ -335,7 +336,8 @@ impl Lanes {
         Lanes::Plain
     }
 
-    /// [`neo_hookean_blocks`] at this width (`self` must be supported by the CPU: from [`Lanes::detect`]).
+    /// [`neo_hookean_blocks`] at this width (`self` must be supported by the CPU: from [`Lanes::detect`]; a
+    /// width the CPU lacks runs the portable build).
     fn run<const GRAD: bool>(
         self,
         nh: &NeoHookean,
@@ -345,45 +347,46 @@ impl Lanes {
         acc: &mut [Vec3],
         len: usize,
     ) -> ElasticSummary {
-        #[cfg(target_arch = "x86_64")]
+        let k = BlocksKernel::<GRAD> {
+            nh,
+            blocks,
+            range,
+            x,
+            acc,
+            len,
+        };
         match self {
-            // SAFETY: detect() found the feature; the functions are otherwise safe.
-            Lanes::Avx512 => {
-                return unsafe { blocks_avx512::<GRAD>(nh, blocks, range, x, acc, len) }
-            }
-            Lanes::Avx2 => return unsafe { blocks_avx2::<GRAD>(nh, blocks, range, x, acc, len) },
-            Lanes::Plain => {}
+            Lanes::Avx512 => simd::run_avx512(k).unwrap_or_else(Kernel::call),
+            Lanes::Avx2 => simd::run_avx2(k),
+            Lanes::Plain => k.call(),
         }
-        neo_hookean_blocks::<GRAD>(nh, blocks, range, x, acc, len)
     }
 }
 
-/// [`neo_hookean_blocks`] compiled for AVX-512 (8 f64 lanes; no FMA, so the results are the same bits).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn blocks_avx512<const GRAD: bool>(
-    nh: &NeoHookean,
-    blocks: &TetBlocks,
+/// The arguments of [`neo_hookean_blocks`], to be run compiled for a SIMD width (see [`crate::math::simd`]).
+struct BlocksKernel<'a, const GRAD: bool> {
+    nh: &'a NeoHookean,
+    blocks: &'a TetBlocks,
     range: Range<usize>,
-    x: &[Vec3],
-    acc: &mut [Vec3],
+    x: &'a [Vec3],
+    acc: &'a mut [Vec3],
     len: usize,
-) -> ElasticSummary {
-    neo_hookean_blocks::<GRAD>(nh, blocks, range, x, acc, len)
 }
 
-/// [`neo_hookean_blocks`] compiled for AVX2 (4 f64 lanes; no FMA, so the results are the same bits).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn blocks_avx2<const GRAD: bool>(
-    nh: &NeoHookean,
-    blocks: &TetBlocks,
-    range: Range<usize>,
-    x: &[Vec3],
-    acc: &mut [Vec3],
-    len: usize,
-) -> ElasticSummary {
-    neo_hookean_blocks::<GRAD>(nh, blocks, range, x, acc, len)
+impl<const GRAD: bool> Kernel for BlocksKernel<'_, GRAD> {
+    type Output = ElasticSummary;
+    #[inline(always)]
+    fn call(self) -> ElasticSummary {
+        let BlocksKernel {
+            nh,
+            blocks,
+            range,
+            x,
+            acc,
+            len,
+        } = self;
+        neo_hookean_blocks::<GRAD>(nh, blocks, range, x, acc, len)
+    }
 }
 
 /// Consecutive blocks holding `len` tets (the last block may be partial). With `GRAD` the corner gradients

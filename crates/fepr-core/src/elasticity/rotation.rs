@@ -15,6 +15,7 @@ use crate::elasticity::{
     GradientSink,
 };
 use crate::material::Arap;
+use crate::math::simd::avx2_dispatch;
 use crate::math::Vec3;
 use crate::math::{polar_lanes, Lanes, EXACT, LANES, PD_LOCAL};
 use crate::model::{Block, Model, TetBlock, TetBlocks, BLOCK};
@@ -81,35 +82,17 @@ pub(crate) fn pd_rotation_terms(mu: f64, model: &Model, x: &[Vec3], out: &mut [[
     });
 }
 
-/// [`rotation_blocks`] compiled for AVX2 where the CPU has it (the batched polar decomposition measured
-/// slower with AVX-512 lanes), else portable; no fused multiply-adds either way, so the same bits.
-fn run(
-    mu: f64,
-    blocks: &TetBlocks,
-    range: Range<usize>,
-    x: &[Vec3],
-    out: Sink,
-    len: usize,
-) -> ElasticSummary {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
-        return unsafe { rotation_blocks_avx2(mu, blocks, range, x, out, len) };
-    }
-    rotation_blocks(mu, blocks, range, x, out, len)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn rotation_blocks_avx2(
-    mu: f64,
-    blocks: &TetBlocks,
-    range: Range<usize>,
-    x: &[Vec3],
-    out: Sink,
-    len: usize,
-) -> ElasticSummary {
-    rotation_blocks(mu, blocks, range, x, out, len)
+avx2_dispatch! {
+    /// [`rotation_blocks`] compiled for AVX2 where the CPU has it (the batched polar decomposition measured
+    /// slower with AVX-512 lanes), else portable; no fused multiply-adds either way, so the same bits.
+    fn run<'a>(
+        mu: f64,
+        blocks: &'a TetBlocks,
+        range: Range<usize>,
+        x: &'a [Vec3],
+        out: Sink<'a>,
+        len: usize,
+    ) -> ElasticSummary => rotation_blocks
 }
 
 /// Per-block arrays, reused block after block (cache-line aligned for the SIMD loads and stores).

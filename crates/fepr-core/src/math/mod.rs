@@ -3,6 +3,7 @@
 mod linalg;
 mod ordering;
 mod polar;
+pub(crate) mod simd;
 mod sparse;
 
 pub use linalg::*;

@@ -23,6 +23,7 @@ use std::ops::Range;
 
 use crate::error::{FeprError, Result};
 use crate::math::nested_dissection;
+use crate::math::simd::avx2_dispatch;
 
 /// faer parallelism for the current rayon pool.
 fn parallelism() -> Par {
@@ -373,26 +374,18 @@ fn supernode<'a>(
 /// A row of the right-hand sides, padded to 4 lanes so that each update is one 4-wide SIMD operation.
 type Row = [f64; 4];
 
-/// `L y = b` then `L^T x = y` in place, the 3 right-hand sides side by side (4th lane unused).
-fn supernodal_solve3(sym: &SymbolicSupernodalCholesky<usize>, l: &[f64], y: &mut [Row]) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
-        unsafe { supernodal_solve3_avx2(sym, l, y) };
-        return;
-    }
-    supernodal_forward3(sym, l, y);
-    supernodal_backward3(sym, l, y);
+avx2_dispatch! {
+    /// `L y = b` then `L^T x = y` in place, the 3 right-hand sides side by side (4th lane unused); compiled
+    /// for AVX2 where the CPU has it (the same bits).
+    fn supernodal_solve3<'a>(
+        sym: &'a SymbolicSupernodalCholesky<usize>,
+        l: &'a [f64],
+        y: &'a mut [Row],
+    ) => supernodal_solve3_body
 }
 
-/// [`supernodal_solve3`] compiled for AVX2 (no FMA: the same bits as the portable build).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn supernodal_solve3_avx2(
-    sym: &SymbolicSupernodalCholesky<usize>,
-    l: &[f64],
-    y: &mut [Row],
-) {
+#[inline(always)]
+fn supernodal_solve3_body(sym: &SymbolicSupernodalCholesky<usize>, l: &[f64], y: &mut [Row]) {
     supernodal_forward3(sym, l, y);
     supernodal_backward3(sym, l, y);
 }
@@ -515,29 +508,6 @@ fn backward_supernode<I: RowIndex>(vals: &[f64], k: usize, b: usize, pattern: &[
         let d = col[j];
         y[b + j] = acc.map(|v| v / d);
     }
-}
-
-/// Defines `fn $name(args)` that runs `$body(args)` compiled for AVX2 where the CPU has it (no FMA: the same
-/// bits as the portable build). Each rayon task calls such a function: code in a closure does not inherit the
-/// target features of the function that creates it.
-macro_rules! with_avx2 {
-    ($(#[$m:meta])* fn $name:ident($($arg:ident: $ty:ty),* $(,)?) => $body:ident) => {
-        $(#[$m])*
-        fn $name($($arg: $ty),*) {
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx2")]
-                unsafe fn avx2($($arg: $ty),*) {
-                    $body($($arg),*)
-                }
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the CPU supports AVX2 (checked above); the function is otherwise safe.
-                    return unsafe { avx2($($arg),*) };
-                }
-            }
-            $body($($arg),*)
-        }
-    };
 }
 
 /// A subtree (or several adjacent ones) of the supernodal elimination tree, solved as one parallel task:
@@ -857,9 +827,9 @@ fn task_supernode<'a>(
     (b - task.columns.start, k, vals, local)
 }
 
-with_avx2! {
+avx2_dispatch! {
     /// The forward step of one task: its right-hand side rows `y` into its workspace, boundary rows from zero.
-    fn forward_task(ctx: &TaskContext, task: &Task, y: &mut [Row], ws: &mut [Row]) => forward_task_body
+    fn forward_task<'a>(ctx: &'a TaskContext<'a>, task: &'a Task, y: &'a mut [Row], ws: &'a mut [Row]) => forward_task_body
 }
 
 #[inline(always)]
@@ -873,9 +843,9 @@ fn forward_task_body(ctx: &TaskContext, task: &Task, y: &mut [Row], ws: &mut [Ro
     }
 }
 
-with_avx2! {
+avx2_dispatch! {
     /// The backward step of one task, in its workspace (boundary rows set); the result to its rows `y`.
-    fn backward_task(ctx: &TaskContext, task: &Task, y: &mut [Row], ws: &mut [Row]) => backward_task_body
+    fn backward_task<'a>(ctx: &'a TaskContext<'a>, task: &'a Task, y: &'a mut [Row], ws: &'a mut [Row]) => backward_task_body
 }
 
 #[inline(always)]
@@ -887,17 +857,17 @@ fn backward_task_body(ctx: &TaskContext, task: &Task, y: &mut [Row], ws: &mut [R
     y.copy_from_slice(&ws[..y.len()]);
 }
 
-with_avx2! {
+avx2_dispatch! {
     /// Adds the tasks' boundary sums to the rest rows (task by task, in task order), then the forward step of
     /// the rest supernodes.
-    fn forward_rest(
-        sym: &SymbolicSupernodalCholesky<usize>,
-        l: &[f64],
-        tasks: &[Task],
-        boundary: &[usize],
-        ws: &[Row],
-        rest_supernodes: &[usize],
-        y: &mut [Row],
+    fn forward_rest<'a>(
+        sym: &'a SymbolicSupernodalCholesky<usize>,
+        l: &'a [f64],
+        tasks: &'a [Task],
+        boundary: &'a [usize],
+        ws: &'a [Row],
+        rest_supernodes: &'a [usize],
+        y: &'a mut [Row],
     ) => forward_rest_body
 }
 
@@ -925,13 +895,13 @@ fn forward_rest_body(
     }
 }
 
-with_avx2! {
+avx2_dispatch! {
     /// The backward step of the rest supernodes, in descending order.
-    fn backward_rest(
-        sym: &SymbolicSupernodalCholesky<usize>,
-        l: &[f64],
-        rest_supernodes: &[usize],
-        y: &mut [Row],
+    fn backward_rest<'a>(
+        sym: &'a SymbolicSupernodalCholesky<usize>,
+        l: &'a [f64],
+        rest_supernodes: &'a [usize],
+        y: &'a mut [Row],
     ) => backward_rest_body
 }
 

@@ -3,14 +3,13 @@
 //! on its own in vertex order. The caller adds the lanes in lane order, so the order of every sum is fixed
 //! and the results keep their bits for any thread count.
 //!
-//! Two implementations of the same operations: a portable one, and explicit AVX2 kernels picked at run
-//! time. Both run every lane's multiplications, additions and subtractions in the same order (no fused
-//! multiply-adds), so they give the same bits (gated by `avx2_kernels_match_the_portable_sums_bit_for_bit`).
-//! Why explicit kernels: the portable loops compile to shuffles of scalars and spilled accumulators (the 45
-//! sums for `S` do not fit 16 vector registers), and a closure inside them was compiled without the caller's
-//! target features. Measured on the 1k box (343 vertices, one thread, best of 30 batches, in the tasks of
-//! an evaluation): the constraint sums 2.5-2.7 -> 0.80-0.88 us, the moments for `S` with the second-order
-//! ones 7.0-7.4 -> 4.0-4.7 us (against 22 us for the elastic energy + gradient).
+//! Two implementations of the same operations: a portable one, and AVX2 kernels on `pulp`'s four-lane
+//! vectors ([`v3`]), picked at run time. Both run every lane's multiplications, additions and subtractions
+//! in the same order (no fused multiply-adds), so they give the same bits (gated by
+//! `simd_kernels_match_the_portable_sums_bit_for_bit`). Why separate kernels: the portable loops compile to
+//! shuffles of scalars and spilled accumulators (the 45 sums for `S` do not fit 16 vector registers); the
+//! kernels load each group of rows once, transposed into lanes, and sum in passes of at most 12
+//! accumulators.
 //!
 //! Padding: the last group of a task with fewer than [`VL`] rows gets lanes of unit mass, zero state and
 //! zero gradient, neither free nor weighted, so every sum gets `+0` or `-0` from them.
@@ -74,7 +73,7 @@ pub(crate) struct Rows<'a> {
     pub free_factor: &'a [f64],
     /// Every row is free with a unit factor (`free_mass == mass`, `free_factor == 1`): the mass metric on a
     /// body without pins or frozen positions. The kernels then skip the sums that repeat others bit for bit
-    /// (see [`avx2`]); the results are the same bits either way.
+    /// (see [`v3`]); the results are the same bits either way.
     pub unit: bool,
 }
 
@@ -121,9 +120,8 @@ pub(crate) fn constraint_lanes(
         "one row per vertex"
     );
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked above); the lengths agree (asserted above).
-        return unsafe { avx2::constraint_lanes(x, v, mass, g, center) };
+    if let Some(s) = crate::math::simd::V3::try_new() {
+        return v3::constraint_lanes(s, x, v, mass, g, center);
     }
     portable::constraint_lanes(x, v, mass, g, center)
 }
@@ -132,9 +130,8 @@ pub(crate) fn constraint_lanes(
 pub(crate) fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
     rows.assert_lengths();
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: as in constraint_lanes.
-        return unsafe { avx2::moment_lanes(rows, g, center) };
+    if let Some(s) = crate::math::simd::V3::try_new() {
+        return v3::moment_lanes(s, rows, g, center);
     }
     portable::moment_lanes(rows, g, center)
 }
@@ -148,9 +145,8 @@ pub(crate) fn moment_and_second_order_lanes(
 ) -> ([Lane; q::COUNT], [Lane; SECOND_ORDER_SUMS]) {
     rows.assert_lengths();
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: as in constraint_lanes.
-        return unsafe { avx2::moment_and_second_order_lanes(rows, g, center) };
+    if let Some(s) = crate::math::simd::V3::try_new() {
+        return v3::moment_and_second_order_lanes(s, rows, g, center);
     }
     (
         portable::moment_lanes(rows, g, center),
@@ -374,140 +370,104 @@ pub(crate) mod portable {
     }
 }
 
-/// The same sums in explicit AVX2 kernels: every lane runs the portable version's operations in its order.
-/// The 45 sums for `S` run as four passes over the task's rows (10-12 accumulators each, about what 16
-/// vector registers hold), the second-order ones as two more; the task's rows stay in L1/L2 between
-/// passes. (Compiled for AVX-512VL's 32 registers, the same passes measured no faster.)
+/// The same sums in AVX2 kernels (four lanes per register, through `pulp`'s [`V3`]): every lane runs the
+/// portable version's operations in its order. The 45 sums for `S` run as four passes over the task's rows
+/// (10-12 accumulators each, about what 16 vector registers hold), the second-order ones as two more; the
+/// task's rows stay in L1/L2 between passes. Each entry point is compiled with the AVX2 features by
+/// [`V3::vectorize`]; everything it calls is inlined into it.
 #[cfg(target_arch = "x86_64")]
-pub(crate) mod avx2 {
+pub(crate) mod v3 {
     use super::*;
-    use std::arch::x86_64::*;
+    use crate::math::simd::{Kernel, F4, V3};
 
-    /// Four rows of three `f64` (12 consecutive values from `p`) as three lane vectors (x, y, z).
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    pub(crate) unsafe fn load_rows(p: *const f64) -> [__m256d; 3] {
-        // SAFETY (caller): p..p + 12 is readable.
-        let (a, b, c) = unsafe {
-            (
-                _mm256_loadu_pd(p),        // x0 y0 z0 x1
-                _mm256_loadu_pd(p.add(4)), // y1 z1 x2 y2
-                _mm256_loadu_pd(p.add(8)), // z2 x3 y3 z3
-            )
-        };
-        let lo_a_hi_c = _mm256_permute2f128_pd::<0x30>(a, c); // x0 y0 y3 z3
-        let hi_a_lo_c = _mm256_permute2f128_pd::<0x21>(a, c); // z0 x1 z2 x3
-        let x = _mm256_shuffle_pd::<0b1010>(_mm256_blend_pd::<0b0100>(lo_a_hi_c, b), hi_a_lo_c);
-        let y = _mm256_permute_pd::<0b0101>(_mm256_blend_pd::<0b1001>(lo_a_hi_c, b));
-        let z = _mm256_blend_pd::<0b1000>(_mm256_blend_pd::<0b0010>(hi_a_lo_c, b), lo_a_hi_c);
-        [x, y, z]
+    /// Four rows of three `f64` as three lane vectors (x, y, z).
+    #[inline(always)]
+    pub(crate) fn load_rows(s: V3, rows: &[Vec3]) -> [F4; 3] {
+        let flat: &[f64; 12] = rows[..VL].as_flattened().try_into().expect("four rows");
+        F4::rows3(s, flat)
     }
 
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    pub(crate) fn splat3(v: Vec3) -> [__m256d; 3] {
-        v.map(|c| _mm256_set1_pd(c))
+    /// Four values as lanes.
+    #[inline(always)]
+    pub(crate) fn load(s: V3, values: &[f64]) -> F4 {
+        F4::from_array(s, values[..VL].try_into().expect("four values"))
     }
 
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    pub(crate) fn add(a: __m256d, b: __m256d) -> __m256d {
-        _mm256_add_pd(a, b)
-    }
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    pub(crate) fn sub(a: __m256d, b: __m256d) -> __m256d {
-        _mm256_sub_pd(a, b)
-    }
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    pub(crate) fn mul(a: __m256d, b: __m256d) -> __m256d {
-        _mm256_mul_pd(a, b)
+    #[inline(always)]
+    pub(crate) fn splat3(s: V3, v: Vec3) -> [F4; 3] {
+        v.map(|c| F4::splat(s, c))
     }
 
     /// `|v|^2` as the portable version sums it.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    pub(crate) fn norm2(v: &[__m256d; 3]) -> __m256d {
-        add(add(mul(v[0], v[0]), mul(v[1], v[1])), mul(v[2], v[2]))
+    #[inline(always)]
+    pub(crate) fn norm2(v: &[F4; 3]) -> F4 {
+        v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
     }
 
     /// Component `a` of `p x q` (`p_b q_c - p_c q_b`).
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    pub(crate) fn cross_at(p: &[__m256d; 3], q: &[__m256d; 3], a: usize) -> __m256d {
+    #[inline(always)]
+    pub(crate) fn cross_at(p: &[F4; 3], q: &[F4; 3], a: usize) -> F4 {
         let (b, c) = ((a + 1) % 3, (a + 2) % 3);
-        sub(mul(p[b], q[c]), mul(p[c], q[b]))
+        p[b] * q[c] - p[c] * q[b]
     }
 
     /// One group's rows in lanes (padded as the portable version pads).
     #[derive(Clone, Copy)]
     struct Group {
-        x: [__m256d; 3],
-        v: [__m256d; 3],
+        x: [F4; 3],
+        v: [F4; 3],
         /// The elastic gradient (the potential's is formed by [`potential_gradient`]).
-        grad: [__m256d; 3],
-        m: __m256d,
-        mf: __m256d,
-        af: __m256d,
+        grad: [F4; 3],
+        m: F4,
+        mf: F4,
+        af: F4,
         /// All bits set on a lane that holds a row, clear on a padding lane.
-        real: __m256d,
+        real: F4,
+    }
+
+    impl Group {
+        #[inline(always)]
+        fn zero(s: V3) -> Self {
+            let z = F4::zero(s);
+            Group {
+                x: [z; 3],
+                v: [z; 3],
+                grad: [z; 3],
+                m: z,
+                mf: z,
+                af: z,
+                real: z,
+            }
+        }
     }
 
     /// The group of rows `start .. start + VL` (all present), or the padded last group.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    unsafe fn group(rows: &Rows, start: usize) -> Group {
+    #[inline(always)]
+    fn group(s: V3, rows: &Rows, start: usize) -> Group {
         if start + VL > rows.x.len() {
-            return padded_group(rows, start);
+            let p = Padded::new(rows, start);
+            return Group {
+                x: F4::rows3(s, &p.x),
+                v: F4::rows3(s, &p.v),
+                grad: F4::rows3(s, &p.grad),
+                m: F4::from_array(s, p.m),
+                mf: F4::from_array(s, p.mf),
+                af: F4::from_array(s, p.af),
+                real: F4::mask_unless(s, p.padding),
+            };
         }
-        // SAFETY (caller): start + VL <= n rows of every slice (Rows::assert_lengths).
-        unsafe {
-            Group {
-                x: load_rows(rows.x.as_ptr().add(start).cast()),
-                v: load_rows(rows.v.as_ptr().add(start).cast()),
-                grad: match rows.grad {
-                    Some(g) => load_rows(g.as_ptr().add(start).cast()),
-                    None => [_mm256_setzero_pd(); 3],
-                },
-                m: _mm256_loadu_pd(rows.mass.as_ptr().add(start)),
-                mf: _mm256_loadu_pd(rows.free_mass.as_ptr().add(start)),
-                af: _mm256_loadu_pd(rows.free_factor.as_ptr().add(start)),
-                real: _mm256_castsi256_pd(_mm256_set1_epi64x(-1)),
-            }
-        }
-    }
-
-    /// The last group of rows `start ..` (fewer than [`VL`]), padded. Out of line: the loop over the full
-    /// groups stays small enough to be inlined whole.
-    #[cold]
-    #[inline(never)]
-    #[target_feature(enable = "avx2")]
-    fn padded_group(rows: &Rows, start: usize) -> Group {
-        let mut pad = Padded::new();
-        for l in 0..rows.x.len() - start {
-            let k = start + l;
-            pad.x[3 * l..3 * l + 3].copy_from_slice(&rows.x[k]);
-            pad.v[3 * l..3 * l + 3].copy_from_slice(&rows.v[k]);
-            if let Some(g) = rows.grad {
-                pad.grad[3 * l..3 * l + 3].copy_from_slice(&g[k]);
-            }
-            pad.m[l] = rows.mass[k];
-            pad.mf[l] = rows.free_mass[k];
-            pad.af[l] = rows.free_factor[k];
-            pad.real[l] = -1;
-        }
-        // SAFETY: the padded arrays hold 12 and 4 values.
-        unsafe {
-            Group {
-                x: load_rows(pad.x.as_ptr()),
-                v: load_rows(pad.v.as_ptr()),
-                grad: load_rows(pad.grad.as_ptr()),
-                m: _mm256_loadu_pd(pad.m.as_ptr()),
-                mf: _mm256_loadu_pd(pad.mf.as_ptr()),
-                af: _mm256_loadu_pd(pad.af.as_ptr()),
-                real: _mm256_castsi256_pd(_mm256_loadu_si256(pad.real.as_ptr().cast())),
-            }
+        let r = start..start + VL;
+        Group {
+            x: load_rows(s, &rows.x[r.clone()]),
+            v: load_rows(s, &rows.v[r.clone()]),
+            grad: match rows.grad {
+                Some(g) => load_rows(s, &g[r.clone()]),
+                None => [F4::zero(s); 3],
+            },
+            m: load(s, &rows.mass[r.clone()]),
+            mf: load(s, &rows.free_mass[r.clone()]),
+            af: load(s, &rows.free_factor[r]),
+            real: F4::all_bits(s),
         }
     }
 
@@ -520,124 +480,142 @@ pub(crate) mod avx2 {
         m: [f64; VL],
         mf: [f64; VL],
         af: [f64; VL],
-        real: [i64; VL],
+        padding: [bool; VL],
     }
 
     impl Padded {
-        fn new() -> Self {
-            Self {
+        /// The last group of rows `start ..` (fewer than [`VL`]). Out of line: the loop over the full groups
+        /// stays small enough to be inlined whole.
+        #[cold]
+        #[inline(never)]
+        fn new(rows: &Rows, start: usize) -> Self {
+            let mut pad = Self {
                 x: [0.0; 12],
                 v: [0.0; 12],
                 grad: [0.0; 12],
                 m: [1.0; VL],
                 mf: [0.0; VL],
                 af: [0.0; VL],
-                real: [0; VL],
+                padding: [true; VL],
+            };
+            for l in 0..rows.x.len() - start {
+                let k = start + l;
+                pad.x[3 * l..3 * l + 3].copy_from_slice(&rows.x[k]);
+                pad.v[3 * l..3 * l + 3].copy_from_slice(&rows.v[k]);
+                if let Some(g) = rows.grad {
+                    pad.grad[3 * l..3 * l + 3].copy_from_slice(&g[k]);
+                }
+                pad.m[l] = rows.mass[k];
+                pad.mf[l] = rows.free_mass[k];
+                pad.af[l] = rows.free_factor[k];
+                pad.padding[l] = false;
             }
+            pad
         }
     }
 
     /// The potential's gradient `grad - m g` on a row, 0 on a padding lane.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    fn potential_gradient(gr: &Group, gravity: &[__m256d; 3]) -> [__m256d; 3] {
-        std::array::from_fn(|a| _mm256_and_pd(sub(gr.grad[a], mul(gr.m, gravity[a])), gr.real))
+    #[inline(always)]
+    fn potential_gradient(gr: &Group, gravity: &[F4; 3]) -> [F4; 3] {
+        std::array::from_fn(|a| (gr.grad[a] - gr.m * gravity[a]).and(gr.real))
     }
 
     /// The accumulators' lanes.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    pub(crate) fn store<const N: usize>(acc: &[__m256d; N], out: &mut [Lane]) {
+    #[inline(always)]
+    pub(crate) fn store<const N: usize>(acc: &[F4; N], out: &mut [Lane]) {
         for (o, a) in out.iter_mut().zip(acc) {
-            // SAFETY: a lane array holds VL = 4 values.
-            unsafe { _mm256_storeu_pd(o.as_mut_ptr(), *a) };
+            *o = a.to_array();
         }
-    }
-
-    /// Runs `body(accumulators, group)` over every group of `n` rows (`load` gives the group at a start).
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    fn pass<const N: usize, G>(
-        n: usize,
-        load: impl Fn(usize) -> G,
-        mut body: impl FnMut(&mut [__m256d; N], G),
-    ) -> [__m256d; N] {
-        let mut acc = [_mm256_setzero_pd(); N];
-        for start in (0..n).step_by(VL) {
-            body(&mut acc, load(start));
-        }
-        acc
     }
 
     /// One group's constraint terms added to `acc` (the portable `constraint_terms`, operation by
     /// operation).
-    #[inline]
-    #[target_feature(enable = "avx2")]
+    #[inline(always)]
     pub(crate) fn constraint_group(
-        acc: &mut [__m256d; CONSTRAINT_SUMS],
-        xs: &[__m256d; 3],
-        vs: &[__m256d; 3],
-        m: __m256d,
-        g: &[__m256d; 3],
-        center: &[__m256d; 3],
+        acc: &mut [F4; CONSTRAINT_SUMS],
+        xs: &[F4; 3],
+        vs: &[F4; 3],
+        m: F4,
+        g: &[F4; 3],
+        center: &[F4; 3],
     ) {
+        let half = F4::splat(m.simd(), 0.5);
         let vv = norm2(vs);
-        let r: [__m256d; 3] = std::array::from_fn(|a| sub(xs[a], center[a]));
-        acc[q::KINETIC] = add(acc[q::KINETIC], mul(mul(_mm256_set1_pd(0.5), m), vv));
-        let gx = add(add(mul(g[0], xs[0]), mul(g[1], xs[1])), mul(g[2], xs[2]));
-        // -(m gx): a sign flip, as the portable negation.
-        let neg = _mm256_xor_pd(mul(m, gx), _mm256_set1_pd(-0.0));
-        acc[q::GRAVITATIONAL] = add(acc[q::GRAVITATIONAL], neg);
+        let r: [F4; 3] = std::array::from_fn(|a| xs[a] - center[a]);
+        acc[q::KINETIC] = acc[q::KINETIC] + half * m * vv;
+        let gx = g[0] * xs[0] + g[1] * xs[1] + g[2] * xs[2];
+        acc[q::GRAVITATIONAL] = acc[q::GRAVITATIONAL] + -(m * gx);
         for a in 0..3 {
-            acc[q::MOMENTUM + a] = add(acc[q::MOMENTUM + a], mul(m, vs[a]));
-            acc[q::ANGULAR + a] = add(acc[q::ANGULAR + a], mul(m, cross_at(&r, vs, a)));
-            acc[q::MASS_X + a] = add(acc[q::MASS_X + a], mul(m, xs[a]));
+            acc[q::MOMENTUM + a] = acc[q::MOMENTUM + a] + m * vs[a];
+            acc[q::ANGULAR + a] = acc[q::ANGULAR + a] + m * cross_at(&r, vs, a);
+            acc[q::MASS_X + a] = acc[q::MASS_X + a] + m * xs[a];
         }
     }
 
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn constraint_lanes(
+    /// [`super::constraint_lanes`] compiled for AVX2 (`s` proves the CPU has it).
+    pub(crate) fn constraint_lanes(
+        s: V3,
         x: &[Vec3],
         v: &[Vec3],
         mass: &[f64],
         g: Vec3,
         center: Vec3,
     ) -> [Lane; CONSTRAINT_SUMS] {
-        let n = x.len();
-        let (gv, cv) = (splat3(g), splat3(center));
-        let load = |start: usize| {
-            if start + VL <= n {
-                // SAFETY: rows start .. start + VL exist in all three slices (asserted by the caller).
-                unsafe {
-                    (
-                        load_rows(x.as_ptr().add(start).cast()),
-                        load_rows(v.as_ptr().add(start).cast()),
-                        _mm256_loadu_pd(mass.as_ptr().add(start)),
-                    )
+        struct Op<'a> {
+            s: V3,
+            x: &'a [Vec3],
+            v: &'a [Vec3],
+            mass: &'a [f64],
+            g: Vec3,
+            center: Vec3,
+        }
+        impl Kernel for Op<'_> {
+            type Output = [Lane; CONSTRAINT_SUMS];
+            #[inline(always)]
+            fn call(self) -> Self::Output {
+                let Op {
+                    s,
+                    x,
+                    v,
+                    mass,
+                    g,
+                    center,
+                } = self;
+                let n = x.len();
+                let (gv, cv) = (splat3(s, g), splat3(s, center));
+                let mut acc = [F4::zero(s); CONSTRAINT_SUMS];
+                for start in (0..n).step_by(VL) {
+                    let (xs, vs, m) = if start + VL <= n {
+                        let r = start..start + VL;
+                        (
+                            load_rows(s, &x[r.clone()]),
+                            load_rows(s, &v[r.clone()]),
+                            load(s, &mass[r]),
+                        )
+                    } else {
+                        let (mut px, mut pv, mut pm) = ([0.0; 12], [0.0; 12], [1.0; VL]);
+                        for l in 0..n - start {
+                            px[3 * l..3 * l + 3].copy_from_slice(&x[start + l]);
+                            pv[3 * l..3 * l + 3].copy_from_slice(&v[start + l]);
+                            pm[l] = mass[start + l];
+                        }
+                        (F4::rows3(s, &px), F4::rows3(s, &pv), F4::from_array(s, pm))
+                    };
+                    constraint_group(&mut acc, &xs, &vs, m, &gv, &cv);
                 }
-            } else {
-                let (mut px, mut pv, mut pm) = ([0.0; 12], [0.0; 12], [1.0; VL]);
-                for l in 0..n - start {
-                    px[3 * l..3 * l + 3].copy_from_slice(&x[start + l]);
-                    pv[3 * l..3 * l + 3].copy_from_slice(&v[start + l]);
-                    pm[l] = mass[start + l];
-                }
-                // SAFETY: 12 and 4 values.
-                unsafe {
-                    (
-                        load_rows(px.as_ptr()),
-                        load_rows(pv.as_ptr()),
-                        _mm256_loadu_pd(pm.as_ptr()),
-                    )
-                }
+                let mut out = [[0.0; VL]; CONSTRAINT_SUMS];
+                store(&acc, &mut out);
+                out
             }
-        };
-        let acc = pass(n, load, |acc, (xs, vs, m)| {
-            constraint_group(acc, &xs, &vs, m, &gv, &cv)
-        });
-        let mut out = [[0.0; VL]; CONSTRAINT_SUMS];
-        store(&acc, &mut out);
-        out
+        }
+        s.vectorize(Op {
+            s,
+            x,
+            v,
+            mass,
+            g,
+            center,
+        })
     }
 
     /// Groups per block of [`for_blocks`]: 16 groups of four rows (6.5 KiB of lanes) stay in L1 while every
@@ -645,61 +623,79 @@ pub(crate) mod avx2 {
     const BLOCK_GROUPS: usize = 16;
 
     /// Runs `f` on the groups of `rows` in blocks of up to [`BLOCK_GROUPS`] consecutive groups, each group
-    /// loaded (transposed into lanes) once per block. The passes then run over the block's groups in order: each
-    /// lane's sum still takes its rows in row order, so the bits are those of one pass over all rows at a time.
-    /// Why: loading a group costs about twenty shuffles, and with six passes over the task's rows (the 45
-    /// moments for `S` in four, the second-order ones in two) each group was loaded six times. Loading once
-    /// took the bunny's moment pass from 74 to 68 us on one thread (its arithmetic is the rest).
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    unsafe fn for_blocks(rows: &Rows, mut f: impl FnMut(&[Group])) {
+    /// loaded (transposed into lanes) once per block. The passes then run over the block's groups in order:
+    /// each lane's sum still takes its rows in row order, so the bits are those of one pass over all rows at
+    /// a time. Loading a group costs about twenty shuffles, and there are six passes.
+    #[inline(always)]
+    fn for_blocks(s: V3, rows: &Rows, mut f: impl FnMut(&[Group])) {
         let n = rows.x.len();
-        // SAFETY: a Group is plain vector registers' values (all-zero bits are valid).
-        let mut block: [Group; BLOCK_GROUPS] = unsafe { std::mem::zeroed() };
+        let mut block = [Group::zero(s); BLOCK_GROUPS];
         let mut start = 0;
         while start < n {
             let count = (n - start).div_ceil(VL).min(BLOCK_GROUPS);
             for (j, slot) in block[..count].iter_mut().enumerate() {
-                // SAFETY (caller): Rows::assert_lengths checked the lengths.
-                *slot = unsafe { group(rows, start + j * VL) };
+                *slot = group(s, rows, start + j * VL);
             }
             f(&block[..count]);
             start += count * VL;
         }
     }
 
-    /// `body(accumulators, group)` over `groups` in order, the accumulators held in registers meanwhile.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    fn over<const N: usize>(
-        acc: &mut [__m256d; N],
-        groups: &[Group],
-        mut body: impl FnMut(&mut [__m256d; N], &Group),
-    ) {
-        let mut a = *acc;
-        for gr in groups {
-            body(&mut a, gr);
-        }
-        *acc = a;
+    /// `$body` for each group `$gr` of `$groups` in order, on the accumulators `$acc` (as `$a`) held in
+    /// registers meanwhile. A macro, not a function taking a closure: a closure called from two
+    /// instances is compiled out of line, without the caller's target features.
+    macro_rules! over {
+        ($acc:expr, $groups:expr, |$a:ident, $gr:ident| $body:block) => {{
+            let mut acc = $acc;
+            for $gr in $groups {
+                let $a = &mut acc;
+                $body
+            }
+            $acc = acc;
+        }};
     }
 
     /// The accumulators of [`moment_lanes`], by pass.
     struct MomentAcc {
-        constraints: [__m256d; CONSTRAINT_SUMS],
+        constraints: [F4; CONSTRAINT_SUMS],
         /// FREE_MASS, A_FREE_MASS, GRAD_SQ_OVER_W, TR_VV, A_GRAD_SUM (3), A_GRAD_CROSS_V (3).
-        gradient: [__m256d; 10],
+        gradient: [F4; 10],
         /// FREE_P, A_FREE_P, FREE_L, FREE_R (3 each).
-        free: [__m256d; 12],
+        free: [F4; 12],
         /// A_VV, RR (the upper triangles).
-        outer: [__m256d; 12],
+        outer: [F4; 12],
+    }
+
+    impl MomentAcc {
+        #[inline(always)]
+        fn zero(s: V3) -> Self {
+            let z = F4::zero(s);
+            MomentAcc {
+                constraints: [z; CONSTRAINT_SUMS],
+                gradient: [z; 10],
+                free: [z; 12],
+                outer: [z; 12],
+            }
+        }
     }
 
     /// The accumulators of the second-order moments, by pass.
     struct SecondOrderAcc {
         /// `sum a g r^T`, row by row.
-        grad_r: [__m256d; 9],
+        grad_r: [F4; 9],
         /// `sum a m r x v`, `sum a m r`.
-        mass_r: [__m256d; 6],
+        mass_r: [F4; 6],
+    }
+
+    impl SecondOrderAcc {
+        #[inline(always)]
+        fn zero(s: V3) -> Self {
+            let z = F4::zero(s);
+            SecondOrderAcc {
+                grad_r: [z; 9],
+                mass_r: [z; 6],
+            }
+        }
     }
 
     /// The four passes of the moments for `S` over one block's groups. `UNIT` ([`Rows::unit`]): every row
@@ -708,59 +704,58 @@ pub(crate) mod avx2 {
     /// products added in the same order; a padding lane adds `+0` or `-0` to either, which leaves a sum that
     /// started at `+0` unchanged). Those are copied by [`store_moments`], and the factors of one are not
     /// multiplied.
-    #[inline]
-    #[target_feature(enable = "avx2")]
+    #[inline(always)]
     fn moment_passes<const UNIT: bool>(
         acc: &mut MomentAcc,
         groups: &[Group],
-        gv: &[__m256d; 3],
-        cv: &[__m256d; 3],
+        gv: &[F4; 3],
+        cv: &[F4; 3],
     ) {
-        over(&mut acc.constraints, groups, |acc, gr| {
+        over!(acc.constraints, groups, |acc, gr| {
             constraint_group(acc, &gr.x, &gr.v, gr.m, gv, cv)
         });
-        over(&mut acc.gradient, groups, |acc, gr| {
+        over!(acc.gradient, groups, |acc, gr| {
             let gs = potential_gradient(gr, gv);
-            acc[0] = add(acc[0], gr.mf);
-            acc[3] = add(acc[3], mul(gr.mf, norm2(&gr.v)));
+            acc[0] = acc[0] + gr.mf;
+            acc[3] = acc[3] + gr.mf * norm2(&gr.v);
             if UNIT {
-                acc[2] = add(acc[2], _mm256_div_pd(norm2(&gs), gr.m));
+                acc[2] = acc[2] + norm2(&gs) / gr.m;
                 for a in 0..3 {
-                    acc[4 + a] = add(acc[4 + a], gs[a]);
-                    acc[7 + a] = add(acc[7 + a], cross_at(&gs, &gr.v, a));
+                    acc[4 + a] = acc[4 + a] + gs[a];
+                    acc[7 + a] = acc[7 + a] + cross_at(&gs, &gr.v, a);
                 }
-                return;
+                continue;
             }
-            let am = mul(gr.af, gr.m);
-            acc[1] = add(acc[1], am);
-            acc[2] = add(acc[2], _mm256_div_pd(mul(gr.af, norm2(&gs)), gr.m));
+            let am = gr.af * gr.m;
+            acc[1] = acc[1] + am;
+            acc[2] = acc[2] + gr.af * norm2(&gs) / gr.m;
             for a in 0..3 {
-                acc[4 + a] = add(acc[4 + a], mul(gr.af, gs[a]));
-                acc[7 + a] = add(acc[7 + a], mul(gr.af, cross_at(&gs, &gr.v, a)));
+                acc[4 + a] = acc[4 + a] + gr.af * gs[a];
+                acc[7 + a] = acc[7 + a] + gr.af * cross_at(&gs, &gr.v, a);
             }
         });
-        over(&mut acc.free, groups, |acc, gr| {
-            let r: [__m256d; 3] = std::array::from_fn(|a| sub(gr.x[a], cv[a]));
+        over!(acc.free, groups, |acc, gr| {
+            let r: [F4; 3] = std::array::from_fn(|a| gr.x[a] - cv[a]);
             if UNIT {
                 for a in 0..3 {
-                    acc[9 + a] = add(acc[9 + a], mul(gr.mf, r[a]));
+                    acc[9 + a] = acc[9 + a] + gr.mf * r[a];
                 }
-                return;
+                continue;
             }
-            let am = mul(gr.af, gr.m);
+            let am = gr.af * gr.m;
             for a in 0..3 {
-                acc[a] = add(acc[a], mul(gr.mf, gr.v[a]));
-                acc[3 + a] = add(acc[3 + a], mul(am, gr.v[a]));
-                acc[6 + a] = add(acc[6 + a], mul(gr.mf, cross_at(&r, &gr.v, a)));
-                acc[9 + a] = add(acc[9 + a], mul(gr.mf, r[a]));
+                acc[a] = acc[a] + gr.mf * gr.v[a];
+                acc[3 + a] = acc[3 + a] + am * gr.v[a];
+                acc[6 + a] = acc[6 + a] + gr.mf * cross_at(&r, &gr.v, a);
+                acc[9 + a] = acc[9 + a] + gr.mf * r[a];
             }
         });
-        over(&mut acc.outer, groups, |acc, gr| {
-            let am = if UNIT { gr.m } else { mul(gr.af, gr.m) };
-            let r: [__m256d; 3] = std::array::from_fn(|a| sub(gr.x[a], cv[a]));
+        over!(acc.outer, groups, |acc, gr| {
+            let am = if UNIT { gr.m } else { gr.af * gr.m };
+            let r: [F4; 3] = std::array::from_fn(|a| gr.x[a] - cv[a]);
             for (k, &(a, b)) in UPPER.iter().enumerate() {
-                acc[k] = add(acc[k], mul(mul(am, gr.v[a]), gr.v[b]));
-                acc[6 + k] = add(acc[6 + k], mul(mul(gr.mf, r[a]), r[b]));
+                acc[k] = acc[k] + am * gr.v[a] * gr.v[b];
+                acc[6 + k] = acc[6 + k] + gr.mf * r[a] * r[b];
             }
         });
     }
@@ -768,61 +763,38 @@ pub(crate) mod avx2 {
     /// The two passes of the second-order moments over one block's groups. `UNIT` (see [`moment_passes`]):
     /// `sum a m r x v` is `ANGULAR` and `sum a m r` is `FREE_R` bit for bit (`r` is masked to 0 on a padding
     /// lane here, and multiplied by a zero free mass there), copied by [`store_second_order`].
-    #[inline]
-    #[target_feature(enable = "avx2")]
+    #[inline(always)]
     fn second_order_passes<const UNIT: bool>(
         acc: &mut SecondOrderAcc,
         groups: &[Group],
-        gv: &[__m256d; 3],
-        cv: &[__m256d; 3],
+        gv: &[F4; 3],
+        cv: &[F4; 3],
     ) {
-        over(&mut acc.grad_r, groups, |acc, gr| {
+        over!(acc.grad_r, groups, |acc, gr| {
             let gs = potential_gradient(gr, gv);
-            let r: [__m256d; 3] =
-                std::array::from_fn(|a| _mm256_and_pd(sub(gr.x[a], cv[a]), gr.real));
+            let r: [F4; 3] = std::array::from_fn(|a| (gr.x[a] - cv[a]).and(gr.real));
             for c in 0..3 {
-                let ag = if UNIT { gs[c] } else { mul(gr.af, gs[c]) };
+                let ag = if UNIT { gs[c] } else { gr.af * gs[c] };
                 for e in 0..3 {
-                    acc[3 * c + e] = add(acc[3 * c + e], mul(ag, r[e]));
+                    acc[3 * c + e] = acc[3 * c + e] + ag * r[e];
                 }
             }
         });
         if UNIT {
             return;
         }
-        over(&mut acc.mass_r, groups, |acc, gr| {
-            let am = mul(gr.af, gr.m);
-            let r: [__m256d; 3] =
-                std::array::from_fn(|a| _mm256_and_pd(sub(gr.x[a], cv[a]), gr.real));
+        over!(acc.mass_r, groups, |acc, gr| {
+            let am = gr.af * gr.m;
+            let r: [F4; 3] = std::array::from_fn(|a| (gr.x[a] - cv[a]).and(gr.real));
             for c in 0..3 {
-                acc[c] = add(acc[c], mul(am, cross_at(&r, &gr.v, c)));
-                acc[3 + c] = add(acc[3 + c], mul(am, r[c]));
+                acc[c] = acc[c] + am * cross_at(&r, &gr.v, c);
+                acc[3 + c] = acc[3 + c] + am * r[c];
             }
         });
     }
 
-    #[target_feature(enable = "avx2")]
-    fn zero_moments() -> MomentAcc {
-        let z = _mm256_setzero_pd();
-        MomentAcc {
-            constraints: [z; CONSTRAINT_SUMS],
-            gradient: [z; 10],
-            free: [z; 12],
-            outer: [z; 12],
-        }
-    }
-
-    #[target_feature(enable = "avx2")]
-    fn zero_second_order() -> SecondOrderAcc {
-        let z = _mm256_setzero_pd();
-        SecondOrderAcc {
-            grad_r: [z; 9],
-            mass_r: [z; 6],
-        }
-    }
-
     /// The moments' lanes; with `unit` ([`moment_passes`]), the sums it skipped copied from those they repeat.
-    #[target_feature(enable = "avx2")]
+    #[inline(always)]
     fn store_moments(acc: &MomentAcc, unit: bool) -> [Lane; q::COUNT] {
         let mut out = [[0.0; VL]; q::COUNT];
         store(&acc.constraints, &mut out[..CONSTRAINT_SUMS]);
@@ -842,7 +814,7 @@ pub(crate) mod avx2 {
 
     /// The second-order moments' lanes; with `unit`, the sums [`second_order_passes`] skipped copied from the
     /// moments' lanes `moments`.
-    #[target_feature(enable = "avx2")]
+    #[inline(always)]
     fn store_second_order(
         acc: &SecondOrderAcc,
         unit: bool,
@@ -858,68 +830,59 @@ pub(crate) mod avx2 {
         out
     }
 
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn moment_lanes(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
-        // SAFETY: as here (by the caller).
-        unsafe {
-            if rows.unit {
-                moments_of::<true>(rows, g, center)
-            } else {
-                moments_of::<false>(rows, g, center)
-            }
-        }
-    }
-
-    /// [`moment_lanes`] with `UNIT == rows.unit` (one instance each, as compiled before the variant).
-    #[target_feature(enable = "avx2")]
-    unsafe fn moments_of<const UNIT: bool>(rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
-        let (gv, cv) = (splat3(g), splat3(center));
-        let mut acc = zero_moments();
-        // SAFETY: Rows::assert_lengths checked the lengths (by the caller).
-        unsafe {
-            for_blocks(rows, |groups| {
-                moment_passes::<UNIT>(&mut acc, groups, &gv, &cv)
-            })
-        };
-        store_moments(&acc, UNIT)
-    }
-
-    /// [`moment_lanes`] and the second-order moments, each block's groups loaded once for both.
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn moment_and_second_order_lanes(
-        rows: &Rows,
+    /// The moments (and, with `SECOND`, the second-order moments) with `UNIT == rows.unit`, each block's
+    /// groups loaded once for both; one instance per variant.
+    struct Moments<'a, const UNIT: bool, const SECOND: bool> {
+        s: V3,
+        rows: &'a Rows<'a>,
         g: Vec3,
         center: Vec3,
-    ) -> ([Lane; q::COUNT], [Lane; SECOND_ORDER_SUMS]) {
-        // SAFETY: as in moment_lanes.
-        unsafe {
-            if rows.unit {
-                moments_and_second_order_of::<true>(rows, g, center)
-            } else {
-                moments_and_second_order_of::<false>(rows, g, center)
-            }
-        }
     }
 
-    /// [`moment_and_second_order_lanes`] with `UNIT == rows.unit`.
-    #[target_feature(enable = "avx2")]
-    unsafe fn moments_and_second_order_of<const UNIT: bool>(
-        rows: &Rows,
-        g: Vec3,
-        center: Vec3,
-    ) -> ([Lane; q::COUNT], [Lane; SECOND_ORDER_SUMS]) {
-        let (gv, cv) = (splat3(g), splat3(center));
-        let (mut moments, mut second) = (zero_moments(), zero_second_order());
-        // SAFETY: as in moment_lanes.
-        unsafe {
-            for_blocks(rows, |groups| {
+    impl<const UNIT: bool, const SECOND: bool> Kernel for Moments<'_, UNIT, SECOND> {
+        type Output = ([Lane; q::COUNT], Option<[Lane; SECOND_ORDER_SUMS]>);
+        #[inline(always)]
+        fn call(self) -> Self::Output {
+            let Moments { s, rows, g, center } = self;
+            let (gv, cv) = (splat3(s, g), splat3(s, center));
+            let (mut moments, mut second) = (MomentAcc::zero(s), SecondOrderAcc::zero(s));
+            for_blocks(s, rows, |groups| {
                 moment_passes::<UNIT>(&mut moments, groups, &gv, &cv);
-                second_order_passes::<UNIT>(&mut second, groups, &gv, &cv);
-            })
+                if SECOND {
+                    second_order_passes::<UNIT>(&mut second, groups, &gv, &cv);
+                }
+            });
+            let moments = store_moments(&moments, UNIT);
+            let second = SECOND.then(|| store_second_order(&second, UNIT, &moments));
+            (moments, second)
+        }
+    }
+
+    /// [`super::moment_lanes`] compiled for AVX2 (`s` proves the CPU has it).
+    pub(crate) fn moment_lanes(s: V3, rows: &Rows, g: Vec3, center: Vec3) -> [Lane; q::COUNT] {
+        rows.assert_lengths();
+        let (moments, _) = if rows.unit {
+            s.vectorize(Moments::<true, false> { s, rows, g, center })
+        } else {
+            s.vectorize(Moments::<false, false> { s, rows, g, center })
         };
-        let moments = store_moments(&moments, UNIT);
-        let second = store_second_order(&second, UNIT, &moments);
-        (moments, second)
+        moments
+    }
+
+    /// [`super::moment_and_second_order_lanes`] compiled for AVX2 (`s` proves the CPU has it).
+    pub(crate) fn moment_and_second_order_lanes(
+        s: V3,
+        rows: &Rows,
+        g: Vec3,
+        center: Vec3,
+    ) -> ([Lane; q::COUNT], [Lane; SECOND_ORDER_SUMS]) {
+        rows.assert_lengths();
+        let (moments, second) = if rows.unit {
+            s.vectorize(Moments::<true, true> { s, rows, g, center })
+        } else {
+            s.vectorize(Moments::<false, true> { s, rows, g, center })
+        };
+        (moments, second.expect("asked for"))
     }
 }
 
@@ -964,10 +927,10 @@ mod tests {
 
     #[cfg(target_arch = "x86_64")]
     #[test]
-    fn avx2_kernels_match_the_portable_sums_bit_for_bit() {
-        if !std::arch::is_x86_feature_detected!("avx2") {
+    fn simd_kernels_match_the_portable_sums_bit_for_bit() {
+        let Some(s) = crate::math::simd::V3::try_new() else {
             return;
-        }
+        };
         let (g, center) = ([0.3, -0.2, -9.81], [0.4, -0.6, 0.5]);
         // Lengths with every tail (0..3 padding lanes), one row, and one to four blocks of 64 rows.
         for n in [1, 4, 5, 6, 7, 8, 61, 64, 65, 130, 255] {
@@ -983,14 +946,11 @@ mod tests {
                     free_factor: &free_factor,
                     unit: false,
                 };
-                // SAFETY: AVX2 is present (checked above); the slices have n rows each.
-                let (c, m, (m2, s)) = unsafe {
-                    (
-                        avx2::constraint_lanes(&x, &v, &mass, g, center),
-                        avx2::moment_lanes(&rows, g, center),
-                        avx2::moment_and_second_order_lanes(&rows, g, center),
-                    )
-                };
+                let (c, m, (m2, so)) = (
+                    v3::constraint_lanes(s, &x, &v, &mass, g, center),
+                    v3::moment_lanes(s, &rows, g, center),
+                    v3::moment_and_second_order_lanes(s, &rows, g, center),
+                );
                 let c_ref = portable::constraint_lanes(&x, &v, &mass, g, center);
                 let m_ref = portable::moment_lanes(&rows, g, center);
                 let s_ref = portable::second_order_lanes(&rows, g, center);
@@ -1001,7 +961,7 @@ mod tests {
                     bits(&m_ref),
                     "moments with the second-order ones, {n} rows"
                 );
-                assert_eq!(bits(&s), bits(&s_ref), "second-order moments, {n} rows");
+                assert_eq!(bits(&so), bits(&s_ref), "second-order moments, {n} rows");
                 // The moments' first sums are the constraint sums.
                 assert_eq!(bits(&c_ref), bits(&m_ref)[..VL * CONSTRAINT_SUMS].to_vec());
             }
@@ -1015,9 +975,9 @@ mod tests {
     #[cfg(target_arch = "x86_64")]
     #[test]
     fn unit_rows_skip_the_repeated_sums_and_keep_every_bit() {
-        if !std::arch::is_x86_feature_detected!("avx2") {
+        let Some(s) = crate::math::simd::V3::try_new() else {
             return;
-        }
+        };
         let (g, center) = ([0.3, -0.2, -9.81], [0.4, -0.6, 0.5]);
         for n in [1, 3, 4, 5, 7, 8, 61, 64, 65, 130, 255] {
             let (x, v, grad, [mass, ..]) = rows_data(n, 3 + n as u64);
@@ -1036,14 +996,11 @@ mod tests {
                     unit: true,
                     ..plain
                 };
-                // SAFETY: AVX2 is present (checked above); the slices have n rows each.
-                let (m, (m2, s), m_plain) = unsafe {
-                    (
-                        avx2::moment_lanes(&unit, g, center),
-                        avx2::moment_and_second_order_lanes(&unit, g, center),
-                        avx2::moment_lanes(&plain, g, center),
-                    )
-                };
+                let (m, (m2, so), m_plain) = (
+                    v3::moment_lanes(s, &unit, g, center),
+                    v3::moment_and_second_order_lanes(s, &unit, g, center),
+                    v3::moment_lanes(s, &plain, g, center),
+                );
                 let m_ref = portable::moment_lanes(&plain, g, center);
                 let s_ref = portable::second_order_lanes(&plain, g, center);
                 assert_eq!(bits(&m_plain), bits(&m_ref), "{n} rows");
@@ -1054,7 +1011,7 @@ mod tests {
                     "unit moments (second pass), {n} rows"
                 );
                 assert_eq!(
-                    bits(&s),
+                    bits(&so),
                     bits(&s_ref),
                     "unit second-order moments, {n} rows"
                 );

@@ -5,14 +5,12 @@
 //! rows, each lane in row order, and the caller adds the lanes in lane order: the same bits for any thread
 //! count.
 //!
-//! Two implementations of the same operations: a portable one, and an explicit AVX2 kernel picked at run
-//! time. Every row and every lane runs the same multiplications, additions and subtractions in the same order
-//! (no fused multiply-adds), so both give the same bits (gated by
-//! `avx2_trial_matches_the_portable_rows_and_sums_bit_for_bit`). Why a kernel: the portable row loop compiles
-//! to scalar arithmetic on three-component rows, and the pass that writes a symplectic Euler step's trial
-//! point took 12 ns per vertex on one thread (elephant, perf: the rows 7, the D-norm 3.5, the constraint sums
-//! 1.5), as much as the projection's 45 moments for `S`. With the kernel: 7.4 ns (85 -> 52 us per pass on the
-//! elephant's 7,008 vertices, temporary timers), about 56 vector operations per row.
+//! Two implementations of the same operations: a portable one, and an AVX2 kernel on `pulp`'s four-lane
+//! vectors ([`v3`]), picked at run time. Every row and every lane runs the same multiplications, additions and
+//! subtractions in the same order (no fused multiply-adds), so both give the same bits (gated by
+//! `simd_trial_matches_the_portable_rows_and_sums_bit_for_bit`). Why a kernel: the portable row loop compiles
+//! to scalar arithmetic on three-component rows; the kernel transposes four rows into lanes and takes the
+//! sums from the new rows while they are in registers.
 //!
 //! Padding: the last group of a task with fewer than [`VL`] rows gets lanes of unit mass, zero state and zero
 //! gradient, pinned and with a zero metric factor, so every sum gets `+0` or `-0` from them and no row is
@@ -113,9 +111,8 @@ pub(crate) fn write_trial(
         "unit rows are free with a unit factor"
     );
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: the CPU supports AVX2 (checked above); the lengths agree (asserted above).
-        return unsafe { avx2::write_trial(step, rows, base, constraints, x_out, v_out) };
+    if let Some(s) = crate::math::simd::V3::try_new() {
+        return v3::write_trial(s, step, rows, base, constraints, x_out, v_out);
     }
     portable::write_trial(step, rows, base, constraints, x_out, v_out)
 }
@@ -143,9 +140,8 @@ pub(crate) fn correction_lanes(
         "one row per vertex"
     );
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
-        // SAFETY: as in write_trial.
-        return unsafe { avx2::correction_lanes(x, v, base, mass, factor) };
+    if let Some(s) = crate::math::simd::V3::try_new() {
+        return v3::correction_lanes(s, x, v, base, mass, factor);
     }
     portable::correction_lanes(x, v, base, mass, factor)
 }
@@ -241,150 +237,116 @@ pub(crate) mod portable {
     }
 }
 
-/// The same rows and sums in an explicit AVX2 kernel: every row and lane runs the portable version's
-/// operations in its order.
+/// The same rows and sums in an AVX2 kernel (four lanes per register, through `pulp`'s [`V3`]): every row
+/// and lane runs the portable version's operations in its order. Each entry point is compiled with the AVX2
+/// features by [`V3::vectorize`]; everything it calls is inlined into it.
 #[cfg(target_arch = "x86_64")]
-mod avx2 {
+mod v3 {
     use super::*;
-    use crate::projection::avx2::{
-        add, constraint_group, cross_at, load_rows, mul, norm2, splat3, store, sub,
+    use crate::math::simd::{Kernel, F4, V3};
+    use crate::projection::v3::{
+        constraint_group, cross_at, load, load_rows, norm2, splat3, store,
     };
-    use std::arch::x86_64::*;
 
-    /// Three lane vectors (x, y, z of four rows) as four rows of three `f64` (12 consecutive values at `p`):
-    /// the inverse of [`load_rows`].
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    unsafe fn store_rows(p: *mut f64, [x, y, z]: [__m256d; 3]) {
-        let xy = _mm256_unpacklo_pd(x, y); // x0 y0 x2 y2
-        let zx = _mm256_shuffle_pd::<0b1010>(z, x); // z0 x1 z2 x3
-        let yz = _mm256_shuffle_pd::<0b1111>(y, z); // y1 z1 y3 z3
-        let a = _mm256_permute2f128_pd::<0x20>(xy, zx); // x0 y0 z0 x1
-        let b = _mm256_blend_pd::<0b1100>(yz, xy); // y1 z1 x2 y2
-        let c = _mm256_permute2f128_pd::<0x31>(zx, yz); // z2 x3 y3 z3
-                                                        // SAFETY (caller): p..p + 12 is writable.
-        unsafe {
-            _mm256_storeu_pd(p, a);
-            _mm256_storeu_pd(p.add(4), b);
-            _mm256_storeu_pd(p.add(8), c);
-        }
+    /// Three lane vectors (x, y, z of four rows) written as four rows: the inverse of [`load_rows`].
+    #[inline(always)]
+    fn store_rows(out: &mut [Vec3], rows: [F4; 3]) {
+        let flat: &mut [f64; 12] = out[..VL].as_flattened_mut().try_into().expect("four rows");
+        *flat = F4::to_rows3(rows);
     }
 
     /// One group's input rows in lanes.
     #[derive(Clone, Copy)]
     struct Group {
-        x: [__m256d; 3],
-        v: [__m256d; 3],
-        grad: [__m256d; 3],
-        m: __m256d,
-        a: __m256d,
-        a_over_m: __m256d,
+        x: [F4; 3],
+        v: [F4; 3],
+        grad: [F4; 3],
+        m: F4,
+        a: F4,
+        a_over_m: F4,
         /// All bits set on a free row's lane, clear on a pinned row's or a padding lane.
-        free: __m256d,
-    }
-
-    /// The lanes of four `pinned` flags: all bits set where the flag is false.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    fn free_mask(pinned: [bool; VL]) -> __m256d {
-        let flags = _mm256_setr_epi64x(
-            i64::from(pinned[0]),
-            i64::from(pinned[1]),
-            i64::from(pinned[2]),
-            i64::from(pinned[3]),
-        );
-        _mm256_castsi256_pd(_mm256_cmpeq_epi64(flags, _mm256_setzero_si256()))
+        free: F4,
     }
 
     /// The group of rows `start .. start + VL` (all present); with `UNIT`, every lane free.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    unsafe fn group<const UNIT: bool>(rows: &IterateRows, start: usize) -> Group {
-        let p = if UNIT {
-            &[false; VL][..]
+    #[inline(always)]
+    fn group<const UNIT: bool>(s: V3, rows: &IterateRows, start: usize) -> Group {
+        let r = start..start + VL;
+        let pinned = if UNIT {
+            [false; VL]
         } else {
-            &rows.pinned[start..start + VL]
+            rows.pinned[r.clone()].try_into().expect("four rows")
         };
-        // SAFETY (caller): start + VL <= n rows of every slice (asserted by write_trial).
-        unsafe {
-            Group {
-                x: load_rows(rows.x.as_ptr().add(start).cast()),
-                v: load_rows(rows.v.as_ptr().add(start).cast()),
-                grad: load_rows(rows.grad.as_ptr().add(start).cast()),
-                m: _mm256_loadu_pd(rows.mass.as_ptr().add(start)),
-                a: _mm256_loadu_pd(rows.factor.as_ptr().add(start)),
-                a_over_m: _mm256_loadu_pd(rows.a_over_m.as_ptr().add(start)),
-                free: free_mask([p[0], p[1], p[2], p[3]]),
-            }
+        Group {
+            x: load_rows(s, &rows.x[r.clone()]),
+            v: load_rows(s, &rows.v[r.clone()]),
+            grad: load_rows(s, &rows.grad[r.clone()]),
+            m: load(s, &rows.mass[r.clone()]),
+            a: load(s, &rows.factor[r.clone()]),
+            a_over_m: load(s, &rows.a_over_m[r]),
+            free: F4::mask_unless(s, pinned),
         }
     }
 
     /// The constants of a step in lanes.
     struct Splat {
-        lh: __m256d,
-        alpha: __m256d,
-        inv_h2: __m256d,
-        lp: [__m256d; 3],
-        ll: [__m256d; 3],
-        lc: [__m256d; 3],
-        g: [__m256d; 3],
-        center: [__m256d; 3],
-        h2: __m256d,
+        lh: F4,
+        alpha: F4,
+        inv_h2: F4,
+        lp: [F4; 3],
+        ll: [F4; 3],
+        lc: [F4; 3],
+        g: [F4; 3],
+        center: [F4; 3],
+        h2: F4,
     }
 
     /// The trial rows of a group (a pinned row's lanes keep their rows): [`trial_row`] lane by lane. `UNIT`
     /// (every lane free with `a = 1`): the same bits without the factor's products (`1 x = x`) and the blends.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    fn trial_group<const UNIT: bool>(c: &Splat, gr: &Group) -> ([__m256d; 3], [__m256d; 3]) {
-        let r: [__m256d; 3] = std::array::from_fn(|k| sub(gr.x[k], c.center[k]));
-        let (mut xo, mut vo) = ([_mm256_setzero_pd(); 3], [_mm256_setzero_pd(); 3]);
+    #[inline(always)]
+    fn trial_group<const UNIT: bool>(c: &Splat, gr: &Group) -> ([F4; 3], [F4; 3]) {
+        let r: [F4; 3] = std::array::from_fn(|k| gr.x[k] - c.center[k]);
+        let (mut xo, mut vo) = (gr.x, gr.v);
         for k in 0..3 {
             let vxl = cross_at(&gr.v, &c.ll, k);
             let lxr = cross_at(&c.ll, &r, k);
-            let gi = sub(gr.grad[k], mul(gr.m, c.g[k]));
-            let rigid = add(vxl, c.lc[k]);
-            let rigid = if UNIT { rigid } else { mul(gr.a, rigid) };
-            let dx = add(mul(mul(c.lh, gi), gr.a_over_m), rigid);
-            let dv = mul(add(add(mul(c.lh, gr.v[k]), c.lp[k]), lxr), c.inv_h2);
-            let (x_new, v_new) = (
-                sub(gr.x[k], mul(c.alpha, dx)),
-                sub(gr.v[k], mul(c.alpha, dv)),
-            );
+            let gi = gr.grad[k] - gr.m * c.g[k];
+            let rigid = vxl + c.lc[k];
+            let rigid = if UNIT { rigid } else { gr.a * rigid };
+            let dx = c.lh * gi * gr.a_over_m + rigid;
+            let dv = (c.lh * gr.v[k] + c.lp[k] + lxr) * c.inv_h2;
+            let (x_new, v_new) = (gr.x[k] - c.alpha * dx, gr.v[k] - c.alpha * dv);
             if UNIT {
                 (xo[k], vo[k]) = (x_new, v_new);
                 continue;
             }
-            // blendv takes the second operand where the mask's sign bit is set: the new row on a free lane.
-            xo[k] = _mm256_blendv_pd(gr.x[k], x_new, gr.free);
-            vo[k] = _mm256_blendv_pd(gr.v[k], v_new, gr.free);
+            xo[k] = gr.free.select(x_new, gr.x[k]);
+            vo[k] = gr.free.select(v_new, gr.v[k]);
         }
         (xo, vo)
     }
 
     /// A group's terms of the D-norm distance from `(xb, vb)`: the portable `correction_term` lane by lane.
     /// `UNIT` (`a = 1` on every lane): the same bits without the division (`y / 1 = y`).
-    #[inline]
-    #[target_feature(enable = "avx2")]
+    #[inline(always)]
     fn correction_group<const UNIT: bool>(
-        x: &[__m256d; 3],
-        v: &[__m256d; 3],
-        xb: &[__m256d; 3],
-        vb: &[__m256d; 3],
-        m: __m256d,
-        a: __m256d,
-        h2: __m256d,
-    ) -> __m256d {
-        let dx: [__m256d; 3] = std::array::from_fn(|k| sub(x[k], xb[k]));
-        let dv: [__m256d; 3] = std::array::from_fn(|k| sub(v[k], vb[k]));
+        x: &[F4; 3],
+        v: &[F4; 3],
+        xb: &[F4; 3],
+        vb: &[F4; 3],
+        m: F4,
+        a: F4,
+        h2: F4,
+    ) -> F4 {
+        let dx: [F4; 3] = std::array::from_fn(|k| x[k] - xb[k]);
+        let dv: [F4; 3] = std::array::from_fn(|k| v[k] - vb[k]);
         // dx^2 / a where a > 0, else 0 (the and clears the lanes of a frozen position, 0/0 included).
         let dx2 = if UNIT {
             norm2(&dx)
         } else {
-            let positive = _mm256_cmp_pd::<_CMP_GT_OQ>(a, _mm256_setzero_pd());
-            _mm256_and_pd(_mm256_div_pd(norm2(&dx), a), positive)
+            (norm2(&dx) / a).and(a.positive())
         };
-        mul(m, add(dx2, mul(h2, norm2(&dv))))
+        m * (dx2 + h2 * norm2(&dv))
     }
 
     /// The last `n - start` (< VL) rows, padded (see the module's note).
@@ -433,8 +395,9 @@ mod avx2 {
         }
     }
 
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn write_trial(
+    /// [`super::write_trial`] compiled for AVX2 (`s` proves the CPU has it).
+    pub(super) fn write_trial(
+        s: V3,
         step: &StepCoefficients,
         rows: &IterateRows,
         base: Option<BaseRows>,
@@ -442,166 +405,203 @@ mod avx2 {
         x_out: &mut [Vec3],
         v_out: &mut [Vec3],
     ) -> TrialSums {
-        // SAFETY: as here (by the caller).
-        unsafe {
-            if rows.unit {
-                write_trial_of::<true>(step, rows, base, constraints, x_out, v_out)
-            } else {
-                write_trial_of::<false>(step, rows, base, constraints, x_out, v_out)
-            }
+        if rows.unit {
+            s.vectorize(WriteTrial::<true> {
+                s,
+                step,
+                rows,
+                base,
+                constraints,
+                x_out,
+                v_out,
+            })
+        } else {
+            s.vectorize(WriteTrial::<false> {
+                s,
+                step,
+                rows,
+                base,
+                constraints,
+                x_out,
+                v_out,
+            })
         }
     }
 
     /// [`write_trial`] with `UNIT == rows.unit` for the full groups (the padded last group takes the general
     /// path: its padding lanes are pinned).
-    #[target_feature(enable = "avx2")]
-    unsafe fn write_trial_of<const UNIT: bool>(
-        step: &StepCoefficients,
-        rows: &IterateRows,
-        base: Option<BaseRows>,
+    struct WriteTrial<'a, const UNIT: bool> {
+        s: V3,
+        step: &'a StepCoefficients,
+        rows: &'a IterateRows<'a>,
+        base: Option<BaseRows<'a>>,
         constraints: bool,
-        x_out: &mut [Vec3],
-        v_out: &mut [Vec3],
-    ) -> TrialSums {
-        let n = rows.x.len();
-        let c = Splat {
-            lh: _mm256_set1_pd(step.lh),
-            alpha: _mm256_set1_pd(step.alpha),
-            inv_h2: _mm256_set1_pd(step.inv_h2),
-            lp: splat3(step.lp),
-            ll: splat3(step.ll),
-            lc: splat3(step.lc_over_mt),
-            g: splat3(step.gravity),
-            center: splat3(step.center),
-            h2: _mm256_set1_pd(base.map_or(0.0, |b| b.h2)),
-        };
-        let mut sums = [_mm256_setzero_pd(); CONSTRAINT_SUMS];
-        let mut correction = _mm256_setzero_pd();
-        let mut start = 0;
-        while start < n {
-            let full = start + VL <= n;
-            let padded = (!full).then(|| Padded::new(rows, base, start));
-            let (gr, xb, vb) = match &padded {
-                // SAFETY: start + VL <= n rows of every slice (asserted by the caller).
-                None => unsafe {
+        x_out: &'a mut [Vec3],
+        v_out: &'a mut [Vec3],
+    }
+
+    impl<const UNIT: bool> Kernel for WriteTrial<'_, UNIT> {
+        type Output = TrialSums;
+        #[inline(always)]
+        fn call(self) -> TrialSums {
+            let WriteTrial {
+                s,
+                step,
+                rows,
+                base,
+                constraints,
+                x_out,
+                v_out,
+            } = self;
+            let n = rows.x.len();
+            let c = Splat {
+                lh: F4::splat(s, step.lh),
+                alpha: F4::splat(s, step.alpha),
+                inv_h2: F4::splat(s, step.inv_h2),
+                lp: splat3(s, step.lp),
+                ll: splat3(s, step.ll),
+                lc: splat3(s, step.lc_over_mt),
+                g: splat3(s, step.gravity),
+                center: splat3(s, step.center),
+                h2: F4::splat(s, base.map_or(0.0, |b| b.h2)),
+            };
+            let mut sums = [F4::zero(s); CONSTRAINT_SUMS];
+            let mut correction = F4::zero(s);
+            let mut start = 0;
+            while start < n {
+                let full = start + VL <= n;
+                let (gr, xb, vb) = if full {
+                    let r = start..start + VL;
                     (
-                        group::<UNIT>(rows, start),
-                        base.map(|b| load_rows(b.x.as_ptr().add(start).cast())),
-                        base.map(|b| load_rows(b.v.as_ptr().add(start).cast())),
+                        group::<UNIT>(s, rows, start),
+                        base.map(|b| load_rows(s, &b.x[r.clone()])),
+                        base.map(|b| load_rows(s, &b.v[r])),
                     )
-                },
-                // SAFETY: the padded arrays hold 12 and 4 values.
-                Some(p) => unsafe {
+                } else {
+                    let p = Padded::new(rows, base, start);
                     (
                         Group {
-                            x: load_rows(p.x.as_ptr()),
-                            v: load_rows(p.v.as_ptr()),
-                            grad: load_rows(p.grad.as_ptr()),
-                            m: _mm256_loadu_pd(p.m.as_ptr()),
-                            a: _mm256_loadu_pd(p.a.as_ptr()),
-                            a_over_m: _mm256_loadu_pd(p.a_over_m.as_ptr()),
-                            free: free_mask(p.pinned),
+                            x: F4::rows3(s, &p.x),
+                            v: F4::rows3(s, &p.v),
+                            grad: F4::rows3(s, &p.grad),
+                            m: F4::from_array(s, p.m),
+                            a: F4::from_array(s, p.a),
+                            a_over_m: F4::from_array(s, p.a_over_m),
+                            free: F4::mask_unless(s, p.pinned),
                         },
-                        base.map(|_| load_rows(p.xb.as_ptr())),
-                        base.map(|_| load_rows(p.vb.as_ptr())),
+                        base.map(|_| F4::rows3(s, &p.xb)),
+                        base.map(|_| F4::rows3(s, &p.vb)),
                     )
-                },
-            };
-            let (xo, vo) = if full {
-                trial_group::<UNIT>(&c, &gr)
-            } else {
-                trial_group::<false>(&c, &gr)
-            };
-            if full {
-                // SAFETY: rows start .. start + VL exist in x_out and v_out (asserted by the caller).
-                unsafe {
-                    store_rows(x_out.as_mut_ptr().add(start).cast(), xo);
-                    store_rows(v_out.as_mut_ptr().add(start).cast(), vo);
-                }
-            } else {
-                let (mut px, mut pv) = ([0.0; 12], [0.0; 12]);
-                // SAFETY: 12 values each.
-                unsafe {
-                    store_rows(px.as_mut_ptr(), xo);
-                    store_rows(pv.as_mut_ptr(), vo);
-                }
-                for k in start..n {
-                    let l = 3 * (k - start);
-                    x_out[k] = [px[l], px[l + 1], px[l + 2]];
-                    v_out[k] = [pv[l], pv[l + 1], pv[l + 2]];
-                }
-            }
-            if constraints {
-                constraint_group(&mut sums, &xo, &vo, gr.m, &c.g, &c.center);
-            }
-            if let (Some(xb), Some(vb)) = (xb, vb) {
-                let term = if full {
-                    correction_group::<UNIT>(&xo, &vo, &xb, &vb, gr.m, gr.a, c.h2)
-                } else {
-                    correction_group::<false>(&xo, &vo, &xb, &vb, gr.m, gr.a, c.h2)
                 };
-                correction = add(correction, term);
+                let (xo, vo) = if full {
+                    trial_group::<UNIT>(&c, &gr)
+                } else {
+                    trial_group::<false>(&c, &gr)
+                };
+                if full {
+                    store_rows(&mut x_out[start..start + VL], xo);
+                    store_rows(&mut v_out[start..start + VL], vo);
+                } else {
+                    let (px, pv) = (F4::to_rows3(xo), F4::to_rows3(vo));
+                    for k in start..n {
+                        let l = 3 * (k - start);
+                        x_out[k] = [px[l], px[l + 1], px[l + 2]];
+                        v_out[k] = [pv[l], pv[l + 1], pv[l + 2]];
+                    }
+                }
+                if constraints {
+                    constraint_group(&mut sums, &xo, &vo, gr.m, &c.g, &c.center);
+                }
+                if let (Some(xb), Some(vb)) = (xb, vb) {
+                    let term = if full {
+                        correction_group::<UNIT>(&xo, &vo, &xb, &vb, gr.m, gr.a, c.h2)
+                    } else {
+                        correction_group::<false>(&xo, &vo, &xb, &vb, gr.m, gr.a, c.h2)
+                    };
+                    correction = correction + term;
+                }
+                start += VL;
             }
-            start += VL;
-        }
-        let mut out = [[0.0; VL]; CONSTRAINT_SUMS];
-        store(&sums, &mut out);
-        let mut corr = [[0.0; VL]];
-        store(&[correction], &mut corr);
-        TrialSums {
-            constraints: constraints.then_some(out),
-            correction: base.map(|_| corr[0]),
+            let mut out = [[0.0; VL]; CONSTRAINT_SUMS];
+            store(&sums, &mut out);
+            TrialSums {
+                constraints: constraints.then_some(out),
+                correction: base.map(|_| correction.to_array()),
+            }
         }
     }
 
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn correction_lanes(
+    /// [`super::correction_lanes`] compiled for AVX2 (`s` proves the CPU has it).
+    pub(super) fn correction_lanes(
+        s: V3,
         x: &[Vec3],
         v: &[Vec3],
         base: BaseRows,
         mass: &[f64],
         factor: &[f64],
     ) -> Lane {
-        let n = x.len();
-        let h2 = _mm256_set1_pd(base.h2);
-        let mut acc = _mm256_setzero_pd();
-        for start in (0..n).step_by(VL) {
-            let term = if start + VL <= n {
-                // SAFETY: rows start .. start + VL exist in every slice (asserted by the caller).
-                unsafe {
-                    let ld = |s: &[Vec3]| load_rows(s.as_ptr().add(start).cast());
-                    correction_group::<false>(
-                        &ld(x),
-                        &ld(v),
-                        &ld(base.x),
-                        &ld(base.v),
-                        _mm256_loadu_pd(mass.as_ptr().add(start)),
-                        _mm256_loadu_pd(factor.as_ptr().add(start)),
-                        h2,
-                    )
-                }
-            } else {
-                let mut p = [[0.0; 12]; 4];
-                let (mut m, mut a) = ([1.0; VL], [0.0; VL]);
-                for k in start..n {
-                    let l = k - start;
-                    for (buf, rows) in p.iter_mut().zip([x, v, base.x, base.v]) {
-                        buf[3 * l..3 * l + 3].copy_from_slice(&rows[k]);
-                    }
-                    (m[l], a[l]) = (mass[k], factor[k]);
-                }
-                // SAFETY: 12 and 4 values.
-                unsafe {
-                    let [px, pv, pxb, pvb] = p.map(|b| load_rows(b.as_ptr()));
-                    let (m, a) = (_mm256_loadu_pd(m.as_ptr()), _mm256_loadu_pd(a.as_ptr()));
-                    correction_group::<false>(&px, &pv, &pxb, &pvb, m, a, h2)
-                }
-            };
-            acc = add(acc, term);
+        struct Op<'a> {
+            s: V3,
+            x: &'a [Vec3],
+            v: &'a [Vec3],
+            base: BaseRows<'a>,
+            mass: &'a [f64],
+            factor: &'a [f64],
         }
-        let mut out = [[0.0; VL]];
-        store(&[acc], &mut out);
-        out[0]
+        impl Kernel for Op<'_> {
+            type Output = Lane;
+            #[inline(always)]
+            fn call(self) -> Lane {
+                let Op {
+                    s,
+                    x,
+                    v,
+                    base,
+                    mass,
+                    factor,
+                } = self;
+                let n = x.len();
+                let h2 = F4::splat(s, base.h2);
+                let mut acc = F4::zero(s);
+                for start in (0..n).step_by(VL) {
+                    let term = if start + VL <= n {
+                        let r = start..start + VL;
+                        correction_group::<false>(
+                            &load_rows(s, &x[r.clone()]),
+                            &load_rows(s, &v[r.clone()]),
+                            &load_rows(s, &base.x[r.clone()]),
+                            &load_rows(s, &base.v[r.clone()]),
+                            load(s, &mass[r.clone()]),
+                            load(s, &factor[r]),
+                            h2,
+                        )
+                    } else {
+                        let mut p = [[0.0; 12]; 4];
+                        let (mut m, mut a) = ([1.0; VL], [0.0; VL]);
+                        for k in start..n {
+                            let l = k - start;
+                            for (buf, rows) in p.iter_mut().zip([x, v, base.x, base.v]) {
+                                buf[3 * l..3 * l + 3].copy_from_slice(&rows[k]);
+                            }
+                            (m[l], a[l]) = (mass[k], factor[k]);
+                        }
+                        let [px, pv, pxb, pvb] = p.map(|b| F4::rows3(s, &b));
+                        let (m, a) = (F4::from_array(s, m), F4::from_array(s, a));
+                        correction_group::<false>(&px, &pv, &pxb, &pvb, m, a, h2)
+                    };
+                    acc = acc + term;
+                }
+                acc.to_array()
+            }
+        }
+        s.vectorize(Op {
+            s,
+            x,
+            v,
+            base,
+            mass,
+            factor,
+        })
     }
 }
 
@@ -693,7 +693,7 @@ mod tests {
     /// The AVX2 kernel on `rows` against the portable reference on `reference_rows` (the same rows, perhaps
     /// without the `unit` hint): the same rows and lane sums, bit for bit. Returns the kernel's sums.
     #[cfg(target_arch = "x86_64")]
-    fn avx2_against_portable(
+    fn simd_against_portable(
         rows: &IterateRows,
         reference_rows: &IterateRows,
         base: Option<BaseRows>,
@@ -703,8 +703,8 @@ mod tests {
         let mut out = [vec![[0.0; 3]; n], vec![[0.0; 3]; n]];
         let mut want = out.clone();
         let [xo, vo] = &mut out;
-        // SAFETY: the callers checked that AVX2 is present; every slice has n rows.
-        let got = unsafe { avx2::write_trial(&step(), rows, base, constraints, xo, vo) };
+        let s = crate::math::simd::V3::try_new().expect("checked by the callers");
+        let got = v3::write_trial(s, &step(), rows, base, constraints, xo, vo);
         let [xw, vw] = &mut want;
         let reference = portable::write_trial(&step(), reference_rows, base, constraints, xw, vw);
         let flat = |a: &[Vec<Vec3>; 2]| bits(a.iter().flatten().flatten().copied());
@@ -724,8 +724,8 @@ mod tests {
 
     #[cfg(target_arch = "x86_64")]
     #[test]
-    fn avx2_trial_matches_the_portable_rows_and_sums_bit_for_bit() {
-        if !std::arch::is_x86_feature_detected!("avx2") {
+    fn simd_trial_matches_the_portable_rows_and_sums_bit_for_bit() {
+        if crate::math::simd::V3::try_new().is_none() {
             return;
         }
         // Lengths with every tail (0..3 padding lanes), one row, several groups.
@@ -735,12 +735,12 @@ mod tests {
             let (x, v, mass, factor) = (rows.x, rows.v, rows.mass, rows.factor);
             for (with_base, constraints) in [(true, true), (true, false), (false, true)] {
                 let got =
-                    avx2_against_portable(&rows, &rows, with_base.then_some(base), constraints);
+                    simd_against_portable(&rows, &rows, with_base.then_some(base), constraints);
                 assert_eq!(got.constraints.is_some(), constraints);
                 assert_eq!(got.correction.is_some(), with_base);
             }
-            // SAFETY: as above.
-            let c = unsafe { avx2::correction_lanes(x, v, base, mass, factor) };
+            let s = crate::math::simd::V3::try_new().expect("checked above");
+            let c = v3::correction_lanes(s, x, v, base, mass, factor);
             let c_ref = portable::correction_lanes(x, v, base, mass, factor);
             assert_eq!(bits(c), bits(c_ref), "D-norm lanes, {n} rows");
         }
@@ -750,8 +750,8 @@ mod tests {
     /// the blends gives the portable rows and sums bit for bit, padded last groups included.
     #[cfg(target_arch = "x86_64")]
     #[test]
-    fn avx2_trial_on_unit_rows_keeps_every_bit() {
-        if !std::arch::is_x86_feature_detected!("avx2") {
+    fn simd_trial_on_unit_rows_keeps_every_bit() {
+        if crate::math::simd::V3::try_new().is_none() {
             return;
         }
         for n in [1, 3, 4, 5, 8, 61, 64, 65, 130] {
@@ -768,7 +768,7 @@ mod tests {
                 ..plain
             };
             for b in [Some(t.base(1e-6)), None] {
-                avx2_against_portable(&unit, &plain, b, true);
+                simd_against_portable(&unit, &plain, b, true);
             }
         }
     }
