@@ -2,15 +2,15 @@
 //! choices, the metrics, the slack modes, the warm-start modes and the fields of a [`ProjectionReport`].
 //! These lists are the one source; the Python bindings export them (`fepr._core.PROJECTION_ROWS`, ...).
 
-use super::{ActiveRows, Metric, ProjectionReport, Slack};
+use super::ProjectionReport;
 
-/// The names [`ActiveRows::from_name`] accepts, in the order of the variants.
+/// The names [`super::ActiveRows::from_name`] accepts, in the order of the variants.
 pub const ROW_NAMES: &[&str] = &["auto", "energy", "energy_momentum", "all"];
 
-/// The names [`Metric::from_name`] accepts.
+/// The names [`super::Metric::from_name`] accepts.
 pub const METRIC_NAMES: &[&str] = &["auto", "mass", "stiffness"];
 
-/// The names [`Slack::from_name`] accepts.
+/// The names [`super::Slack::from_name`] accepts.
 pub const SLACK_NAMES: &[&str] = &["auto", "on", "off"];
 
 /// The named warm-start modes (besides a number, the scaled energy error above which the warm start runs):
