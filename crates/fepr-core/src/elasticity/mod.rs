@@ -6,6 +6,9 @@
 //!
 //! Per tet: `D_s = [x1-x0, x2-x0, x3-x0]`, `F = D_s D_m^-1`, gradient on vertices 1..3 = the columns of
 //! `V P(F) D_m^-T`, vertex 0 gets minus their sum (fepr-spec section 4).
+//!
+//! Length: about 670 lines of code and 440 of tests (finite-difference gates of every material, every lane width
+//! against the per-tet path); the batched kernel and the per-tet pass it must match bit for bit stay together.
 
 mod hessian;
 mod rotation;

@@ -151,6 +151,8 @@ impl Integrator for ImplicitEuler {
         true
     }
 
+    // Long (about 160 lines): one Newton solve of backward Euler, read top to bottom (prepare the pattern, iterate:
+    // gradient, Hessian, factorisation with the PSD fallback, Armijo line search; hand the last gradient over).
     fn step(
         &mut self,
         model: &Model,

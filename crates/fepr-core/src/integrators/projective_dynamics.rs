@@ -279,6 +279,8 @@ impl Integrator for ProjectiveDynamics {
         }
     }
 
+    // Long (about 130 lines): the PD step as the paper states it (prefactor on change, then local and global
+    // steps in one loop, then velocities and the report), kept in one place to be read against it.
     fn step(
         &mut self,
         model: &Model,

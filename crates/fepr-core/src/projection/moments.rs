@@ -13,6 +13,9 @@
 //!
 //! Padding: the last group of a task with fewer than [`VL`] rows gets lanes of unit mass, zero state and
 //! zero gradient, neither free nor weighted, so every sum gets `+0` or `-0` from them.
+//!
+//! Length: about 890 lines of code because every sum exists twice, portable and in SIMD lanes, side by side so
+//! that the operation-by-operation correspondence (the bit-for-bit contract) can be read; tests compare the two.
 
 use crate::math::Vec3;
 

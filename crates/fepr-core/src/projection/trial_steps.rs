@@ -15,6 +15,8 @@
 //! Padding: the last group of a task with fewer than [`VL`] rows gets lanes of unit mass, zero state and zero
 //! gradient, pinned and with a zero metric factor, so every sum gets `+0` or `-0` from them and no row is
 //! written for them.
+//!
+//! Length: about 610 lines of code (portable and SIMD versions of the same pass, side by side) and 220 of tests.
 
 use crate::math::{cross, dot, sub, Vec3};
 use crate::projection::{Lane, CONSTRAINT_SUMS, VL};

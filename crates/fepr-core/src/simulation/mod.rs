@@ -536,41 +536,13 @@ impl Simulation {
         Ok(self.history.last().expect("a step pushes its diagnostics"))
     }
 
-    /// [`Simulation::step`], on a thread of a rayon pool.
+    /// [`Simulation::step`], on a thread of a rayon pool: the base step (with impact substeps), the targets, the
+    /// projection (or a measurement), the books, one history row.
     fn step_on_pool(&mut self) -> Result<()> {
         copy_state(&self.state, &mut self.previous);
         let h = self.dt;
         let t0 = Instant::now();
-        self.contact_vertices.clear();
-        let mut adv = self.advance(h)?;
-        let limit = IMPACT_DEPTH_FRACTION * self.mean_edge;
-        if adv.max_depth > limit && self.state.is_finite() {
-            let k = ((adv.max_depth / limit).ceil() as usize).clamp(2, MAX_IMPACT_SUBSTEPS);
-            self.state.clone_from(&self.previous);
-            self.contact_vertices.clear();
-            let mut total = Advance::default();
-            for _ in 0..k {
-                let a = self.advance(h / k as f64)?;
-                total.add(&a);
-                if !self.state.is_finite() {
-                    break;
-                }
-            }
-            total.report.energy_budget = total.work.total();
-            adv = total;
-            adv.report.substeps = k;
-        }
-        self.contact_vertices.sort_unstable();
-        self.contact_vertices.dedup();
-        let finite = self.state.is_finite();
-        if finite {
-            near_obstacles(
-                &self.world.obstacles,
-                &self.model,
-                &self.state,
-                &mut self.contact_vertices,
-            );
-        }
+        let (adv, finite) = self.advance_resolving_impacts(h)?;
         let Advance {
             mut report,
             mut work,
@@ -584,15 +556,11 @@ impl Simulation {
         let step = self.num_steps() + 1;
         if !finite {
             std::mem::swap(&mut self.state, &mut self.previous);
-            return Err(FeprError::Simulation(format!(
-                "the state became non-finite in step {step} (t = {:.6} s): the {} step of dt = {} s is unstable for \
-                 this material and mesh (runaway); use a smaller dt or a stiffer-stable integrator. The state was \
-                 left at step {}.",
-                self.state.time + self.dt,
-                self.integrator.name(),
-                self.dt,
-                step - 1
-            )));
+            return Err(self.unstable(
+                step,
+                "the state became non-finite",
+                "use a smaller dt or a stiffer-stable integrator",
+            ));
         }
         let mut targets = self.targets(&report);
         if has_forces && !report.impulsive {
@@ -606,35 +574,7 @@ impl Simulation {
             targets.energy += correction;
         }
         let t1 = Instant::now();
-        let (projection, inv, base_total) = match self.projector.as_mut() {
-            Some(p) => {
-                p.set_frozen_positions(&self.contact_vertices);
-                // Backward Euler ends on an iterate whose elastic gradient it evaluated: the projection's first
-                // evaluation is then that one, if pins, obstacles and forces left the positions untouched.
-                let hand_over = &mut self.hand_over;
-                if let Some((summary, grad)) =
-                    hand_over.take_result_gradient(&self.model, &self.state.x)
-                {
-                    p.offer_base_gradient(summary, grad);
-                }
-                let (rep, inv) = {
-                    let mut metric = hand_over.metric();
-                    let system = metric.as_deref_mut().map(|m| m as &mut dyn SystemMetric);
-                    p.project_with(&self.model, &mut self.state, self.dt, &targets, system)
-                };
-                // The projection's final gradient, for an integrator that starts its next step with it.
-                if let Some((grad, x_copy)) = p.take_final_hand_over() {
-                    if hand_over.reads_start_gradient() {
-                        hand_over.put_final_gradient(&self.model, &self.state.x, x_copy, grad);
-                    }
-                }
-                (Some(rep), inv, rep.base_energy)
-            }
-            None => {
-                let inv = measure(&self.model, &self.state);
-                (None, inv, inv.total)
-            }
-        };
+        let (projection, inv, base_total) = self.project_or_measure(&targets);
         if !(inv.total.is_finite()
             && inv
                 .momentum
@@ -643,14 +583,11 @@ impl Simulation {
                 .all(|c| c.is_finite()))
         {
             std::mem::swap(&mut self.state, &mut self.previous);
-            return Err(FeprError::Simulation(format!(
-                "the energy or momentum became non-finite in step {step} (t = {:.6} s): the {} step of dt = {} s \
-                 is unstable for this material and mesh (runaway); use a smaller dt. The state was left at step {}.",
-                self.state.time + self.dt,
-                self.integrator.name(),
-                self.dt,
-                step - 1
-            )));
+            return Err(self.unstable(
+                step,
+                "the energy or momentum became non-finite",
+                "use a smaller dt",
+            ));
         }
         let proj_ms = if projection.is_some() {
             t1.elapsed().as_secs_f64() * 1e3
@@ -666,38 +603,14 @@ impl Simulation {
             .last()
             .map_or(targets.energy, |d| d.invariants.total);
         let base_energy_error = (base_total - start_energy - report.energy_budget).abs() / scale_h;
-        if let Some(p) = projection {
-            // What the projection could not restore within its quality guard is the step's unresolved energy:
-            // booked, so that the references (and the books) follow the energy the state really has.
-            work.unresolved = p.unresolved;
-            report.energy_budget += p.unresolved;
-            targets.energy += p.unresolved;
-            self.unresolved_totals.0 += p.unresolved;
-            self.unresolved_totals.1 += p.gap.max(0.0);
-        }
-        if contacts > 0 && projection.is_some_and(|p| !p.converged) {
-            let residual = inv.total - targets.energy;
-            let resting = residual.abs() <= RESTING_CONTACT_RESIDUAL * scale_h
-                || inv.kinetic <= RESTING_CONTACT_RESIDUAL * scale_h;
-            // What the projection could not place is booked as contact work:
-            // - a body resting in static equilibrium: H is stationary there (forces and velocities vanish),
-            //   so no small correction changes it; the contact's position correction against gravity leaves
-            //   a residual every step, which is booked in full;
-            // - a moving body that kept more energy than the contact's velocity changes claimed to remove (a
-            //   sliding corner whose friction impulse the elastic forces undo next step): the contact is
-            //   credited with the loss the state really has, but never with a gain (contact does no positive
-            //   work), so a failed step that gained energy is not accepted; the next projection tries again.
-            let booked = if resting {
-                residual
-            } else if residual > 0.0 {
-                residual.min(-work.contact).max(0.0)
-            } else {
-                0.0
-            };
-            work.contact += booked;
-            report.energy_budget += booked;
-            targets.energy += booked;
-        }
+        self.book_unplaced_energy(
+            projection,
+            &inv,
+            contacts,
+            &mut work,
+            &mut report,
+            &mut targets,
+        );
         // The references advance to this step's targets even when the projection did not converge: a failed
         // step does not lower the bar (re-basing on the measured state would make a one-step failure a
         // permanent loss of energy); the next projection starts from the fallback state and tries again.
@@ -731,6 +644,138 @@ impl Simulation {
             references: self.references,
         });
         Ok(())
+    }
+
+    /// The base step over `h`, redone from the start in substeps (up to [`MAX_IMPACT_SUBSTEPS`]) when an obstacle's
+    /// push-out was deeper than the impact limit; collects the vertices in or near contact (frozen for the
+    /// projection). Returns the advance and whether the state is finite.
+    fn advance_resolving_impacts(&mut self, h: f64) -> Result<(Advance, bool)> {
+        self.contact_vertices.clear();
+        let mut adv = self.advance(h)?;
+        let limit = IMPACT_DEPTH_FRACTION * self.mean_edge;
+        if adv.max_depth > limit && self.state.is_finite() {
+            let k = ((adv.max_depth / limit).ceil() as usize).clamp(2, MAX_IMPACT_SUBSTEPS);
+            self.state.clone_from(&self.previous);
+            self.contact_vertices.clear();
+            let mut total = Advance::default();
+            for _ in 0..k {
+                let a = self.advance(h / k as f64)?;
+                total.add(&a);
+                if !self.state.is_finite() {
+                    break;
+                }
+            }
+            total.report.energy_budget = total.work.total();
+            adv = total;
+            adv.report.substeps = k;
+        }
+        self.contact_vertices.sort_unstable();
+        self.contact_vertices.dedup();
+        let finite = self.state.is_finite();
+        if finite {
+            near_obstacles(
+                &self.world.obstacles,
+                &self.model,
+                &self.state,
+                &mut self.contact_vertices,
+            );
+        }
+        Ok((adv, finite))
+    }
+
+    /// The error of a step that made the state unusable (`what`), with the integrator, the step size and `advice`.
+    fn unstable(&self, step: usize, what: &str, advice: &str) -> FeprError {
+        FeprError::Simulation(format!(
+            "{what} in step {step} (t = {:.6} s): the {} step of dt = {} s is unstable for this material and mesh \
+             (runaway); {advice}. The state was left at step {}.",
+            self.state.time + self.dt,
+            self.integrator.name(),
+            self.dt,
+            step - 1
+        ))
+    }
+
+    /// The projection of the base step's state onto `targets` (with what the integrator handed over), or, without a
+    /// projector, the state's measurement. Returns the report, the invariants and the base state's energy.
+    fn project_or_measure(
+        &mut self,
+        targets: &Targets,
+    ) -> (Option<ProjectionReport>, Invariants, f64) {
+        match self.projector.as_mut() {
+            Some(p) => {
+                p.set_frozen_positions(&self.contact_vertices);
+                // Backward Euler ends on an iterate whose elastic gradient it evaluated: the projection's first
+                // evaluation is then that one, if pins, obstacles and forces left the positions untouched.
+                let hand_over = &mut self.hand_over;
+                if let Some((summary, grad)) =
+                    hand_over.take_result_gradient(&self.model, &self.state.x)
+                {
+                    p.offer_base_gradient(summary, grad);
+                }
+                let (rep, inv) = {
+                    let mut metric = hand_over.metric();
+                    let system = metric.as_deref_mut().map(|m| m as &mut dyn SystemMetric);
+                    p.project_with(&self.model, &mut self.state, self.dt, targets, system)
+                };
+                // The projection's final gradient, for an integrator that starts its next step with it.
+                if let Some((grad, x_copy)) = p.take_final_hand_over() {
+                    if hand_over.reads_start_gradient() {
+                        hand_over.put_final_gradient(&self.model, &self.state.x, x_copy, grad);
+                    }
+                }
+                (Some(rep), inv, rep.base_energy)
+            }
+            None => {
+                let inv = measure(&self.model, &self.state);
+                (None, inv, inv.total)
+            }
+        }
+    }
+
+    /// Books the energy the projection did not place: what its quality guard could not restore (`unresolved`), and
+    /// after a contact step that did not converge, the residual as contact work (see the cases below).
+    fn book_unplaced_energy(
+        &mut self,
+        projection: Option<ProjectionReport>,
+        inv: &Invariants,
+        contacts: usize,
+        work: &mut Work,
+        report: &mut StepReport,
+        targets: &mut Targets,
+    ) {
+        let scale_h = targets.energy_scale;
+        if let Some(p) = projection {
+            // What the projection could not restore within its quality guard is the step's unresolved energy:
+            // booked, so that the references (and the books) follow the energy the state really has.
+            work.unresolved = p.unresolved;
+            report.energy_budget += p.unresolved;
+            targets.energy += p.unresolved;
+            self.unresolved_totals.0 += p.unresolved;
+            self.unresolved_totals.1 += p.gap.max(0.0);
+        }
+        if contacts > 0 && projection.is_some_and(|p| !p.converged) {
+            let residual = inv.total - targets.energy;
+            let resting = residual.abs() <= RESTING_CONTACT_RESIDUAL * scale_h
+                || inv.kinetic <= RESTING_CONTACT_RESIDUAL * scale_h;
+            // What the projection could not place is booked as contact work:
+            // - a body resting in static equilibrium: H is stationary there (forces and velocities vanish),
+            //   so no small correction changes it; the contact's position correction against gravity leaves
+            //   a residual every step, which is booked in full;
+            // - a moving body that kept more energy than the contact's velocity changes claimed to remove (a
+            //   sliding corner whose friction impulse the elastic forces undo next step): the contact is
+            //   credited with the loss the state really has, but never with a gain (contact does no positive
+            //   work), so a failed step that gained energy is not accepted; the next projection tries again.
+            let booked = if resting {
+                residual
+            } else if residual > 0.0 {
+                residual.min(-work.contact).max(0.0)
+            } else {
+                0.0
+            };
+            work.contact += booked;
+            report.energy_budget += booked;
+            targets.energy += booked;
+        }
     }
 }
 
