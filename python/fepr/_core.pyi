@@ -122,7 +122,7 @@ def material_eval(
 
 def bench_sync_floor(threads: int) -> Tuple[float, float]:
     """Measure what synchronising ``threads`` threads costs on this machine, in about 0.1 s: (seconds per parallel
-    region that every thread must join, with no work in it and the threads kept awake, seconds per cache-line
+    region that every thread must join, with no work in it (`rayon::broadcast`), seconds per cache-line
     round trip between two threads; NaN on a single CPU). ``fepr bench`` reports both with the machine."""
 
 class _ProjectionReportDict(TypedDict):
@@ -243,7 +243,7 @@ class Simulation:
 
     def bench_energy_gradient(self, repeats: int, threads: int, awake: bool = False) -> Tuple[float, int, int]:
         """Time ``repeats`` energy + gradient evaluations on ``threads`` threads, in up to ten batches (the best
-        batch's mean); with ``awake`` the pool's threads poll between evaluations, as in a step: (seconds per
+        batch's mean); ``awake`` is kept for compatibility and has no effect (plain rayon): (seconds per
         evaluation, the energy's bits, a checksum of the gradient's bits)."""
 
     def bench_energy_gradient_apart(self, repeats: int, copies: int) -> float:

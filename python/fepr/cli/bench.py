@@ -301,9 +301,9 @@ def run_scene(
         if k == 0:
             # Energy + gradient: one thread and all threads, same state, bit for bit; each the best of three
             # rounds that alternate the three kinds (each round the best of ten batches), so that a spell of
-            # interference on this shared machine does not land on one kind alone. All threads as inside a
-            # step (the pool kept awake between evaluations: `Simulation::step` does so), and cold (threads
-            # parked between calls, as between calls from Python).
+            # interference on this shared machine does not land on one kind alone. The all-threads kinds "in a
+            # step" and "cold" are scheduled alike since the core runs on plain rayon (the `awake` flag has no
+            # effect); both are kept so that the JSON keeps its fields.
             eg = sim._sim.bench_energy_gradient
             one, many, cold = eg(repeats, 1), eg(repeats, all_threads, True), eg(repeats, all_threads)
             t1, tn, tc = one[0], many[0], cold[0]
@@ -442,7 +442,7 @@ def sync_floor(threads: int) -> Dict[str, Any]:
     the all-threads speed-up of a small scene, whose energy + gradient is some tens of microseconds of work.
 
     ``parallel_region_us``: one parallel region with no work in it that every one of ``threads`` threads must
-    join (the threads kept awake, as between the regions of a step; an energy + gradient enters two regions, a
+    join (`rayon::broadcast`, regions back to back; an energy + gradient enters two regions, a
     projection iteration four to five), in microseconds. ``core_round_trip_ns``: a value sent from one thread to
     another and back through the cache, in nanoseconds (None on a single CPU). Both are the best batch's mean.
     """
