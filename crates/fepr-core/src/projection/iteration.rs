@@ -284,6 +284,14 @@ impl Projector {
                 *xi = [xi[0] + d[0], xi[1] + d[1], xi[2] + d[2]];
             }
         });
+        self.reevaluate_same_elastic(run);
+        run.report.translated = true;
+        run.keep_if_better();
+    }
+
+    /// Re-evaluates the constraints after a change that leaves the elastic energy (and its gradient, if
+    /// computed) at `x` as they were: a rigid translation, or velocities alone.
+    fn reevaluate_same_elastic(&mut self, run: &mut Run) {
         let grad = run.grad_at_x.then_some(&self.grad[..]);
         run.cur = evaluate_with_elastic(
             &run.pb,
@@ -296,8 +304,6 @@ impl Projector {
             &mut self.scratch.parts,
         );
         run.cur_norm = norm_scaled(&run.pb, &run.cur.c);
-        run.report.translated = true;
-        run.keep_if_better();
     }
 
     /// Opt-in warm start for large energy errors (a dissipative base step at a large dt can lose most of H in
@@ -318,18 +324,7 @@ impl Projector {
             return;
         }
         // Only the velocities changed: the elastic energy (and gradient, if computed) at x still hold.
-        let grad = run.grad_at_x.then_some(&self.grad[..]);
-        run.cur = evaluate_with_elastic(
-            &run.pb,
-            &self.x,
-            &self.v,
-            run.s,
-            run.t,
-            run.cur.el,
-            grad,
-            &mut self.scratch.parts,
-        );
-        run.cur_norm = norm_scaled(&run.pb, &run.cur.c);
+        self.reevaluate_same_elastic(run);
         run.report.warm_start = true;
         run.keep_if_better();
     }
