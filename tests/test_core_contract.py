@@ -169,3 +169,12 @@ def test_settings_objects_keep_their_values():
     m = fepr.NeoHookean(np.float64(1e3), 0.3, j0=np.float64(0.2))
     assert type(m.youngs_modulus) is float and m.j0 == 0.2
     assert fepr.Xpbd(substeps=np.int64(5)).substeps == 5
+
+
+def test_projection_keys_are_the_projection_fields_and_the_scene_keys():
+
+    from fepr.scene import SCENE_KEYS
+
+    fields = [f.name for f in dataclasses.fields(fepr.Projection)]
+    assert sorted(fields) == sorted(_core.PROJECTION_KEYS)
+    assert SCENE_KEYS["projection"] == ("enabled", *_core.PROJECTION_KEYS)

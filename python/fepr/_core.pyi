@@ -21,6 +21,8 @@ MATERIALS: List[str]
 PROJECTION_ROWS: List[str]
 #: ``Projection(metric=...)`` choices (``fepr_core::projection::METRIC_NAMES``).
 METRICS: List[str]
+#: Keys of the projection settings dict (``fepr.Projection``'s fields; ``[projection]`` keys but ``enabled``).
+PROJECTION_KEYS: List[str]
 #: ``Projection(slack=...)`` choices (``fepr_core::projection::SLACK_NAMES``).
 SLACK_MODES: List[str]
 #: Named ``Projection(warm_start=...)`` modes besides a number and None (``fepr_core::projection::WARM_START_MODES``).

@@ -844,6 +844,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("MATERIALS", MATERIAL_NAMES.to_vec())?;
     m.add("PROJECTION_ROWS", ROW_NAMES.to_vec())?;
     m.add("METRICS", METRIC_NAMES.to_vec())?;
+    m.add("PROJECTION_KEYS", settings::PROJECTION_KEYS.to_vec())?;
     m.add("SLACK_MODES", SLACK_NAMES.to_vec())?;
     m.add("WARM_START_MODES", WARM_START_MODES.to_vec())?;
     m.add("HISTORY_COLUMNS", HISTORY_COLUMNS.to_vec())?;
