@@ -172,7 +172,6 @@ def test_settings_objects_keep_their_values():
 
 
 def test_projection_keys_are_the_projection_fields_and_the_scene_keys():
-
     from fepr.scene import SCENE_KEYS
 
     fields = [f.name for f in dataclasses.fields(fepr.Projection)]
