@@ -33,7 +33,7 @@
 
 use super::certificate::{Certificate, Sensitivity};
 use super::ProjectionReport;
-use crate::exec::{copy_rows, for_each_mut};
+use crate::exec::{copy_rows2, for_each_mut};
 use crate::math::{cross, dot, norm, sub, Vec3};
 use crate::model::BLOCK;
 use crate::model::{Model, State};
@@ -47,8 +47,7 @@ pub(super) struct Snapshot {
 
 impl Snapshot {
     pub(super) fn save(&mut self, state: &State) {
-        copy_rows(&state.x, &mut self.x);
-        copy_rows(&state.v, &mut self.v);
+        copy_rows2(&state.x, &mut self.x, &state.v, &mut self.v);
     }
     pub(super) fn restore(&self, state: &mut State) {
         state.x.copy_from_slice(&self.x);

@@ -13,7 +13,7 @@ pub use policy::*;
 use std::time::Instant;
 
 use crate::error::{FeprError, Result};
-use crate::exec::copy_rows;
+use crate::exec::{copy_rows, copy_rows2};
 use crate::integrators::{HandOver, Integrator, StepReport};
 use crate::invariants::{center_of_mass, measure, Invariants};
 use crate::math::{add, cross, dot, scale, sub, Vec3};
@@ -779,9 +779,8 @@ impl Simulation {
     }
 }
 
-/// `dst` becomes a copy of `src` ([`copy_rows`] for its rows).
+/// `dst` becomes a copy of `src` ([`copy_rows2`] for its rows).
 fn copy_state(src: &State, dst: &mut State) {
-    copy_rows(&src.x, &mut dst.x);
-    copy_rows(&src.v, &mut dst.v);
+    copy_rows2(&src.x, &mut dst.x, &src.v, &mut dst.v);
     dst.time = src.time;
 }
