@@ -69,6 +69,9 @@ fn block_size(n: usize, ptr: &[usize], adj: &[usize]) -> usize {
     1
 }
 
+/// Serialises the calls into METIS (see [`nested_dissection`]).
+static METIS_LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// Nested-dissection ordering of the symmetric matrix whose lower triangle has this CSC pattern.
 /// Returns `(perm, inverse)`: `perm[k]` is the original index eliminated k-th. `None` if METIS fails or the
 /// graph is too large for 32-bit indices.
@@ -103,6 +106,10 @@ pub fn nested_dissection(
     let mut options = [0 as idx_t; METIS_NOPTIONS as usize];
     let mut perm = vec![0 as idx_t; nb];
     let mut iperm = vec![0 as idx_t; nb];
+    // METIS seeds one process-wide random generator (GKlib's) from `options`: two calls at once on different
+    // threads would draw from it in turn and return different orderings, and a different ordering changes the
+    // factorisation's rounding. One call at a time keeps every simulation's bits its own.
+    let _one_at_a_time = METIS_LOCK.lock().unwrap_or_else(|e| e.into_inner());
     // SAFETY: the arrays are valid CSR of `nb` vertices (symmetric, no self loops), `options` has
     // METIS_NOPTIONS entries, `perm` and `iperm` have `nb` entries; METIS does not keep the pointers.
     let status = unsafe {
@@ -199,5 +206,26 @@ mod tests {
             // Deterministic.
             assert_eq!(nested_dissection(n, &cp, &ri).unwrap().0, fwd);
         }
+    }
+
+    /// METIS draws from one process-wide random generator: orderings computed on several threads at once (two
+    /// simulations built in parallel, or tests) must still be the one a lone call returns.
+    #[test]
+    fn concurrent_orderings_are_the_lone_call_s() {
+        let (n, cp, ri) = grid(20, 3);
+        let alone = nested_dissection(n, &cp, &ri).unwrap().0;
+        std::thread::scope(|s| {
+            let runs: Vec<_> = (0..4)
+                .map(|_| {
+                    s.spawn(|| (0..20).all(|_| nested_dissection(n, &cp, &ri).unwrap().0 == alone))
+                })
+                .collect();
+            for r in runs {
+                assert!(
+                    r.join().unwrap(),
+                    "an ordering computed alongside others differs"
+                );
+            }
+        });
     }
 }
