@@ -237,7 +237,7 @@ mod tests {
                 let got = out[pos][k];
                 for a in 0..3 {
                     let want = w * (r[a][0] * gk[0] + r[a][1] * gk[1] + r[a][2] * gk[2]);
-                    // The PD local step's rotations are accurate to about 1e-10 (batch_polar::PD_LOCAL).
+                    // The PD local step's rotations are accurate to about 1e-10 (`math::PD_LOCAL`).
                     assert!(
                         (got[a] - want).abs() <= 1e-9 * w,
                         "tet {e} corner {k}: {got:?} vs {want}"
