@@ -100,13 +100,7 @@ pub const INTEGRATOR_NAMES: &[&str] = &[
     "xpbd",
 ];
 
-/// Make an integrator from its scene-file name, with default settings.
+/// Make an integrator from its scene-file name, with default settings ([`IntegratorChoice::from_name`]).
 pub fn integrator_by_name(name: &str) -> Option<Box<dyn Integrator>> {
-    match name {
-        "symplectic_euler" => Some(Box::new(SymplecticEuler::new())),
-        "implicit_euler" => Some(Box::new(crate::integrators::ImplicitEuler::default())),
-        "projective_dynamics" => Some(Box::new(crate::integrators::ProjectiveDynamics::default())),
-        "xpbd" => Some(Box::new(crate::integrators::Xpbd::default())),
-        _ => None,
-    }
+    IntegratorChoice::from_name(name)?.build().ok()
 }
