@@ -68,24 +68,24 @@ def _version() -> str:
         return "unknown"
 
 
-def _positive_int(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number of steps, got {text!r}") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"steps must be >= 0, got {n}")
-    return n
+def _whole_number(unit: str, name: str, minimum: int):
+    """An argparse type: a whole number of ``unit`` of at least ``minimum``; errors name ``name``."""
+
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a whole number of {unit}, got {text!r}") from None
+        if n < minimum:
+            raise argparse.ArgumentTypeError(f"{name} must be >= {minimum}, got {n}")
+        return n
+
+    return parse
 
 
-def _every(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number of steps, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"--export-every must be >= 1, got {n}")
-    return n
+_steps = _whole_number("steps", "steps", 0)
+_every = _whole_number("steps", "--export-every", 1)
+_frames = _whole_number("frames", "frames", 1)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -112,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("scene", metavar="SCENE.toml", help="scene file")
     run.add_argument(
         "--steps",
-        type=_positive_int,
+        type=_steps,
         default=None,
         metavar="N",
         help="number of steps (default: [run] steps)",
@@ -156,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument(
         "--steps",
-        type=_positive_int,
+        type=_steps,
         default=None,
         metavar="N",
         help="steps per run (default: each scene's own)",
@@ -178,16 +178,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _frames(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number of frames, got {text!r}") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"frames must be >= 1, got {n}")
-    return n
-
-
 def _add_compare_parser(sub) -> None:
     cmp = sub.add_parser(
         "compare",
@@ -205,7 +195,7 @@ def _add_compare_parser(sub) -> None:
         metavar="A,B",
         help="comma-separated base integrators to compare (default: the scene's own)",
     )
-    cmp.add_argument("--steps", type=_positive_int, default=None, metavar="N", help="steps (default: [run] steps)")
+    cmp.add_argument("--steps", type=_steps, default=None, metavar="N", help="steps (default: [run] steps)")
     cmp.add_argument("--frames", type=_frames, default=48, metavar="F", help="video frames (default 48)")
     cmp.add_argument("--size", default="640x480", metavar="WxH", help="panel size in pixels (default 640x480)")
     cmp.add_argument("--fps", type=_positive_float, default=24.0, help="video frame rate (default 24)")
