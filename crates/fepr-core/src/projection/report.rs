@@ -1,8 +1,5 @@
 //! What one projection did: the report the simulation books and shows per step.
 
-#[allow(unused_imports)] // rustdoc links
-use super::{Metric, ProjectionSettings, Projector, SystemMetric};
-
 /// What one projection did.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct ProjectionReport {
@@ -35,9 +32,9 @@ pub struct ProjectionReport {
     pub base_min_j: f64,
     /// The velocity warm start was used (energy error above `warm_start_threshold`).
     pub warm_start: bool,
-    /// The position metric was `W = M + h^2 diag(K_0)` (see [`Metric`]).
+    /// The position metric was `W = M + h^2 diag(K_0)` (see [`Metric`](super::Metric)).
     pub stiffness_metric: bool,
-    /// The position metric was the base integrator's factorised matrix (see [`SystemMetric`]); then
+    /// The position metric was the base integrator's factorised matrix (see [`SystemMetric`](super::SystemMetric)); then
     /// `stiffness_metric` is false.
     pub system_metric: bool,
     /// Restarts from the base state after an attempt inverted tets the base step had upright.
@@ -45,12 +42,12 @@ pub struct ProjectionReport {
     /// Vertices whose positions were frozen by those restarts (their velocities stay free).
     pub frozen_vertices: usize,
     /// Elastic evaluations (energy, or energy and gradient, over all tets), the first one included unless the
-    /// base step handed it over ([`Projector::offer_base_gradient`]: backward Euler): an iteration evaluates
+    /// base step handed it over ([`Projector::offer_base_gradient`](super::Projector::offer_base_gradient): backward Euler): an iteration evaluates
     /// its trial point, and a second one where the full step overshoots.
     pub evaluations: usize,
     /// Fraction of the step's energy gap `H_target - H(x*, v*)` (a deficit to restore or an excess to remove)
     /// that the projection closed: 1 unless the quality guard or convergence limited it (see
-    /// [`ProjectionSettings::quality_margin`]).
+    /// [`ProjectionSettings::quality_margin`](super::ProjectionSettings::quality_margin)).
     pub restored: f64,
     /// Energy the projection left between the base step's energy and the target, J (`-(1 - restored) * gap`
     /// with `gap = H_target - H(x*, v*)`: negative for a deficit it did not restore, positive for an excess it
@@ -63,10 +60,10 @@ pub struct ProjectionReport {
     /// Projections tried in this step (1, plus one per restored fraction tried and per metric switch).
     pub trials: usize,
     /// The diagonal stiffness metric stalled (the scaled residual did not halve in an iteration after the
-    /// first) and the projection restarted from the base state in the mass metric (see [`Metric::Auto`]).
+    /// first) and the projection restarted from the base state in the mass metric (see [`Metric::Auto`](super::Metric::Auto)).
     pub metric_switched: bool,
     /// The body was translated onto the centre-of-mass target before iterating (the closest point of those rows
-    /// alone; see [`Projector::project_with`]).
+    /// alone; see [`Projector::project_with`](super::Projector::project_with)).
     pub translated: bool,
     /// Largest change of a tet's volume ratio against the base step (at the end of the step or one step
     /// ahead), as a fraction of the quality margin, at the returned state; 0 where the guard did not run.

@@ -1,7 +1,5 @@
 //! The trial point `q - alpha D^-1 G lambda` of one iteration, vertex by vertex, and its slack values.
 
-#[allow(unused_imports)] // rustdoc links
-use super::problem::MetricRows;
 use super::problem::Problem;
 use super::ROWS;
 use crate::math::{dot, Vec3};
@@ -15,7 +13,7 @@ pub(super) struct Step<'a> {
     pub(super) model: &'a Model,
     pub(super) metric_factor: &'a [f64],
     pub(super) a_over_m: &'a [f64],
-    /// The metric rows are unit ([`MetricRows::unit`]).
+    /// The metric rows are unit ([`MetricRows::unit`](super::problem::MetricRows::unit)).
     pub(super) unit: bool,
     pub(super) x: &'a [Vec3],
     pub(super) v: &'a [Vec3],
