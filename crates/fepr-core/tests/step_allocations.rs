@@ -1,14 +1,13 @@
 //! The step loop reuses its workspaces: after the first steps, a projected step allocates only a few small,
-//! fixed-size blocks (the history's amortised growth), never anything the size of the mesh. Counted by a global allocator in this test binary alone.
+//! fixed-size blocks (the history's amortised growth), never anything the size of the mesh. Counted by a
+//! global allocator in this test binary alone.
 //!
 //! Backward Euler is not gated here: faer's parallel dense kernels inside its supernodal factorisation
 //! allocate small blocks of their own (thousands per step on a 3k-tet box), which fepr does not control.
 
 mod common;
 use common::*;
-use fepr_core::integrators::ProjectiveDynamics;
-use fepr_core::integrators::Xpbd;
-use fepr_core::integrators::{Integrator, SymplecticEuler};
+use fepr_core::integrators::{Integrator, ProjectiveDynamics, SymplecticEuler, Xpbd};
 use fepr_core::material::{Arap, ConstraintNeoHookean, Material};
 use fepr_core::model::State;
 use fepr_core::projection::{ProjectionSettings, Projector};
