@@ -532,7 +532,8 @@ impl Simulation {
     /// Benchmark helper: time `repeats` elastic energy + gradient evaluations at the current positions on
     /// `threads` worker threads (GIL released, workspace reused, after one warm-up evaluation), in up to ten
     /// batches; the best batch's mean is the time (interference from other processes only ever adds).
-    /// `awake` is accepted for compatibility and changes nothing (the pool is plain rayon). Returns
+    /// `awake`: time them as in a step, with the pool's other threads kept ready between evaluations
+    /// (`fepr_core::exec::with_threads_ready`); else cold, each evaluation waking parked threads. Returns
     /// (seconds per evaluation, the energy's bits, a checksum of the gradient's bits) so callers can
     /// compare thread counts bit for bit.
     #[pyo3(signature = (repeats, threads, awake = false))]
@@ -555,32 +556,37 @@ impl Simulation {
         let (model, x) = (&self.inner.model, &self.inner.state.x);
         Ok(py.detach(|| {
             pool.install(|| {
-                // Accepted for compatibility: the pool's threads are plain rayon workers either way.
-                let _ = awake;
-                let mut grad = vec![[0.0; 3]; x.len()];
-                let mut ws = ElasticWorkspace::default();
-                let mut s = elastic_energy_gradient(model, x, &mut ws, &mut grad);
-                // A fresh pool's threads take up to a few milliseconds to start helping on a virtual machine
-                // (measured: a 1,296-tet mesh ran at one thread's speed through 50 evaluations in most fresh
-                // pools); a simulation's pool lives across steps, so warm this one up before timing it.
-                let warm = std::time::Instant::now();
-                while warm.elapsed().as_secs_f64() < 0.02 {
-                    s = elastic_energy_gradient(model, x, &mut ws, &mut grad);
-                }
-                let batches = repeats.min(10);
-                let mut best = f64::INFINITY;
-                for b in 0..batches {
-                    let n = repeats / batches + usize::from(b < repeats % batches);
-                    let t0 = std::time::Instant::now();
-                    for _ in 0..n {
+                let timed = || {
+                    let mut grad = vec![[0.0; 3]; x.len()];
+                    let mut ws = ElasticWorkspace::default();
+                    let mut s = elastic_energy_gradient(model, x, &mut ws, &mut grad);
+                    // A fresh pool's threads take up to a few milliseconds to start helping on a virtual machine
+                    // (measured: a 1,296-tet mesh ran at one thread's speed through 50 evaluations in most fresh
+                    // pools); a simulation's pool lives across steps, so warm this one up before timing it.
+                    let warm = std::time::Instant::now();
+                    while warm.elapsed().as_secs_f64() < 0.02 {
                         s = elastic_energy_gradient(model, x, &mut ws, &mut grad);
                     }
-                    best = best.min(t0.elapsed().as_secs_f64() / n as f64);
+                    let batches = repeats.min(10);
+                    let mut best = f64::INFINITY;
+                    for b in 0..batches {
+                        let n = repeats / batches + usize::from(b < repeats % batches);
+                        let t0 = std::time::Instant::now();
+                        for _ in 0..n {
+                            s = elastic_energy_gradient(model, x, &mut ws, &mut grad);
+                        }
+                        best = best.min(t0.elapsed().as_secs_f64() / n as f64);
+                    }
+                    let checksum = grad.iter().flatten().fold(0u64, |h, g| {
+                        (h ^ g.to_bits()).wrapping_mul(0x0100_0000_01b3)
+                    });
+                    (best, s.energy.to_bits(), checksum)
+                };
+                if awake {
+                    fepr_core::exec::with_threads_ready(timed)
+                } else {
+                    timed()
                 }
-                let checksum = grad.iter().flatten().fold(0u64, |h, g| {
-                    (h ^ g.to_bits()).wrapping_mul(0x0100_0000_01b3)
-                });
-                (best, s.energy.to_bits(), checksum)
             })
         }))
     }

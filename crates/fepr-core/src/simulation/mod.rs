@@ -530,9 +530,11 @@ impl Simulation {
     /// start in substeps small enough for the depth, up to 16; the projection runs once, at the end.
     ///
     /// Called from a thread outside every rayon pool (a program's main thread, Python's), the step runs on a
-    /// thread of the global pool ([`crate::exec::on_pool`]), as it does inside `ThreadPool::install`.
+    /// thread of the global pool ([`crate::exec::on_pool`]), as it does inside `ThreadPool::install`. The
+    /// pool's other threads stay ready for the step's parallel passes until it returns
+    /// ([`crate::exec::with_threads_ready`]).
     pub fn step(&mut self) -> Result<&StepDiagnostics> {
-        crate::exec::on_pool(|| self.step_on_pool())?;
+        crate::exec::on_pool(|| crate::exec::with_threads_ready(|| self.step_on_pool()))?;
         Ok(self.history.last().expect("a step pushes its diagnostics"))
     }
 
