@@ -67,8 +67,13 @@ SLOW_CASES = G.matrix()
 # Known breaks of the fast subset, each with its cause: strict xfails, so a case that starts to pass fails the suite
 # until it is taken off this list.
 CONTACT = (
-    "contact is resolved after the implicit solve and the projection of a contact step often does not converge "
-    "(issue 34: contact inside the solve)"
+    "through the impacts on this sliver mesh the projection of a contact step does not always converge within its "
+    "iterations (issue 34)"
+)
+NEWTON = (
+    "backward Euler at 1/30 s: Newton reaches its 20-iteration cap while the feet enter the contact layer one "
+    "vertex after another, the step is redone in 3-6 substeps, and the energy FEPR keeps compresses the feet's "
+    "slivers further than the damped base run (issue 34)"
 )
 XPBD = (
     "XPBD at its default 20 substeps is unstable on this sliver mesh (alone it inverts tets at rest) and injects "
@@ -100,17 +105,9 @@ KNOWN_FAST = {
     "armadillo-XPBD-dt1_30-spin-momentum": XPBD,
     "armadillo-XPBD-dt1_30-spin-converged": XPBD,
     "armadillo-SE-dt_stable-drop-converged": CONTACT,
-    "armadillo-BE-dt1_60-drop-books": CONTACT,
-    "armadillo-BE-dt1_60-drop-converged": CONTACT,
-    "armadillo-BE-dt1_30-drop-books": CONTACT,
-    "armadillo-BE-dt1_30-drop-converged": CONTACT,
-    "armadillo-PD-dt1_60-drop-min_j": CONTACT,
-    "armadillo-PD-dt1_60-drop-books": CONTACT,
+    "armadillo-BE-dt1_30-drop-min_j": NEWTON,
     "armadillo-PD-dt1_60-drop-converged": CONTACT,
     "armadillo-PD-dt1_30-drop-min_j": CONTACT,
-    "armadillo-PD-dt1_30-drop-books": CONTACT,
-    "armadillo-PD-dt1_30-drop-converged": CONTACT,
-    "armadillo-XPBD-dt1_60-drop-min_j": CONTACT,
     "armadillo-XPBD-dt1_60-drop-books": CONTACT,
     "armadillo-XPBD-dt1_60-drop-converged": CONTACT,
     "armadillo-XPBD-dt1_30-drop-books": CONTACT,

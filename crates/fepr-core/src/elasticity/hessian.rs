@@ -12,7 +12,7 @@
 use crate::elasticity::deformation_gradient;
 use crate::material::Hyperelastic;
 use crate::math::LowerPattern;
-use crate::math::Vec3;
+use crate::math::{Mat3, Vec3};
 use crate::model::Model;
 
 /// A 12 x 12 element matrix, row-major, index `3 * corner + axis`.
@@ -186,6 +186,27 @@ impl HessianAssembler {
             }
             for a in 0..3 {
                 values[self.diagonal[3 * fi + a]] += mass_scale * model.masses[i];
+            }
+        }
+    }
+
+    /// `values += block` on the diagonal block of vertex `i` (a symmetric 3x3 matrix; its lower triangle is
+    /// read). Nothing for a pinned vertex. For terms that act on one vertex alone (contact penalties).
+    pub fn add_vertex_block(&self, values: &mut [f64], i: usize, block: &Mat3) {
+        let fi = self.free_index[i];
+        if fi == usize::MAX {
+            return;
+        }
+        for a in 0..3 {
+            for b in 0..=a {
+                let pos = if a == b {
+                    self.diagonal[3 * fi + a]
+                } else {
+                    self.pattern
+                        .position(3 * fi + a, 3 * fi + b)
+                        .expect("a vertex's own block is in the pattern")
+                };
+                values[pos] += block[a][b];
             }
         }
     }

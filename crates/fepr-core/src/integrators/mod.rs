@@ -43,6 +43,9 @@ pub struct StepReport {
     pub line_search_steps: usize,
     /// Substeps the simulation split the step into for an impact (0: the step was not split).
     pub substeps: usize,
+    /// The contacts an implicit step held inside its solve ([`Integrator::set_obstacles`]): their count, work
+    /// and impulses, already included in `impulse` and `angular_impulse` (not in `energy_budget`).
+    pub contact: crate::world::ContactReport,
 }
 
 /// A base time integrator: the physics of a step. What a step and the projection around it can share instead
@@ -68,6 +71,11 @@ pub trait Integrator: Send + Sync {
     fn applies_step_damping(&self) -> bool {
         false
     }
+    /// The static obstacles, for an integrator that keeps its free vertices out of them inside its own solve
+    /// (contact inside the solve, [`crate::world::ContactPotential`]). The push-out after the step
+    /// ([`crate::world::resolve_contacts`]) runs for every integrator; one that ignores the obstacles (the
+    /// default) leaves contact to it.
+    fn set_obstacles(&mut self, _obstacles: &[crate::world::Obstacle]) {}
     /// True for implicit (unconditionally stable, dissipative) integrators: the projection then uses the
     /// stiffness metric by default (see [`crate::projection::Metric`]).
     fn is_implicit(&self) -> bool {

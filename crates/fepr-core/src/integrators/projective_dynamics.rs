@@ -11,6 +11,17 @@
 //! for the x, y and z coordinates together. Pinned vertices are eliminated.
 //! The energy this minimises is the ARAP energy `Psi = mu |F - R|^2` ([`crate::material::Arap`]); with FEPR,
 //! the model's material must be that energy so that H is the PD energy (fepr-spec section 5).
+//!
+//! Obstacles ([`Integrator::set_obstacles`]) enter the step as projective contact constraints on the vertices
+//! that the inertial prediction puts inside an obstacle (the step's active set): each pulls its vertex to the
+//! nearest surface point of its current iterate with weight `STIFFNESS_RATIO m_i / h^2`
+//! ([`crate::world::STIFFNESS_RATIO`]), in the global matrix, so that the global solve carries the support to the
+//! whole body within the step. The matrix with these weights is factorised again when the active set changes
+//! (numerically only: the symbolic analysis is kept); the plain matrix stays the projection's metric. Why not
+//! project the iterates out of the obstacles between global solves (no new factorisation): the plain global
+//! solve then does not know the contact vertices are held, the rest of the body falls on through them, and a
+//! dropped armadillo at dt = 1/60 ended with 2,052 inverted tets (against 98 with the push-out after the step).
+//! Vertices that enter an obstacle only during the iterations are left to the push-out after the step.
 
 use crate::exec::for_each_chunk_mut;
 use std::time::Instant;
@@ -19,10 +30,11 @@ use crate::elasticity::shape_gradients;
 use crate::error::{invalid, FeprError, Result};
 use crate::integrators::{finish_positional_step, HandOver, Integrator, SharedMetric, StepReport};
 use crate::material::Material;
-use crate::math::{scale, Vec3};
+use crate::math::{add, scale, Vec3};
 use crate::math::{LowerPattern, SparseCholesky};
 use crate::model::{Model, ModelKey, State};
 use crate::projection::SystemMetric;
+use crate::world::{ContactPotential, Obstacle, STIFFNESS_RATIO};
 use std::sync::{Arc, Mutex};
 
 /// Projective Dynamics settings.
@@ -63,6 +75,13 @@ struct Prefactored {
     h: f64,
     /// The [`Model::key`] it was factorised for.
     key: ModelKey,
+    /// The matrix's pattern and values, and the value position of each free vertex's diagonal entry (for the
+    /// matrix with contact weights).
+    pattern: LowerPattern,
+    values: Vec<f64>,
+    diagonal: Vec<usize>,
+    /// The matrix with the contact weights of an active set, factorised, with that set (sorted vertices).
+    contact: Option<(SparseCholesky, Vec<usize>)>,
 }
 
 /// Wall-clock time of the phases of the last step, s (for benchmarks and profiling).
@@ -94,6 +113,12 @@ pub struct ProjectiveDynamics {
     x_n: Vec<Vec3>,
     x: Vec<Vec3>,
     y: Vec<Vec3>,
+    /// The obstacles, as contact constraints (empty: none).
+    contact: ContactPotential,
+    /// The step's contact active set (sorted free vertices), and their constraints' targets in the last
+    /// iteration, m.
+    active: Vec<usize>,
+    targets: Vec<Vec3>,
 }
 
 impl std::fmt::Debug for ProjectiveDynamics {
@@ -188,6 +213,9 @@ impl ProjectiveDynamics {
         }
         let mut chol = SparseCholesky::analyse(&pattern, 3)?;
         chol.factorize(&values)?;
+        let diagonal = (0..n)
+            .map(|c| pattern.position(c, c).expect("diagonal"))
+            .collect();
         Ok(Prefactored {
             free_vertices,
             chol,
@@ -195,6 +223,10 @@ impl ProjectiveDynamics {
             mu,
             h,
             key: model.key(),
+            pattern,
+            values,
+            diagonal,
+            contact: None,
         })
     }
 }
@@ -266,6 +298,10 @@ impl Integrator for ProjectiveDynamics {
 
     fn is_implicit(&self) -> bool {
         true
+    }
+
+    fn set_obstacles(&mut self, obstacles: &[Obstacle]) {
+        self.contact = ContactPotential::new(obstacles);
     }
 
     fn check(&self, model: &Model) -> Result<()> {
@@ -346,6 +382,41 @@ impl Integrator for ProjectiveDynamics {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()
         };
+        // The contact constraints' active set: the free vertices the inertial prediction puts inside an obstacle.
+        self.active.clear();
+        self.active
+            .extend((0..m).filter(|&i| !model.pinned[i] && self.contact.in_reach(model, x[i])));
+        if !self.active.is_empty() && pre.contact.as_ref().is_none_or(|c| c.1 != self.active) {
+            let mut values = pre.values.clone();
+            for &v in &self.active {
+                let c = pre.free_vertices.partition_point(|&f| f < v);
+                values[pre.diagonal[c]] += STIFFNESS_RATIO * model.masses[v] * inv_h2;
+            }
+            // The symbolic analysis of the first active set is kept: only the diagonal changes.
+            let analysed = match pre.contact.take() {
+                Some((chol, _)) => Ok(chol),
+                None => SparseCholesky::analyse(&pre.pattern, 3),
+            };
+            let factor = analysed.and_then(|mut chol| {
+                chol.factorize(&values)?;
+                Ok(chol)
+            });
+            match factor {
+                Ok(chol) => pre.contact = Some((chol, self.active.clone())),
+                Err(_) => {
+                    // Cannot happen for a positive definite matrix plus positive diagonal weights; poison the
+                    // state as for the plain matrix so that the simulation reports it.
+                    state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
+                    return StepReport::default();
+                }
+            }
+            self.factorizations += 1;
+        }
+        // The first local step starts from the prediction with the active vertices on the surface (their
+        // constraints' targets), not from deep inside the obstacle, which would strain the elements around them.
+        for &v in &self.active {
+            x[v] = self.contact.nearest_outside(model, x[v]);
+        }
         self.corner_terms.resize(model.num_tets(), [[0.0; 3]; 4]);
         let mut timing = PdTiming::default();
         for it in 0..self.settings.iterations {
@@ -383,8 +454,22 @@ impl Integrator for ProjectiveDynamics {
                     self.rhs[row][a] -= coef * x[p][a];
                 }
             }
+            // Contact constraints: each active vertex pulled to the surface point nearest its iterate.
+            self.targets.clear();
+            for &v in &self.active {
+                let c = pre.free_vertices.partition_point(|&f| f < v);
+                let target = self.contact.nearest_outside(model, x[v]);
+                let w = STIFFNESS_RATIO * model.masses[v] * inv_h2;
+                for a in 0..3 {
+                    self.rhs[c][a] += w * target[a];
+                }
+                self.targets.push(target);
+            }
             let t2 = Instant::now();
-            pre.chol.solve3_in_place(&mut self.rhs);
+            match (&mut pre.contact, self.active.is_empty()) {
+                (Some((chol, _)), false) => chol.solve3_in_place(&mut self.rhs),
+                _ => pre.chol.solve3_in_place(&mut self.rhs),
+            }
             let t3 = Instant::now();
             timing.local += (t1 - t0).as_secs_f64();
             timing.rhs += (t2 - t1).as_secs_f64();
@@ -409,6 +494,18 @@ impl Integrator for ProjectiveDynamics {
         }
         self.timing = timing;
         finish_positional_step(model, state, &x, &x_n, h);
+        // The contact impulse of the last global solve: its constraint force w (p - x) at the final iterate.
+        let (active, targets) = (&self.active, &self.targets);
+        let v_start = |i: usize| [0, 1, 2].map(|a| (y[i][a] - x_n[i][a]) / h);
+        report.contact = self
+            .contact
+            .apply_impacts(model, state, h, v_start, |i, x| {
+                let k = active.binary_search(&i).ok()?;
+                let d = [0, 1, 2].map(|a| targets[k][a] - x[a]);
+                (d != [0.0; 3]).then(|| scale(d, STIFFNESS_RATIO / h))
+            });
+        report.impulse = add(report.impulse, report.contact.impulse);
+        report.angular_impulse = add(report.angular_impulse, report.contact.angular_impulse);
         (self.x_n, self.x, self.y) = (x_n, x, y);
         report
     }

@@ -9,13 +9,18 @@
 //! constraints, and sets `v = (x - x_n) / h_s`. The sweeps go colour by colour (a greedy colouring in which the
 //! tets of one colour share no vertex): within a colour the tets are solved in parallel, which is exactly the
 //! sequential Gauss-Seidel result, so the step is bit-identical for any number of threads.
+//!
+//! Obstacles ([`Integrator::set_obstacles`]) are contact constraints of zero compliance in the same sweeps:
+//! after each sweep, a vertex inside an obstacle is put back on its surface
+//! ([`ContactPotential::project_out`]), so the substep's velocity `(x - x_n) / h_s` already holds the contact.
 
 use crate::elasticity::shape_gradients;
 use crate::error::{invalid, Result};
 use crate::integrators::{HandOver, Integrator, StepReport};
 use crate::material::{ConstraintNeoHookean, Material};
-use crate::math::{cofactor, det, scale, Mat3, Vec3};
+use crate::math::{add, cofactor, det, scale, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
+use crate::world::{ContactPotential, Obstacle};
 
 /// XPBD settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -61,6 +66,12 @@ pub struct Xpbd {
     updates: Vec<([Vec3; 4], [f64; 2], usize)>,
     /// Positions at the start of the substep (reused, no allocation per step).
     x_prev: Vec<Vec3>,
+    /// The obstacles as contact constraints (empty: none).
+    contact: ContactPotential,
+    /// Per vertex, the velocity change the contact constraints gave it over the step, m/s (empty: no obstacle).
+    contact_dv: Vec<Vec3>,
+    /// The velocities at the start of the step, m/s (kept only with obstacles).
+    v_start: Vec<Vec3>,
 }
 
 impl std::fmt::Debug for Xpbd {
@@ -333,6 +344,10 @@ impl Integrator for Xpbd {
         true
     }
 
+    fn set_obstacles(&mut self, obstacles: &[Obstacle]) {
+        self.contact = ContactPotential::new(obstacles);
+    }
+
     fn check(&self, model: &Model) -> Result<()> {
         match Self::material(model) {
             Some(_) => Ok(()),
@@ -367,6 +382,11 @@ impl Integrator for Xpbd {
         let pre = self.pre.as_ref().expect("prepared");
         let m = model.num_vertices();
         let hs = h / self.settings.substeps as f64;
+        self.contact_dv.clear();
+        if !self.contact.is_empty() {
+            self.contact_dv.resize(model.num_vertices(), [0.0; 3]);
+            self.v_start.clone_from(&state.v);
+        }
         let inv_hs2 = 1.0 / (hs * hs);
         let g = model.gravity;
         let tets = model.mesh.tets();
@@ -436,6 +456,12 @@ impl Integrator for Xpbd {
                         }
                     }
                 }
+                self.contact.project_out_recording(
+                    model,
+                    &mut state.x,
+                    1.0 / hs,
+                    &mut self.contact_dv,
+                );
             }
             let inv_hs = 1.0 / hs;
             for i in 0..m {
@@ -451,10 +477,24 @@ impl Integrator for Xpbd {
         }
         self.x_prev = x_prev;
         state.time += h;
+        let dv = &self.contact_dv;
+        let v_start = &self.v_start;
+        let contact = self.contact.apply_impacts(
+            model,
+            state,
+            h,
+            |i| v_start[i],
+            |i, _| {
+                let d = dv[i];
+                (d != [0.0; 3]).then_some(d)
+            },
+        );
         StepReport {
-            impulse: scale(g, h * model.free_mass()),
+            impulse: add(scale(g, h * model.free_mass()), contact.impulse),
+            angular_impulse: contact.angular_impulse,
             iterations: self.settings.iterations * self.settings.substeps,
             line_search_steps: halvings,
+            contact,
             ..Default::default()
         }
     }

@@ -288,6 +288,7 @@ impl Simulation {
 
     /// Static obstacles the free vertices collide with.
     pub fn set_obstacles(&mut self, obstacles: Vec<Obstacle>) {
+        self.integrator.set_obstacles(&obstacles);
         self.world.obstacles = obstacles;
     }
     pub fn obstacles(&self) -> &[Obstacle] {
@@ -466,6 +467,8 @@ impl Simulation {
             .integrator
             .step(&self.model, &mut self.state, h, &mut self.hand_over);
         work.damping += report.energy_budget;
+        // Contacts held inside an implicit solve: their work is contact work (their impulses are in the report's).
+        work.contact += report.contact.work;
         if self.world.has_pins() {
             // The integrator left the kinematic vertices in place with zero velocity: give them the path's.
             let (x, v) = (&mut self.state.x, &mut self.state.v);
@@ -485,8 +488,9 @@ impl Simulation {
             // The torque of the forces about the centre of mass, at the start of the step (the kick's moment).
             report.angular_impulse = add(report.angular_impulse, force_torque);
         }
-        let mut contacts = 0;
+        let mut contacts = report.contact.contacts;
         let mut max_depth = 0.0;
+        report.impulsive |= contacts > 0;
         if self.state.is_finite() {
             let (dw, imp, ang) = self.world.damp(&self.model, &mut self.state, h)?;
             work.damping += dw;
@@ -501,9 +505,9 @@ impl Simulation {
                 &mut self.contact_dv,
             );
             if c.contacts > 0 {
-                contacts = c.contacts;
+                contacts += c.contacts;
                 max_depth = c.max_depth;
-                work.contact = c.work;
+                work.contact += c.work;
                 report.impulse = add(report.impulse, c.impulse);
                 report.angular_impulse = add(report.angular_impulse, c.angular_impulse);
                 report.impulsive = true;

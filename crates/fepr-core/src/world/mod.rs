@@ -16,7 +16,10 @@
 //! - damping: an operator on the velocities after the base step; its work is the kinetic energy it removes;
 //! - contact ([`crate::world`]): after damping.
 
+mod contact_potential;
 mod obstacles;
+
+pub use contact_potential::*;
 
 pub use obstacles::*;
 

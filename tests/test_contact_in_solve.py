@@ -1,0 +1,113 @@
+"""Contact inside the implicit solve: backward Euler, Projective Dynamics and XPBD hold the body out of the
+obstacles within their step, so an ordinary drop at the time steps users pick needs no impact substeps, keeps its
+shape, and (with FEPR) closes the energy books through the impacts and at rest."""
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import fepr
+
+G = 9.81
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
+
+
+def _drop(integrator, dt, projection, restitution=0.5, friction=0.3, mesh=None, height=1.0):
+    mesh = mesh if mesh is not None else fepr.meshes.box(size=0.5, resolution=4)
+    sim = fepr.Simulation(
+        mesh,
+        material=fepr.NeoHookean(youngs_modulus=1e5, poisson_ratio=0.3),
+        density=1000.0,
+        integrator=integrator,
+        dt=dt,
+        projection=projection,
+        gravity=(0.0, 0.0, -G),
+        obstacles=[fepr.Plane((0, 0, 0), (0, 0, 1), restitution=restitution, friction=friction)],
+    )
+    x0 = sim.positions
+    sim.positions = x0 + np.array([0.0, 0.0, height - x0[:, 2].min()])
+    return sim
+
+
+def _mean_edge(mesh):
+    t = np.asarray(mesh.tets)
+    v = np.asarray(mesh.vertices)
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    return float(np.mean([np.linalg.norm(v[t[:, a]] - v[t[:, b]], axis=1).mean() for a, b in pairs]))
+
+
+def _books(h):
+    return float(np.max(np.abs(h["total"] - (h["total"][0] + h["budget_total"]))) / abs(h["total"][0]))
+
+
+@pytest.mark.parametrize("integrator", ["implicit_euler", "projective_dynamics", "xpbd"])
+def test_an_implicit_drop_at_a_sixtieth_keeps_out_of_the_ground_and_closes_the_books(integrator):
+    mesh = fepr.meshes.box(size=0.5, resolution=4)
+    sim = _drop(integrator, 1 / 60, True, mesh=mesh)
+    edge = _mean_edge(mesh)
+    lowest = np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for _ in range(120):
+            sim.step(1)
+            # Measured on the raw positions, not by the contact code: the plane is z = 0.
+            lowest = min(lowest, float(sim.positions[:, 2].min()))
+    h = sim.history
+    assert lowest >= -0.01 * edge
+    assert _books(h) <= 1e-8
+    assert h["min_j"].min() > 0.3, "the body keeps its shape through the impact"
+    assert h["contacts"].max() > 0 and h["work_contact"].sum() < 0  # restitution 0.5 and friction take energy
+    assert np.mean(h["proj_converged"][1:]) >= 0.95
+    if integrator != "projective_dynamics":
+        # Projective Dynamics holds the vertices its inertial prediction puts in contact; ones that reach the
+        # ground during its iterations are pushed out after the step (in substeps when that is deep).
+        assert h["base_substeps"].max() == 0
+
+
+@pytest.mark.parametrize("integrator", ["implicit_euler", "projective_dynamics", "xpbd"])
+def test_momentum_the_ground_takes_is_booked_not_undone(integrator):
+    # The box lands and stops: the ground's impulse must be in the projection's targets, else FEPR would keep
+    # the downward momentum the contact removed.
+    sim = _drop(integrator, 1 / 60, True, restitution=0.0, friction=0.5, height=0.3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        sim.step(120)
+    h = sim.history
+    landing = sim.total_mass * np.sqrt(2 * G * 0.3)
+    # The body keeps the energy the losses do not claim (it rocks on the ground); its momentum is what the
+    # targets say, step by step.
+    assert np.max(np.abs(h["pz"][1:] - h["pz_target"][1:])) <= 1e-8 * landing
+
+
+@pytest.mark.skipif(not (SHARED / "Armadillo_Tetra_4406.vtu").exists(), reason="needs ../shared/meshes")
+def test_armadillo_drop_with_backward_euler_at_a_sixtieth_matches_a_fine_step():
+    # The issue's drop: 1 m armadillo (Stable Neo-Hookean 1e5 / 0.4), 0.3 m onto a plane, backward Euler at
+    # dt = 1/60 against the same at dt = 1/960: the lowest centre-of-mass height within 10%, and at most 2 impact
+    # substeps in a step (the push-out after the solve needed up to 16, and the body flattened to a quarter of
+    # its height). Its inverted tets (8 against the fine step's 6) are not yet held to the reference (issue 34).
+    mesh = fepr.io.load_mesh(SHARED / "Armadillo_Tetra_4406.vtu", fit=1.0)
+
+    def run(dt):
+        sim = fepr.Simulation(
+            mesh,
+            material=fepr.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.4),
+            density=1000.0,
+            integrator="implicit_euler",
+            dt=dt,
+            projection=False,
+            gravity=(0.0, 0.0, -G),
+            obstacles=[fepr.Plane((0, 0, 0), (0, 0, 1), restitution=0.0, friction=0.5)],
+        )
+        x0 = sim.positions
+        sim.positions = x0 + np.array([0.0, 0.0, 0.3 - x0[:, 2].min()])
+        sim.step(int(round(0.45 / dt)))
+        h = sim.history
+        return float(h["cz"].min()), int(h["inverted"].max()), int(h["base_substeps"].max())
+
+    low, inverted, substeps = run(1 / 60)
+    low_ref, inverted_ref, _ = run(1 / 960)
+    assert substeps <= 2
+    assert abs(low - low_ref) <= 0.10 * low_ref
+    assert inverted <= inverted_ref + 4
