@@ -60,10 +60,7 @@ def test_an_implicit_drop_at_a_sixtieth_keeps_out_of_the_ground_and_closes_the_b
     assert h["min_j"].min() > 0.3, "the body keeps its shape through the impact"
     assert h["contacts"].max() > 0 and h["work_contact"].sum() < 0  # restitution 0.5 and friction take energy
     assert np.mean(h["proj_converged"][1:]) >= 0.95
-    if integrator != "projective_dynamics":
-        # Projective Dynamics holds the vertices its inertial prediction puts in contact; ones that reach the
-        # ground during its iterations are pushed out after the step (in substeps when that is deep).
-        assert h["base_substeps"].max() == 0
+    assert h["base_substeps"].max() == 0
 
 
 @pytest.mark.parametrize("integrator", ["implicit_euler", "projective_dynamics", "xpbd"])
@@ -77,8 +74,10 @@ def test_momentum_the_ground_takes_is_booked_not_undone(integrator):
     h = sim.history
     landing = sim.total_mass * np.sqrt(2 * G * 0.3)
     # The body keeps the energy the losses do not claim (it rocks on the ground); its momentum is what the
-    # targets say, step by step.
-    assert np.max(np.abs(h["pz"][1:] - h["pz_target"][1:])) <= 1e-8 * landing
+    # targets say, step by step (up to the projection's slack on contact steps, fepr-spec section 4), and on
+    # average over the last second it is at rest, not falling.
+    assert np.max(np.abs(h["pz"][1:] - h["pz_target"][1:])) <= 1e-5 * landing
+    assert abs(np.mean(h["pz"][-60:])) <= 0.05 * landing
 
 
 @pytest.mark.skipif(not (SHARED / "Armadillo_Tetra_4406.vtu").exists(), reason="needs ../shared/meshes")
@@ -111,3 +110,97 @@ def test_armadillo_drop_with_backward_euler_at_a_sixtieth_matches_a_fine_step():
     assert substeps <= 2
     assert abs(low - low_ref) <= 0.10 * low_ref
     assert inverted <= inverted_ref + 4
+
+
+def test_a_body_starting_inside_an_obstacle_is_an_error_naming_vertex_obstacle_and_depth():
+    # A box placed inside a box obstacle used to be pushed metres away in its first step (H x 34, exit 0).
+    mesh = fepr.meshes.box(size=0.2, resolution=2, center=(0.0, 0.0, 0.5))
+    sim = fepr.Simulation(
+        mesh,
+        material=fepr.NeoHookean(youngs_modulus=1e5, poisson_ratio=0.3),
+        density=1000.0,
+        dt=1e-3,
+        gravity=(0.0, 0.0, -G),
+        obstacles=[fepr.Plane((0, 0, 0), (0, 0, 1)), fepr.Box(center=(0, 0, 0.5), half_extents=(0.3, 0.3, 0.3))],
+    )
+    x0 = sim.positions.copy()
+    with pytest.raises(fepr.SimulationError, match=r"vertex \d+ .* starts 0\.2000 m inside obstacle 1 \(box\)"):
+        sim.step(1)
+    assert np.array_equal(sim.positions, x0), "nothing moved"
+    # Moved out of the obstacle (on its lid), the same simulation runs.
+    sim.positions = x0 + np.array([0.0, 0.0, 0.4 + 1e-9])
+    sim.step(5)
+
+
+def test_a_scene_with_a_body_inside_an_obstacle_fails_with_the_message(tmp_path):
+    import subprocess
+    import sys
+
+    scene = tmp_path / "inside.toml"
+    scene.write_text(
+        """
+[mesh]
+builtin = "box"
+size = 0.2
+resolution = 2
+center = [0.0, 0.0, 0.5]
+
+[material]
+model = "neo_hookean"
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+
+[mass]
+density = 1000.0
+
+[integrator]
+name = "implicit_euler"
+dt = 0.01
+
+[world]
+gravity = [0.0, 0.0, -9.81]
+
+[[world.obstacles]]
+type = "sphere"
+center = [0.0, 0.0, 0.5]
+radius = 0.3
+
+[run]
+steps = 10
+"""
+    )
+    out = subprocess.run(
+        [sys.executable, "-m", "fepr", "run", str(scene), "--out", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode != 0
+    assert "inside obstacle 0 (sphere)" in out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("projection", [False, True])
+@pytest.mark.parametrize("integrator", ["symplectic_euler", "implicit_euler", "projective_dynamics", "xpbd"])
+def test_a_fast_body_does_not_pass_through_a_thin_plate(integrator, projection):
+    # 10 m/s against a 1 cm plate: at dt = 1/60 a vertex moves 16.7 cm in a step, through the plate and out the
+    # other side. The path from the step's start is checked against the obstacles: it is put back where it entered.
+    mesh = fepr.meshes.box(size=0.1, resolution=2, center=(0.0, 0.0, 0.3))
+    dt = 1e-3 if integrator == "symplectic_euler" else 1 / 60
+    sim = fepr.Simulation(
+        mesh,
+        material=fepr.NeoHookean(youngs_modulus=1e5, poisson_ratio=0.3),
+        density=1000.0,
+        integrator=integrator,
+        dt=dt,
+        projection=projection,
+        obstacles=[fepr.Box(center=(0, 0, 0), half_extents=(1.0, 1.0, 0.005), restitution=0.5)],
+    )
+    sim.velocities = np.tile([0.0, 0.0, -10.0], (mesh.num_vertices, 1))
+    edge = _mean_edge(mesh)
+    lowest = np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for _ in range(int(round(0.2 / dt))):
+            sim.step(1)
+            lowest = min(lowest, float(sim.positions[:, 2].min()))
+    assert lowest >= 0.005 - 0.01 * edge, "no vertex below the plate's top face"
+    assert sim.center_of_mass()[2] > 0.005

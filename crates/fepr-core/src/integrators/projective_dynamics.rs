@@ -13,15 +13,16 @@
 //! the model's material must be that energy so that H is the PD energy (fepr-spec section 5).
 //!
 //! Obstacles ([`Integrator::set_obstacles`]) enter the step as projective contact constraints on the vertices
-//! that the inertial prediction puts inside an obstacle (the step's active set): each pulls its vertex to the
-//! nearest surface point of its current iterate with weight `STIFFNESS_RATIO m_i / h^2`
+//! that the inertial prediction puts within reach of an obstacle (the step's active set): each pulls its vertex to the
+//! nearest point of the contact layer from its current iterate with weight `STIFFNESS_RATIO m_i / h^2`
 //! ([`crate::world::STIFFNESS_RATIO`]), in the global matrix, so that the global solve carries the support to the
 //! whole body within the step. The matrix with these weights is factorised again when the active set changes
 //! (numerically only: the symbolic analysis is kept); the plain matrix stays the projection's metric. Why not
 //! project the iterates out of the obstacles between global solves (no new factorisation): the plain global
 //! solve then does not know the contact vertices are held, the rest of the body falls on through them, and a
 //! dropped armadillo at dt = 1/60 ended with 2,052 inverted tets (against 98 with the push-out after the step).
-//! Vertices that enter an obstacle only during the iterations are left to the push-out after the step.
+//! Vertices that the iterations bring within an obstacle's reach join the active set, up to
+//! `ACTIVE_SET_REFRESHES` times a step; any later ones are left to the push-out after the step.
 
 use crate::exec::for_each_chunk_mut;
 use std::time::Instant;
@@ -35,6 +36,9 @@ use crate::math::{LowerPattern, SparseCholesky};
 use crate::model::{Model, ModelKey, State};
 use crate::projection::SystemMetric;
 use crate::world::{ContactPotential, Obstacle, STIFFNESS_RATIO};
+
+/// How often a step may add the vertices its iterations brought into an obstacle's reach to the contact active set.
+const ACTIVE_SET_REFRESHES: usize = 2;
 use std::sync::{Arc, Mutex};
 
 /// Projective Dynamics settings.
@@ -149,6 +153,28 @@ impl ProjectiveDynamics {
             settings,
             ..Default::default()
         })
+    }
+
+    /// Factorises the global matrix with the contact weights of `active` (sorted free vertices) into
+    /// `pre.contact`, reusing the symbolic analysis of an earlier active set (only the diagonal changes).
+    fn factorize_contact(
+        pre: &mut Prefactored,
+        model: &Model,
+        active: &[usize],
+        inv_h2: f64,
+    ) -> Result<()> {
+        let mut values = pre.values.clone();
+        for &v in active {
+            let c = pre.free_vertices.partition_point(|&f| f < v);
+            values[pre.diagonal[c]] += STIFFNESS_RATIO * model.masses[v] * inv_h2;
+        }
+        let mut chol = match pre.contact.take() {
+            Some((chol, _)) => chol,
+            None => SparseCholesky::analyse(&pre.pattern, 3)?,
+        };
+        chol.factorize(&values)?;
+        pre.contact = Some((chol, active.to_vec()));
+        Ok(())
     }
 
     fn prefactor(model: &Model, h: f64) -> Result<Prefactored> {
@@ -387,31 +413,15 @@ impl Integrator for ProjectiveDynamics {
         self.active
             .extend((0..m).filter(|&i| !model.pinned[i] && self.contact.in_reach(model, x[i])));
         if !self.active.is_empty() && pre.contact.as_ref().is_none_or(|c| c.1 != self.active) {
-            let mut values = pre.values.clone();
-            for &v in &self.active {
-                let c = pre.free_vertices.partition_point(|&f| f < v);
-                values[pre.diagonal[c]] += STIFFNESS_RATIO * model.masses[v] * inv_h2;
-            }
-            // The symbolic analysis of the first active set is kept: only the diagonal changes.
-            let analysed = match pre.contact.take() {
-                Some((chol, _)) => Ok(chol),
-                None => SparseCholesky::analyse(&pre.pattern, 3),
-            };
-            let factor = analysed.and_then(|mut chol| {
-                chol.factorize(&values)?;
-                Ok(chol)
-            });
-            match factor {
-                Ok(chol) => pre.contact = Some((chol, self.active.clone())),
-                Err(_) => {
-                    // Cannot happen for a positive definite matrix plus positive diagonal weights; poison the
-                    // state as for the plain matrix so that the simulation reports it.
-                    state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
-                    return StepReport::default();
-                }
+            if Self::factorize_contact(pre, model, &self.active, inv_h2).is_err() {
+                // Cannot happen for a positive definite matrix plus positive diagonal weights; poison the state
+                // as for the plain matrix so that the simulation reports it.
+                state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
+                return StepReport::default();
             }
             self.factorizations += 1;
         }
+        let mut refreshes = 0;
         // The first local step starts from the prediction with the active vertices on the surface (their
         // constraints' targets), not from deep inside the obstacle, which would strain the elements around them.
         for &v in &self.active {
@@ -482,6 +492,32 @@ impl Integrator for ProjectiveDynamics {
                     change = change.max((new - x[v][a]).abs());
                     size = size.max((new - x_n[v][a]).abs());
                     x[v][a] = new;
+                }
+            }
+            // Vertices that the iterations brought into an obstacle's reach join the active set (at most
+            // ACTIVE_SET_REFRESHES times a step, each a numeric factorisation): else they would end the step
+            // inside and be pushed out after it, in substeps when deep.
+            if !self.contact.is_empty()
+                && refreshes < ACTIVE_SET_REFRESHES
+                && it + 1 < self.settings.iterations
+            {
+                let before = self.active.len();
+                for i in 0..m {
+                    if !model.pinned[i]
+                        && self.active.binary_search(&i).is_err()
+                        && self.contact.in_reach(model, x[i])
+                    {
+                        self.active.push(i);
+                    }
+                }
+                if self.active.len() > before {
+                    self.active.sort_unstable();
+                    refreshes += 1;
+                    if Self::factorize_contact(pre, model, &self.active, inv_h2).is_err() {
+                        state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
+                        return StepReport::default();
+                    }
+                    self.factorizations += 1;
                 }
             }
             report.iterations = it + 1;
