@@ -14,18 +14,24 @@ G = 9.81
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "meshes"
 
 
-def _drop(integrator, dt, projection, restitution=0.5, friction=0.3, mesh=None, height=1.0):
-    mesh = mesh if mesh is not None else fepr.meshes.box(size=0.5, resolution=4)
-    sim = fepr.Simulation(
+def _sim(mesh, obstacles, integrator="symplectic_euler", dt=1e-3, projection=True, gravity=(0.0, 0.0, -G)):
+    """A soft body (Neo-Hookean 1e5 Pa / 0.3, 1000 kg/m^3) among ``obstacles``."""
+    return fepr.Simulation(
         mesh,
         material=fepr.NeoHookean(youngs_modulus=1e5, poisson_ratio=0.3),
         density=1000.0,
         integrator=integrator,
         dt=dt,
         projection=projection,
-        gravity=(0.0, 0.0, -G),
-        obstacles=[fepr.Plane((0, 0, 0), (0, 0, 1), restitution=restitution, friction=friction)],
+        gravity=gravity,
+        obstacles=obstacles,
     )
+
+
+def _drop(integrator, dt, projection, restitution=0.5, friction=0.3, mesh=None, height=1.0):
+    mesh = mesh if mesh is not None else fepr.meshes.box(size=0.5, resolution=4)
+    ground = fepr.Plane((0, 0, 0), (0, 0, 1), restitution=restitution, friction=friction)
+    sim = _sim(mesh, [ground], integrator, dt, projection)
     x0 = sim.positions
     sim.positions = x0 + np.array([0.0, 0.0, height - x0[:, 2].min()])
     return sim
@@ -115,14 +121,8 @@ def test_armadillo_drop_with_backward_euler_at_a_sixtieth_matches_a_fine_step():
 def test_a_body_starting_inside_an_obstacle_is_an_error_naming_vertex_obstacle_and_depth():
     # A box placed inside a box obstacle used to be pushed metres away in its first step (H x 34, exit 0).
     mesh = fepr.meshes.box(size=0.2, resolution=2, center=(0.0, 0.0, 0.5))
-    sim = fepr.Simulation(
-        mesh,
-        material=fepr.NeoHookean(youngs_modulus=1e5, poisson_ratio=0.3),
-        density=1000.0,
-        dt=1e-3,
-        gravity=(0.0, 0.0, -G),
-        obstacles=[fepr.Plane((0, 0, 0), (0, 0, 1)), fepr.Box(center=(0, 0, 0.5), half_extents=(0.3, 0.3, 0.3))],
-    )
+    inside = fepr.Box(center=(0, 0, 0.5), half_extents=(0.3, 0.3, 0.3))
+    sim = _sim(mesh, [fepr.Plane((0, 0, 0), (0, 0, 1)), inside])
     x0 = sim.positions.copy()
     with pytest.raises(fepr.SimulationError, match=r"vertex \d+ .* starts 0\.2000 m inside obstacle 1 \(box\)"):
         sim.step(1)
@@ -185,15 +185,8 @@ def test_a_fast_body_does_not_pass_through_a_thin_plate(integrator, projection):
     # other side. The path from the step's start is checked against the obstacles: it is put back where it entered.
     mesh = fepr.meshes.box(size=0.1, resolution=2, center=(0.0, 0.0, 0.3))
     dt = 1e-3 if integrator == "symplectic_euler" else 1 / 60
-    sim = fepr.Simulation(
-        mesh,
-        material=fepr.NeoHookean(youngs_modulus=1e5, poisson_ratio=0.3),
-        density=1000.0,
-        integrator=integrator,
-        dt=dt,
-        projection=projection,
-        obstacles=[fepr.Box(center=(0, 0, 0), half_extents=(1.0, 1.0, 0.005), restitution=0.5)],
-    )
+    plate = fepr.Box(center=(0, 0, 0), half_extents=(1.0, 1.0, 0.005), restitution=0.5)
+    sim = _sim(mesh, [plate], integrator, dt, projection, gravity=(0.0, 0.0, 0.0))
     sim.velocities = np.tile([0.0, 0.0, -10.0], (mesh.num_vertices, 1))
     edge = _mean_edge(mesh)
     lowest = np.inf
@@ -204,3 +197,38 @@ def test_a_fast_body_does_not_pass_through_a_thin_plate(integrator, projection):
             lowest = min(lowest, float(sim.positions[:, 2].min()))
     assert lowest >= 0.005 - 0.01 * edge, "no vertex below the plate's top face"
     assert sim.center_of_mass()[2] > 0.005
+
+
+def test_a_box_at_rest_on_the_ground_stays_there_and_the_projection_stands_down():
+    # Resting contact: H is stationary at rest, so the projection cannot converge there; after a step that shows
+    # it, the projection stands down (booking the residual as contact work) instead of running 20 iterations a
+    # step, and tries again every 16th step.
+    mesh = fepr.meshes.box(size=0.5, resolution=4, center=(0.0, 0.0, 0.25))
+    sim = _sim(mesh, [fepr.Plane((0, 0, 0), (0, 0, 1), restitution=0.5, friction=0.5)], dt=5e-4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        sim.step(2000)  # 1 s: the sag under gravity settles
+        z0 = sim.center_of_mass()[2]
+        sim.step(2000)
+    h = sim.history
+    last = slice(2001, None)
+    assert abs(sim.center_of_mass()[2] - z0) <= 1e-4, "no creep"
+    assert np.abs(sim.velocities).max() <= 0.1
+    assert _books(h) <= 1e-8
+    stood = h["proj_stood_down"][last]
+    assert stood.mean() >= 0.8
+    assert np.nanmean(h["proj_iterations"][last]) <= 3.0
+    # Stood-down steps are not failures in the summary, and never report iterations.
+    assert np.all(h["proj_iterations"][last][stood > 0.5] == 0)
+    from fepr.report.metrics import compute_metrics, length_scale
+
+    metrics = compute_metrics(
+        h,
+        total_mass=sim.total_mass,
+        gravity=sim.gravity,
+        length_scale=length_scale(sim.rest_positions),
+        pinned=False,
+        projection=True,
+    )
+    failed = np.sum(h["proj_converged"][1:] < 0.5) - np.sum(h["proj_stood_down"][1:] > 0.5)
+    assert metrics.unconverged == failed < np.sum(h["proj_converged"][1:] < 0.5)

@@ -156,6 +156,7 @@ class _ProjectionReportDict(TypedDict):
     trials: int
     metric_switched: bool
     quality_excess: float
+    stood_down: bool
 
 class Simulation:
     """The simulation: model, state, integrator and projection (see ``fepr.Simulation`` for the documented

@@ -248,6 +248,8 @@ class ProjectionReport:
     as a fraction of what the guard allows (0 where it did not run); ``trials`` the projections the step tried;
     ``metric_switched``: the stiffness metric stalled and the step was projected in the mass metric;
     ``translated``: the body was first translated onto its centre-of-mass target.
+    ``stood_down``: a step of resting contact on which the projection stood down (no iteration; the base step's
+    state, its residual booked as contact work; see ``docs/world.md``); not counted as unconverged.
     """
 
     iterations: int
@@ -276,6 +278,7 @@ class ProjectionReport:
     trials: int = 1
     metric_switched: bool = False
     quality_excess: float = 0.0
+    stood_down: bool = False
 
 
 class History:

@@ -613,7 +613,7 @@ impl Simulation {
             .history()
             .iter()
             .skip(start)
-            .find(|d| d.projection.is_some_and(|p| !p.converged))
+            .find(|d| d.projection.is_some_and(|p| !p.converged && !p.stood_down))
             .map(|d| d.step)
     }
 

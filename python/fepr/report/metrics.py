@@ -28,7 +28,8 @@ Definitions (``k`` runs over the rows):
   ``L_target = L_0``. Both are ``None`` when vertices are pinned (the supports' impulses are not known).
 - **min J** smallest volume ratio ``det F`` over all tets and rows; **inverted** the largest number of inverted
   tets in a row, **final_inverted** that of the last row.
-- **unconverged** steps whose projection did not converge (``proj_converged == 0``; ``None`` without
+- **unconverged** steps whose projection did not converge and did not stand down at resting contact
+  (``proj_converged == 0`` and ``proj_stood_down == 0``; ``None`` without
   projection); **mean_iterations** / **max_iterations** of the projection over the steps.
 - **substeps** the sum of ``base_substeps``; **ms_per_step** mean ``base_ms + proj_ms`` over the steps (the
   solver's own time); **base_unstable_step** the first step whose ``base_energy_error`` exceeded 1.
@@ -410,7 +411,9 @@ def compute_metrics(
     if projection:
         unconverged = 0
         if steps > 0 and "proj_converged" in h:
-            unconverged = int(np.sum(~(h["proj_converged"][1:] > 0.5)))
+            # Steps on which the projection stood down at resting contact (by the stated rule) are not failures.
+            stood = h["proj_stood_down"][1:] > 0.5 if "proj_stood_down" in h else False
+            unconverged = int(np.sum(~(h["proj_converged"][1:] > 0.5) & ~stood))
         if steps > 0 and "proj_iterations" in h:
             it = h["proj_iterations"][1:]
             it = it[np.isfinite(it)]

@@ -20,7 +20,7 @@ pub const WARM_START_MODES: &[&str] = &["auto", "off"];
 
 /// The fields of a projection report as the bindings hand them out (Python: `Simulation.last_projection()`
 /// and `fepr.ProjectionReport`), in the order of [`report_values`].
-pub const REPORT_FIELDS: [&str; 26] = [
+pub const REPORT_FIELDS: [&str; 27] = [
     "iterations",
     "converged",
     "residual",
@@ -47,6 +47,7 @@ pub const REPORT_FIELDS: [&str; 26] = [
     "quality_excess",
     "gap",
     "translated",
+    "stood_down",
 ];
 
 /// One value of a projection report, typed as the user sees it.
@@ -87,6 +88,7 @@ pub fn report_values(r: &ProjectionReport) -> [ReportValue; REPORT_FIELDS.len()]
         Real(r.quality_excess),
         Real(r.gap),
         Flag(r.translated),
+        Flag(r.stood_down),
     ]
 }
 

@@ -68,4 +68,8 @@ pub struct ProjectionReport {
     /// Largest change of a tet's volume ratio against the base step (at the end of the step or one step
     /// ahead), as a fraction of the quality margin, at the returned state; 0 where the guard did not run.
     pub quality_excess: f64,
+    /// The projection stood down on a step of resting contact: no iteration was run, the state is the base
+    /// step's, and its residual was booked as contact work (the simulation's resting-contact rule,
+    /// [`crate::simulation::Simulation::step`]). Never set by the projection itself.
+    pub stood_down: bool,
 }

@@ -5,7 +5,7 @@ use super::StepDiagnostics;
 
 /// The names of the diagnostics columns, in the order of [`history_row`] (Python: `Simulation.history`,
 /// CLI: `diagnostics.csv`; every column is described in `docs/concepts.md`).
-pub const HISTORY_COLUMNS: [&str; 57] = [
+pub const HISTORY_COLUMNS: [&str; 58] = [
     "base_iterations",
     "base_residual",
     "base_line_search",
@@ -63,6 +63,7 @@ pub const HISTORY_COLUMNS: [&str; 57] = [
     "ly_target",
     "lz_target",
     "proj_gap",
+    "proj_stood_down",
 ];
 
 /// The columns of [`HISTORY_COLUMNS`] that hold counts or 0/1 flags (integer-valued floats in a row; written as
@@ -81,6 +82,7 @@ pub const HISTORY_INTEGER_COLUMNS: &[&str] = &[
     "proj_evaluations",
     "proj_trials",
     "proj_metric_switched",
+    "proj_stood_down",
     "inverted",
     "runaway",
     "contacts",
@@ -156,6 +158,7 @@ pub fn history_row(d: &StepDiagnostics) -> [f64; HISTORY_COLUMNS.len()] {
         lt[1],
         lt[2],
         nan_if(p.gap),
+        if has { p.stood_down as u8 as f64 } else { 0.0 },
     ]
 }
 

@@ -65,6 +65,9 @@ impl Advance {
 /// equilibrium; see `Simulation::step`).
 const RESTING_CONTACT_RESIDUAL: f64 = 1e-4;
 
+/// On resting contact the projection stands down, and tries again every this many steps (see `Simulation::step`).
+const RESTING_RETRY: usize = 16;
+
 /// One row of diagnostics (fepr-spec / DESIGN.md), after a step (or for the initial state, step 0).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct StepDiagnostics {
@@ -179,6 +182,8 @@ pub struct Simulation {
     /// The state was set (or the obstacles changed) since the last step: check that it starts outside the
     /// obstacles ([`Simulation::check_start_outside_obstacles`]).
     start_unchecked: bool,
+    /// Consecutive contact steps at rest whose projection did not converge or stood down.
+    resting_steps: usize,
 }
 
 impl Simulation {
@@ -251,6 +256,7 @@ impl Simulation {
             mean_edge: 0.0,
             unresolved_totals: (0.0, 0.0),
             start_unchecked: true,
+            resting_steps: 0,
         };
         sim.mean_edge = mean_edge_length(&sim.model);
         sim.reset_references();
@@ -626,7 +632,13 @@ impl Simulation {
             targets.energy += correction;
         }
         let t1 = Instant::now();
-        let (projection, inv, base_total) = self.project_or_measure(&targets);
+        // Resting contact: after a contact step whose projection could not converge at rest, the projection stands
+        // down (its residual is booked as contact work, below) on the next contact steps while the body stays at
+        // rest, and tries again every RESTING_RETRY-th step.
+        let stand_down = contacts > 0
+            && self.resting_steps > 0
+            && !self.resting_steps.is_multiple_of(RESTING_RETRY);
+        let (projection, inv, base_total) = self.project_or_measure(&targets, stand_down);
         if !(inv.total.is_finite()
             && inv
                 .momentum
@@ -663,6 +675,10 @@ impl Simulation {
             &mut report,
             &mut targets,
         );
+        let resting = contacts > 0
+            && projection.is_some_and(|p| !p.converged)
+            && inv.kinetic <= RESTING_CONTACT_RESIDUAL * scale_h;
+        self.resting_steps = if resting { self.resting_steps + 1 } else { 0 };
         // The references advance to this step's targets even when the projection did not converge: a failed
         // step does not lower the bar (re-basing on the measured state would make a one-step failure a
         // permanent loss of energy); the next projection starts from the fallback state and tries again.
@@ -749,10 +765,33 @@ impl Simulation {
 
     /// The projection of the base step's state onto `targets` (with what the integrator handed over), or, without a
     /// projector, the state's measurement. Returns the report, the invariants and the base state's energy.
+    ///
+    /// `stand_down`: a step of resting contact after one whose projection could not converge (see
+    /// [`Simulation::step`]): if the base state's kinetic energy is below the resting bound, the projection stands
+    /// down (no iteration; the report says `stood_down`, its residual is the energy's, relative to the energy scale).
     fn project_or_measure(
         &mut self,
         targets: &Targets,
+        stand_down: bool,
     ) -> (Option<ProjectionReport>, Invariants, f64) {
+        if stand_down && self.projector.is_some() {
+            let inv = measure(&self.model, &self.state);
+            if inv.kinetic <= RESTING_CONTACT_RESIDUAL * targets.energy_scale {
+                let gap = targets.energy - inv.total;
+                let residual = gap.abs() / targets.energy_scale;
+                let rep = ProjectionReport {
+                    stood_down: true,
+                    initial_residual: residual,
+                    final_residual: residual,
+                    base_energy: inv.total,
+                    base_min_j: inv.min_j,
+                    gap,
+                    frozen_vertices: self.contact_vertices.len(),
+                    ..Default::default()
+                };
+                return (Some(rep), inv, inv.total);
+            }
+        }
         match self.projector.as_mut() {
             Some(p) => {
                 p.set_frozen_positions(&self.contact_vertices);
