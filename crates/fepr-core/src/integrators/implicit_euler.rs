@@ -30,7 +30,7 @@ use crate::integrators::{finish_positional_step, HandOver, Integrator, StepRepor
 use crate::math::SparseCholesky;
 use crate::math::{add, dot, scale, sub, Vec3};
 use crate::model::{Model, ModelKey, State};
-use crate::world::{ContactPotential, Obstacle};
+use crate::world::{ContactPotential, ContactReport, Obstacle};
 
 /// Newton settings for backward Euler.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -124,6 +124,36 @@ impl ImplicitEuler {
             + contact.energy(model, x, h)
     }
 
+    /// The contacts the solve held (see [`ContactPotential::apply_impacts`]), after the step ended on `state`
+    /// from `x_n` (m): their work and impulses; friction is applied to `state`'s velocities.
+    fn book_contacts(
+        &self,
+        model: &Model,
+        state: &mut State,
+        x_n: &[Vec3],
+        h: f64,
+    ) -> ContactReport {
+        let (contact, y) = (&self.contact, &self.y);
+        let v_start = |i: usize| [0, 1, 2].map(|a| (y[i][a] - x_n[i][a]) / h);
+        let mut report = contact.apply_impacts(model, state, h, v_start, |_, x| {
+            contact.penalty_velocity_change(model, x, h)
+        });
+        if report.contacts > 0 {
+            // The contact's linear impulse (friction's included) is the step's momentum change less gravity's
+            // (elastic forces are internal): exact even where Newton stopped short of the optimum, where the
+            // penalty's force is not the momentum change it caused. Its moment is taken from the penalty's forces.
+            let mut measured = scale(model.gravity, -h * model.free_mass());
+            for i in (0..model.num_vertices()).filter(|&i| !model.pinned[i]) {
+                measured = add(
+                    measured,
+                    scale(sub(state.v[i], v_start(i)), model.masses[i]),
+                );
+            }
+            report.impulse = measured;
+        }
+        report
+    }
+
     /// Evaluate `Phi` and its gradient (into `self.grad`). Also returns the magnitude scale of `Phi`
     /// (sum of the absolute values of its terms), which bounds its round-off.
     fn objective_gradient(&mut self, model: &Model, x: &[Vec3], h: f64) -> (f64, f64) {
@@ -166,7 +196,7 @@ impl Integrator for ImplicitEuler {
         self.contact = ContactPotential::new(obstacles);
     }
 
-    // Long (about 160 lines): one Newton solve of backward Euler, read top to bottom (prepare the pattern, iterate:
+    // Long (about 170 lines): one Newton solve of backward Euler, read top to bottom (prepare the pattern, iterate:
     // gradient, Hessian, factorisation with the PSD fallback, Armijo line search; hand the last gradient over).
     fn step(
         &mut self,
@@ -328,24 +358,7 @@ impl Integrator for ImplicitEuler {
         }
         finish_positional_step(model, state, &x, &x_n, h);
         if !self.contact.is_empty() {
-            let (contact, y) = (&self.contact, &self.y);
-            let v_start = |i: usize| [0, 1, 2].map(|a| (y[i][a] - x_n[i][a]) / h);
-            // The contact's linear impulse is the step's momentum change less gravity's (elastic forces are
-            // internal): exact even where Newton stopped short of the optimum, where the penalty's force is not
-            // the momentum change it caused. Its moment is taken from the penalty's forces.
-            let mut measured = scale(model.gravity, -h * model.free_mass());
-            let mut estimated = [0.0; 3];
-            for i in (0..m).filter(|&i| !model.pinned[i]) {
-                let mi = model.masses[i];
-                measured = add(measured, scale(sub(state.v[i], v_start(i)), mi));
-                if let Some(d) = contact.penalty_velocity_change(model, state.x[i], h) {
-                    estimated = add(estimated, scale(d, mi));
-                }
-            }
-            report.contact = contact.apply_impacts(model, state, h, v_start, |_, x| {
-                contact.penalty_velocity_change(model, x, h)
-            });
-            report.contact.impulse = add(report.contact.impulse, sub(measured, estimated));
+            report.contact = self.book_contacts(model, state, &x_n, h);
         }
         report.impulse = add(report.impulse, report.contact.impulse);
         report.angular_impulse = add(report.angular_impulse, report.contact.angular_impulse);

@@ -157,6 +157,34 @@ impl ProjectiveDynamics {
 
     /// Factorises the global matrix with the contact weights of `active` (sorted free vertices) into
     /// `pre.contact`, reusing the symbolic analysis of an earlier active set (only the diagonal changes).
+    /// Adds to `active` (sorted free vertices) those of `x` within an obstacle's reach, and factorises the matrix
+    /// with the contact weights of the set when it differs from the one factorised last (which may be the last
+    /// step's). Returns whether it factorised.
+    fn extend_active_set(
+        contact: &ContactPotential,
+        active: &mut Vec<usize>,
+        pre: &mut Prefactored,
+        model: &Model,
+        x: &[Vec3],
+        inv_h2: f64,
+    ) -> Result<bool> {
+        let before = active.len();
+        for i in 0..model.num_vertices() {
+            if !model.pinned[i]
+                && active[..before].binary_search(&i).is_err()
+                && contact.in_reach(model, x[i])
+            {
+                active.push(i);
+            }
+        }
+        active.sort_unstable();
+        if active.is_empty() || pre.contact.as_ref().is_some_and(|c| c.1 == *active) {
+            return Ok(false);
+        }
+        Self::factorize_contact(pre, model, active, inv_h2)?;
+        Ok(true)
+    }
+
     fn factorize_contact(
         pre: &mut Prefactored,
         model: &Model,
@@ -341,8 +369,8 @@ impl Integrator for ProjectiveDynamics {
         }
     }
 
-    // Long (about 130 lines): the PD step as the paper states it (prefactor on change, then local and global
-    // steps in one loop, then velocities and the report), kept in one place to be read against it.
+    // Long (about 200 lines): the PD step as the paper states it (prefactor on change, the contact set, then local
+    // and global steps in one loop, then velocities and the report), kept in one place to be read against it.
     fn step(
         &mut self,
         model: &Model,
@@ -410,16 +438,14 @@ impl Integrator for ProjectiveDynamics {
         };
         // The contact constraints' active set: the free vertices the inertial prediction puts inside an obstacle.
         self.active.clear();
-        self.active
-            .extend((0..m).filter(|&i| !model.pinned[i] && self.contact.in_reach(model, x[i])));
-        if !self.active.is_empty() && pre.contact.as_ref().is_none_or(|c| c.1 != self.active) {
-            if Self::factorize_contact(pre, model, &self.active, inv_h2).is_err() {
+        match Self::extend_active_set(&self.contact, &mut self.active, pre, model, &x, inv_h2) {
+            Ok(factorized) => self.factorizations += factorized as usize,
+            Err(_) => {
                 // Cannot happen for a positive definite matrix plus positive diagonal weights; poison the state
                 // as for the plain matrix so that the simulation reports it.
                 state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
                 return StepReport::default();
             }
-            self.factorizations += 1;
         }
         let mut refreshes = 0;
         // The first local step starts from the prediction with the active vertices on the surface (their
@@ -501,23 +527,22 @@ impl Integrator for ProjectiveDynamics {
                 && refreshes < ACTIVE_SET_REFRESHES
                 && it + 1 < self.settings.iterations
             {
-                let before = self.active.len();
-                for i in 0..m {
-                    if !model.pinned[i]
-                        && self.active.binary_search(&i).is_err()
-                        && self.contact.in_reach(model, x[i])
-                    {
-                        self.active.push(i);
+                match Self::extend_active_set(
+                    &self.contact,
+                    &mut self.active,
+                    pre,
+                    model,
+                    &x,
+                    inv_h2,
+                ) {
+                    Ok(factorized) => {
+                        refreshes += factorized as usize;
+                        self.factorizations += factorized as usize;
                     }
-                }
-                if self.active.len() > before {
-                    self.active.sort_unstable();
-                    refreshes += 1;
-                    if Self::factorize_contact(pre, model, &self.active, inv_h2).is_err() {
+                    Err(_) => {
                         state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
                         return StepReport::default();
                     }
-                    self.factorizations += 1;
                 }
             }
             report.iterations = it + 1;

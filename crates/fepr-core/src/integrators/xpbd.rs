@@ -359,6 +359,8 @@ impl Integrator for Xpbd {
         }
     }
 
+    // Long (about 140 lines): one XPBD step as the paper states it (substeps: predict, Gauss-Seidel sweeps colour
+    // by colour with the contact constraints after each, velocities), kept in one place to be read against it.
     fn step(
         &mut self,
         model: &Model,

@@ -300,8 +300,8 @@ impl Simulation {
 
     /// An error naming the vertex, the obstacle and the depth when a free vertex starts deeper inside an obstacle
     /// than one step's contact can resolve (a tenth of the mean rest edge, the impact limit). Why an error and not a
-    /// push-out: a body placed inside an obstacle was pushed out by metres in its first step (a box inside a box
-    /// obstacle flew 10 m, H from 1,551 to 53,074 J) and the run went on as if nothing had happened.
+    /// push-out: pushed out, a body placed inside an obstacle is thrown metres in its first step (a box inside a box
+    /// obstacle: 10 m, H from 1,551 to 53,074 J), a result no user asked for.
     fn check_start_outside_obstacles(&self) -> Result<()> {
         let limit = IMPACT_DEPTH_FRACTION * self.mean_edge;
         for (i, x) in self.state.x.iter().enumerate() {

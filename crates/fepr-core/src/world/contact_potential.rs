@@ -2,10 +2,9 @@
 //!
 //! An implicit step (backward Euler's Newton solve, Projective Dynamics' local/global iterations) that ignores
 //! the obstacles ends a fast vertex deep inside one at a large step (2.4 m/s at dt = 1/60: 4 cm), and pushing it
-//! out afterwards strains the elements around it: a dropped armadillo flattened to a quarter of its height and
-//! the step had to be redone in up to 16 substeps. With the obstacles inside the solve, the elastic response to
-//! the contact is part of the same solve, and the push-out after the step ([`super::resolve_contacts`]) only
-//! has the penalty's small residual depth left to repair, so an ordinary drop needs no substeps.
+//! out afterwards strains the elements around it (and makes the simulation redo the step in impact substeps).
+//! With the obstacles inside the solve, the elastic response to the contact is part of the same solve, and the
+//! push-out after the step ([`super::resolve_contacts`]) only has the penalty's residual depth left to repair.
 //!
 //! Why a penalty on the active set (rather than constraints or a barrier): it keeps the solve an unconstrained
 //! minimisation of a C1 objective with a positive semi-definite Hessian term, so backward Euler's Newton solve
@@ -14,12 +13,13 @@
 //! depth is small and bounded: the penalty's stiffness is tied to the vertex's inertia term,
 //!
 //! ```text
-//! E_c(x) = sum over free vertices i and obstacles o with phi_o(x_i) < 0 of  k_i / 2 phi_o(x_i)^2,
-//! k_i = STIFFNESS_RATIO m_i / h^2,
+//! E_c(x) = sum over free vertices i and obstacles o with phi_o(x_i) < d of  k_i / 2 (phi_o(x_i) - d)^2,
+//! k_i = STIFFNESS_RATIO m_i / h^2,   d = ACTIVATION_MARGIN times the body's size,
 //! ```
 //!
-//! so a vertex arriving at speed v stops within `v h / (1 + STIFFNESS_RATIO)` of the surface (40 um for the
-//! example above), and one resting under its weight sinks `g h^2 / STIFFNESS_RATIO` (3 nm at dt = 1/60).
+//! so a lone vertex arriving at speed v stops within `v h / (1 + STIFFNESS_RATIO)` of the layer `phi = d` (40 um
+//! for the example above); a vertex carrying the load of the body above it sinks in proportion to that load (the
+//! feet of a landing armadillo: 3-7 mm at dt = 1/60, which the push-out after the step then repairs).
 //! The solve only stops a vertex; restitution and friction are applied after it to each vertex the solve held
 //! ([`ContactPotential::apply_impacts`]): the impact's energy loss and friction are booked as contact work, and the
 //! contact force's impulse goes to the momentum targets, so that the projection neither undoes the contact's
@@ -68,8 +68,17 @@ impl ContactPotential {
         STIFFNESS_RATIO * model.masses[i] / (h * h)
     }
 
-    /// Each penetration of a free vertex at `x` (m, (m, 3)): `f(i, k_i phi, n)` with the vertex, the penalty
-    /// force's magnitude along `-n` (N, negative: `phi < 0`) and the obstacle's outward normal.
+    /// The obstacles whose penalty reaches the point `x` (m): `(phi - d, n)` for each (the signed distance less
+    /// the activation distance `margin`, negative, m; the obstacle's outward normal).
+    fn reaching(&self, margin: f64, x: Vec3) -> impl Iterator<Item = (f64, Vec3)> + '_ {
+        self.obstacles.iter().filter_map(move |ob| {
+            let (phi, n) = ob.signed_distance(x);
+            (phi < margin).then_some((phi - margin, n))
+        })
+    }
+
+    /// Each penalty term on the free vertices at `x` (m, (m, 3)): `f(i, k_i, phi - d, n)` with the vertex, its
+    /// stiffness (N/m), its depth in the layer (m, negative) and the obstacle's outward normal.
     fn each_penetration(
         &self,
         model: &Model,
@@ -82,13 +91,9 @@ impl ContactPotential {
         }
         let margin = Self::margin(model);
         for (i, xi) in x.iter().enumerate() {
-            if model.pinned[i] {
-                continue;
-            }
-            for ob in &self.obstacles {
-                let (phi, n) = ob.signed_distance(*xi);
-                if phi < margin {
-                    f(i, Self::stiffness(model, i, h), phi - margin, n);
+            if !model.pinned[i] {
+                for (gap, n) in self.reaching(margin, *xi) {
+                    f(i, Self::stiffness(model, i, h), gap, n);
                 }
             }
         }
@@ -130,22 +135,13 @@ impl ContactPotential {
     }
 
     /// The velocity change (m/s) that the penalty's force at `x` (m) gives its vertex over a step of `h`: the
-    /// impulse `-h k_i phi n` over the vertex's mass, summed over the obstacles `x` is inside; `None` when it is outside
-    /// all of them. Backward Euler's and Projective Dynamics' contact impulse at their final iterate.
+    /// impulse `-h k_i (phi - d) n` over the vertex's mass, summed over the obstacles that reach `x`; `None` when
+    /// none does. Backward Euler's contact impulse at its final iterate.
     pub fn penalty_velocity_change(&self, model: &Model, x: Vec3, h: f64) -> Option<Vec3> {
-        let margin = Self::margin(model);
-        let mut dv = None;
-        for ob in &self.obstacles {
-            let (phi, n) = ob.signed_distance(x);
-            if phi < margin {
-                let k_over_m = STIFFNESS_RATIO / (h * h);
-                dv = Some(add(
-                    dv.unwrap_or([0.0; 3]),
-                    scale(n, -h * k_over_m * (phi - margin)),
-                ));
-            }
-        }
-        dv
+        let k_over_m = STIFFNESS_RATIO / (h * h);
+        self.reaching(Self::margin(model), x)
+            .map(|(gap, n)| scale(n, -h * k_over_m * gap))
+            .reduce(add)
     }
 
     /// The penalty's activation distance, m: [`ACTIVATION_MARGIN`] times the body's size.
@@ -162,9 +158,8 @@ impl ContactPotential {
     ///   projection puts back what the loss does not claim, as far as its quality guard allows (the rest is
     ///   booked as unresolved energy): the bounce is the projection's. Why not set the vertex's normal velocity
     ///   to `-restitution u`: only the layer in contact would bounce, against a body the solve had already
-    ///   stopped, and the strain put that energy into vibration (a box with restitution 1 lost 80% of its
-    ///   energy in two bounces at dt = 0.01, and XPBD's min J fell from 0.40 to 0.004). Slower approaches are
-    ///   resting contact: no loss;
+    ///   stopped, and the strain puts that energy into vibration and squeezes the layer's tets. Slower approaches
+    ///   are resting contact: no loss;
     /// - Coulomb friction: the tangential velocity loses at most `friction` times the normal velocity change
     ///   `dv . n` (it stops below that); its kinetic energy change is booked too.
     ///
@@ -233,10 +228,7 @@ impl ContactPotential {
 
     /// Whether `x` (m) lies within the penalty's reach of an obstacle ([`ContactPotential::margin`]).
     pub fn in_reach(&self, model: &Model, x: Vec3) -> bool {
-        let margin = Self::margin(model);
-        self.obstacles
-            .iter()
-            .any(|ob| ob.signed_distance(x).0 < margin)
+        self.reaching(Self::margin(model), x).next().is_some()
     }
 
     /// `x` (m) moved out of every obstacle it lies in onto that obstacle's surface, in obstacle order (`x` itself
