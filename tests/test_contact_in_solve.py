@@ -52,14 +52,7 @@ def _books(h):
     "integrator",
     [
         "implicit_euler",
-        pytest.param(
-            "projective_dynamics",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="one contact step of the rocking box (step 106) ends with an unconverged projection while the "
-                "box moves, and a moving body's unplaced energy is not booked: the books end 3.5e-4 of H0 off (issue 34)",
-            ),
-        ),
+        "projective_dynamics",
         "xpbd",
     ],
 )

@@ -59,7 +59,7 @@ def test_every_history_column_is_documented_in_order():
     documented = [name for name, _ in documented_columns()]
     assert len(documented) == len(set(documented)), "a column is documented twice"
     columns = list(_core.Simulation.history_columns())
-    assert len(columns) == 58
+    assert len(columns) == 59
     missing = [c for c in columns if c not in documented]
     assert not missing, f"columns missing from the docs/concepts.md diagnostics table: {missing}"
     stale = [c for c in documented if c not in columns]

@@ -207,7 +207,7 @@ WORLD_ERRORS = [
     ({"obstacles": [_with(PLANE, friction="rough")]}, "[[world.obstacles]] #1: friction must be a number, got 'rough'"),
     (
         {"obstacles": [PLANE, PLANE, {"type": "cone"}]},
-        "[[world.obstacles]] #3: unknown obstacle type 'cone' (known: 'plane', 'sphere', 'box', 'capsule')",
+        "[[world.obstacles]] #3: unknown obstacle type 'cone' (known: 'plane', 'sphere', 'box', 'capsule', 'mesh')",
     ),
     ({"obstacles": [{"radius": 1.0}]}, "[[world.obstacles]] #1: missing required key 'type'"),
     ({"obstacles": [_with(SPHERE, radius=None)]}, "[[world.obstacles]] #1: missing required key 'radius'"),

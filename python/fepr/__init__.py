@@ -36,7 +36,7 @@ from .simulation import (
     Xpbd,
 )
 from .viewer import view
-from .world import Box, Capsule, Keyframes, KinematicPins, Plane, Sinusoid, Sphere
+from .world import Box, Capsule, Keyframes, KinematicPins, MeshObstacle, Plane, Sinusoid, Sphere
 
 __all__ = [
     "Arap",
@@ -44,6 +44,7 @@ __all__ = [
     "Capsule",
     "Keyframes",
     "KinematicPins",
+    "MeshObstacle",
     "Plane",
     "Sinusoid",
     "Sphere",

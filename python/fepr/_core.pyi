@@ -103,6 +103,10 @@ def conserved_material(integrator: str) -> Optional[str]:
 def warm_start_threshold(integrator: str) -> float:
     """The projection's warm-start threshold under ``warm_start="auto"`` after ``integrator`` (inf: off)."""
 
+def check_mesh_obstacle(vertices: Sequence[float], triangles: Sequence[int]) -> bool:
+    """Validate a triangle-mesh obstacle (``vertices`` (n * 3) m and ``triangles`` (k * 3), flattened); returns
+    whether it is closed. Raises ValueError naming the vertex or triangle at fault."""
+
 def validate_mesh(
     vertices: npt.NDArray[np.float64], tets: npt.NDArray[np.int64]
 ) -> Tuple[npt.NDArray[np.int64], int, int]:
@@ -272,10 +276,11 @@ class Simulation:
         """A time step that resolves the body's fast elastic modes, s (a tenth of a pressure wave's crossing
         time)."""
 
-    def set_obstacles(self, obstacles: Sequence[Tuple[str, Sequence[float], float, float]]) -> None:
-        """Obstacles as ``(kind, params, restitution, friction)``: "plane" [point (3), normal (3)], "sphere"
-        [center (3), radius], "box" [center (3), half extents (3), 9 rotation entries (rows)], "capsule" [a (3),
-        b (3), radius]; lengths in m. Replaces the previous list. Raises ValueError for a bad obstacle."""
+    def set_obstacles(self, obstacles: Sequence[Tuple[str, Sequence[float], float, float, Sequence[int]]]) -> None:
+        """Obstacles as ``(kind, params, restitution, friction, triangles)``: "plane" [point (3), normal (3)],
+        "sphere" [center (3), radius], "box" [center (3), half extents (3), 9 rotation entries (rows)], "capsule"
+        [a (3), b (3), radius], "mesh" [vertices flattened (n * 3)] with ``triangles`` flattened (k * 3; empty for
+        the other kinds); lengths in m. Replaces the previous list. Raises ValueError for a bad obstacle."""
 
     def set_kinematic_pins(self, groups: Sequence[Tuple[Sequence[int], str, Sequence[float], Sequence[float]]]) -> None:
         """Kinematic pin groups ``(vertices, kind, params, times)``: "sinusoid" params [amplitude (3) m,

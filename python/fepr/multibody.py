@@ -51,6 +51,7 @@ SUM_COLUMNS: Tuple[str, ...] = (
     "work_damping",
     "work_pins",
     "work_forces",
+    "work_deferred",
     "contacts",
     "inverted",
     "base_ms",

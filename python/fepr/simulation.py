@@ -382,7 +382,7 @@ class Simulation:
     threads : int, optional
         Worker threads (default: all cores). Results are bit-identical for any thread count. With 1, the steps
         run on the calling thread itself, without a thread pool (no thread to wake for each ``step`` call).
-    obstacles : sequence of Plane, Sphere, Box or Capsule, optional
+    obstacles : sequence of Plane, Sphere, Box, Capsule or MeshObstacle, optional
         Static obstacles the free vertices collide with (restitution and Coulomb friction per obstacle). The
         kinetic energy a contact removes enters the step's budget, its impulses the momentum targets, and the
         projection does not move the positions of vertices in contact.
@@ -470,7 +470,7 @@ class Simulation:
         obstacles = list(obstacles or ())
         for k, ob in enumerate(obstacles):
             if not isinstance(ob, OBSTACLE_TYPES):
-                raise ConfigError(f"obstacles[{k}] must be fepr.Plane, Sphere, Box or Capsule, got {ob!r}")
+                raise ConfigError(f"obstacles[{k}] must be fepr.Plane, Sphere, Box, Capsule or MeshObstacle, got {ob!r}")
         kinematic = list(kinematic_pins or ())
         groups = []
         for k, kp in enumerate(kinematic):

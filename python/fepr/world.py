@@ -11,6 +11,7 @@ other.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from typing import List, Optional, Sequence, Tuple, Union
 
@@ -69,7 +70,7 @@ class Plane:
         _coefficients(self.restitution, self.friction, "Plane")
 
     def _core(self):
-        return ("plane", [*self.point, *self.normal], float(self.restitution), float(self.friction))
+        return ("plane", [*self.point, *self.normal], float(self.restitution), float(self.friction), [])
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,7 @@ class Sphere:
         _coefficients(self.restitution, self.friction, "Sphere")
 
     def _core(self):
-        return ("sphere", [*self.center, self.radius], float(self.restitution), float(self.friction))
+        return ("sphere", [*self.center, self.radius], float(self.restitution), float(self.friction), [])
 
 
 @dataclass(frozen=True)
@@ -119,7 +120,7 @@ class Box:
     def _core(self):
         rot = self.rotation if self.rotation is not None else ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
         params = [*self.center, *self.half_extents, *[c for row in rot for c in row]]
-        return ("box", params, float(self.restitution), float(self.friction))
+        return ("box", params, float(self.restitution), float(self.friction), [])
 
 
 @dataclass(frozen=True)
@@ -139,11 +140,158 @@ class Capsule:
         _coefficients(self.restitution, self.friction, "Capsule")
 
     def _core(self):
-        return ("capsule", [*self.a, *self.b, self.radius], float(self.restitution), float(self.friction))
+        return ("capsule", [*self.a, *self.b, self.radius], float(self.restitution), float(self.friction), [])
 
 
-Obstacle = Union[Plane, Sphere, Box, Capsule]
-OBSTACLE_TYPES = (Plane, Sphere, Box, Capsule)
+class MeshObstacle:
+    """A static triangle mesh the free vertices collide with: a scanned floor, a bowl, a terrain.
+
+    Parameters
+    ----------
+    source : str, os.PathLike, or (vertices, triangles)
+        An OBJ, OFF, STL or PLY file (see :func:`fepr.io.read_surface`), or arrays: ``vertices`` (n, 3)
+        float64 in m and ``triangles`` (k, 3) int vertex indices.
+    restitution : float in [0, 1]
+        Normal velocity after an impact is ``-restitution`` times the one before.
+    friction : float >= 0
+        Coulomb coefficient.
+    flip_normals : bool
+        Reverse every triangle's winding (for an open mesh whose normals point into the solid).
+
+    The solid is on the side opposite the triangle normals (right-hand rule on the listed corners). A closed
+    mesh (every edge shared by two triangles) wound inside-out is turned outward automatically; an open mesh is
+    one-sided: everything behind its normals counts as solid, so its winding must point to the free side (use
+    ``flip_normals``). Distances are exact point-triangle distances (signed with angle-weighted
+    pseudo-normals), so contact is as accurate as with the analytic shapes; a vertex cannot cross a triangle
+    within a step (segments are ray-cast against the mesh).
+
+    Raises :class:`~fepr.errors.MeshError` for a file that cannot be read, and :class:`~fepr.errors.ConfigError`
+    for arrays that are not a triangle mesh (wrong shapes, NaN, empty, an index out of range, a triangle with
+    no area); the message names the vertex or triangle.
+    """
+
+    def __init__(self, source, restitution: float = 1.0, friction: float = 0.0, flip_normals: bool = False):
+        if isinstance(source, (str, os.PathLike)):
+            from .io.surface import read_surface
+
+            vertices, triangles = read_surface(source)
+            self.path: Optional[str] = os.fspath(source)
+        else:
+            if not isinstance(source, (tuple, list)) or len(source) != 2:
+                raise ConfigError(
+                    "MeshObstacle source must be a file path or (vertices (n, 3), triangles (k, 3)), "
+                    f"got {type(source).__name__}"
+                )
+            vertices, triangles = source
+            self.path = None
+        what = f"MeshObstacle {self.path}" if self.path else "MeshObstacle"
+        v = float_array(vertices, f"{what} vertices", "(n, 3)")
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise ConfigError(f"{what} vertices must have shape (n, 3), got {v.shape}")
+        bad = np.flatnonzero(~np.all(np.isfinite(v), axis=1))
+        if bad.size:
+            raise ConfigError(f"{what}: vertex {int(bad[0])} is not finite: {v[bad[0]].tolist()}")
+        t = np.asarray(triangles)
+        if t.size == 0:
+            raise ConfigError(f"{what} has no triangles")
+        if t.ndim != 2 or t.shape[1] != 3:
+            raise ConfigError(
+                f"{what} triangles must have shape (k, 3) (a triangle mesh; got shape {t.shape}: "
+                "tets, quads or lines are not a surface)"
+            )
+        if not np.issubdtype(t.dtype, np.integer):
+            raise ConfigError(f"{what} triangles must be integer vertex indices, got dtype {t.dtype}")
+        out = np.flatnonzero((t < 0).any(axis=1) | (t >= len(v)).any(axis=1))
+        if out.size:
+            raise ConfigError(
+                f"{what}: triangle {int(out[0])} refers to vertex {t[out[0]].tolist()} but there are {len(v)} vertices"
+            )
+        t = t.astype(np.int64)
+        if flip_normals:
+            t = t[:, [0, 2, 1]]
+        self.vertices = v.copy()
+        self.vertices.flags.writeable = False
+        self.triangles = t
+        self.triangles.flags.writeable = False
+        self.restitution, self.friction = _coefficients(restitution, friction, what)
+        self.flip_normals = bool(flip_normals)
+        # Validates now (degenerate triangles named by index), not at the first step.
+        from ._core import check_mesh_obstacle
+
+        try:
+            self.closed = check_mesh_obstacle(self.vertices.ravel().tolist(), self.triangles.ravel().tolist())
+        except ValueError as e:
+            raise ConfigError(f"{what}: {e}") from None
+
+    @classmethod
+    def terrain(
+        cls,
+        size: float = 4.0,
+        cells: int = 32,
+        height: float = 0.1,
+        wavelength: float = 1.0,
+        center: Vec3 = (0.0, 0.0, 0.0),
+        depth: Optional[float] = None,
+        restitution: float = 1.0,
+        friction: float = 0.0,
+    ) -> "MeshObstacle":
+        """A built-in bumpy ground, needing no file: a square slab of edge ``size`` (m) about ``center`` whose top
+        is a height field ``z = center_z + height * b(x, y)`` over ``cells`` x ``cells`` squares (two triangles
+        each), with smooth bumps ``b`` in [-1, 1] of about ``wavelength`` (m); its flat bottom lies ``depth`` (m,
+        default ``size / 4``) below the lowest possible point of the top. A closed mesh, so it bounds a solid
+        exactly (and the solve skips the vertices it provably cannot reach)."""
+        size = _length(size, "terrain size")
+        height = _length(height, "terrain height")
+        wavelength = _length(wavelength, "terrain wavelength")
+        depth = 0.25 * size if depth is None else _length(depth, "terrain depth")
+        if isinstance(cells, bool) or not isinstance(cells, (int, np.integer)) or not 1 <= int(cells) <= 1000:
+            raise ConfigError(f"terrain cells must be an integer in [1, 1000], got {cells!r}")
+        c = _vec3(center, "terrain center")
+        n = int(cells)
+        u = np.linspace(-0.5 * size, 0.5 * size, n + 1)
+        x, y = np.meshgrid(u, u, indexing="ij")
+        k = 2.0 * math.pi / wavelength
+        bumps = 0.6 * np.sin(k * x) * np.cos(k * y) + 0.4 * np.sin(0.61 * k * (x + 0.7 * y) + 1.3)
+        top = np.stack([x.ravel() + c[0], y.ravel() + c[1], c[2] + height * bumps.ravel()], axis=1)
+        bottom = top.copy()
+        bottom[:, 2] = c[2] - height - depth
+        vertices = np.concatenate([top, bottom])
+        off = (n + 1) ** 2
+
+        def at(i, j):
+            return i * (n + 1) + j  # grid corner (i, j), x index major
+
+        i, j = (a.ravel() for a in np.meshgrid(np.arange(n), np.arange(n), indexing="ij"))
+        a, b, d, e = at(i, j), at(i + 1, j), at(i + 1, j + 1), at(i, j + 1)
+        quads = [np.stack([a, b, d], 1), np.stack([a, d, e], 1)]  # counter-clockwise seen from +z: normal up
+        faces = quads + [q[:, [0, 2, 1]] + off for q in quads]  # the bottom, normal down
+        # The rim, counter-clockwise seen from +z; each wall quad (top p, top q, bottom q, bottom p) faces out.
+        r = np.arange(n)
+        ring = np.concatenate([at(r, 0), at(n, r), at(n - r, n), at(0, n - r)])
+        p, q = ring, np.roll(ring, -1)
+        faces += [np.stack([p, p + off, q + off], 1), np.stack([p, q + off, q], 1)]
+        triangles = np.concatenate(faces)
+        return cls((vertices, triangles), restitution=restitution, friction=friction)
+
+    def __repr__(self) -> str:
+        src = self.path or "arrays"
+        return (
+            f"MeshObstacle({src}, vertices={len(self.vertices)}, triangles={len(self.triangles)}, "
+            f"restitution={self.restitution}, friction={self.friction})"
+        )
+
+    def _core(self):
+        return (
+            "mesh",
+            self.vertices.ravel().tolist(),
+            float(self.restitution),
+            float(self.friction),
+            self.triangles.ravel().tolist(),
+        )
+
+
+Obstacle = Union[Plane, Sphere, Box, Capsule, MeshObstacle]
+OBSTACLE_TYPES = (Plane, Sphere, Box, Capsule, MeshObstacle)
 
 
 @dataclass(frozen=True)

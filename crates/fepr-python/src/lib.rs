@@ -25,17 +25,19 @@ use fepr_core::projection::{
 };
 use fepr_core::simulation::{
     auto_warm_start_threshold, conserved_material_name, history_row, material_for_integrator,
-    Simulation as CoreSimulation, HISTORY_COLUMNS, HISTORY_INTEGER_COLUMNS, PD_WARM_START,
+    BodyCoefficients, Simulation as CoreSimulation, HISTORY_COLUMNS, HISTORY_INTEGER_COLUMNS, PD_WARM_START,
     XPBD_WARM_START,
 };
 use fepr_core::world::{Drag, KinematicPins, PinMotion};
-use fepr_core::world::{Obstacle, Shape};
+use fepr_core::world::{MeshCollider, Obstacle, Shape};
 use fepr_core::FeprError;
 
 mod settings;
 
 /// A kinematic pin group from Python: `(vertices, motion kind, motion parameters, keyframe times)`.
 type PinGroupArgs = (Vec<usize>, String, Vec<f64>, Vec<f64>);
+/// `(kind, params, restitution, friction, triangles)` of one obstacle (see `set_obstacles`).
+type ObstacleArgs = (String, Vec<f64>, f64, f64, Vec<u32>);
 
 fn value_error(e: FeprError) -> PyErr {
     PyValueError::new_err(e.to_string())
@@ -629,19 +631,22 @@ impl Simulation {
         self.inner.resolving_time_step()
     }
 
-    /// Obstacles as `(kind, params, restitution, friction)`: `"plane"` [point, normal], `"sphere"` [center,
-    /// radius], `"box"` [center, half_extents, 9 rotation entries (rows)], `"capsule"` [a, b, radius]; m.
-    fn set_obstacles(&mut self, obstacles: Vec<(String, Vec<f64>, f64, f64)>) -> PyResult<()> {
+    /// Obstacles as `(kind, params, restitution, friction, triangles)`: `"plane"` [point, normal], `"sphere"`
+    /// [center, radius], `"box"` [center, half_extents, 9 rotation entries (rows)], `"capsule"` [a, b, radius],
+    /// `"mesh"` [vertex coordinates, flattened (n * 3)] with `triangles` its vertex indices flattened (k * 3);
+    /// m. `triangles` is empty for the other kinds.
+    fn set_obstacles(&mut self, obstacles: Vec<ObstacleArgs>) -> PyResult<()> {
         let mut out = Vec::with_capacity(obstacles.len());
-        for (k, (kind, p, restitution, friction)) in obstacles.into_iter().enumerate() {
+        for (k, (kind, p, restitution, friction, triangles)) in obstacles.into_iter().enumerate() {
             let need = match kind.as_str() {
                 "plane" => 6,
                 "sphere" => 4,
                 "box" => 15,
                 "capsule" => 7,
+                "mesh" => p.len() - p.len() % 3,
                 _ => {
                     return Err(PyValueError::new_err(format!(
-                        "obstacle {k}: unknown type {kind:?} (known: plane, sphere, box, capsule)"
+                        "obstacle {k}: unknown type {kind:?} (known: plane, sphere, box, capsule, mesh)"
                     )))
                 }
             };
@@ -649,6 +654,11 @@ impl Simulation {
                 return Err(PyValueError::new_err(format!(
                     "obstacle {k} ({kind}): needs {need} parameters, got {}",
                     p.len()
+                )));
+            }
+            if (kind == "mesh") != !triangles.is_empty() || triangles.len() % 3 != 0 {
+                return Err(PyValueError::new_err(format!(
+                    "obstacle {k} ({kind}): triangles must be given (3 indices each) for a mesh and only for a mesh"
                 )));
             }
             let v = |i: usize| [p[i], p[i + 1], p[i + 2]];
@@ -666,6 +676,16 @@ impl Simulation {
                     half_extents: v(3),
                     axes: [v(6), v(9), v(12)],
                 },
+                "mesh" => {
+                    let vertices: Vec<[f64; 3]> = (0..p.len() / 3).map(|i| v(3 * i)).collect();
+                    let tris: Vec<[u32; 3]> = triangles
+                        .chunks_exact(3)
+                        .map(|t| [t[0], t[1], t[2]])
+                        .collect();
+                    Shape::Mesh(MeshCollider::new(&vertices, &tris).map_err(|e| {
+                        PyValueError::new_err(format!("obstacle {k} ({kind}): {e}"))
+                    })?)
+                }
                 _ => Shape::Capsule {
                     a: v(0),
                     b: v(3),
@@ -834,6 +854,83 @@ fn warm_start_threshold(integrator: &str) -> f64 {
     auto_warm_start_threshold(integrator)
 }
 
+/// Advance the bodies `sims` (same dt) `n` steps together, with contact between them
+/// (`fepr_core::simulation::step_bodies`); `coefficients` holds each body's `(restitution, friction)`. On a
+/// failure raises RuntimeError with args `(body index, message)`; the steps completed before it stay.
+#[pyfunction]
+fn step_bodies(
+    py: Python<'_>,
+    mut sims: Vec<PyRefMut<'_, Simulation>>,
+    n: usize,
+    coefficients: Vec<(f64, f64)>,
+) -> PyResult<()> {
+    if sims.len() != coefficients.len() {
+        return Err(PyValueError::new_err(format!(
+            "{} bodies but {} coefficient pairs",
+            sims.len(),
+            coefficients.len()
+        )));
+    }
+    let coeffs = coefficients
+        .iter()
+        .enumerate()
+        .map(|(k, &(e, mu))| {
+            BodyCoefficients::new(e, mu).map_err(|err| PyValueError::new_err(format!("body {k}: {err}")))
+        })
+        .collect::<PyResult<Vec<_>>>()?;
+    let Some(first) = sims.first() else {
+        return Ok(());
+    };
+    let dt = first.inner.dt();
+    if let Some(k) = sims.iter().position(|s| s.inner.dt() != dt) {
+        return Err(PyValueError::new_err(format!(
+            "body {k} has dt = {} s, body 0 has {dt} s: bodies stepped together share one time step",
+            sims[k].inner.dt()
+        )));
+    }
+    let mut parts: Vec<(&mut CoreSimulation, &Threads)> = sims
+        .iter_mut()
+        .map(|s| {
+            let s = &mut **s;
+            (&mut s.inner, &s.threads)
+        })
+        .collect();
+    let (inners, threads): (Vec<&mut CoreSimulation>, Vec<&Threads>) = parts.drain(..).unzip();
+    let threads = threads[0];
+    let mut inners = inners;
+    let result = py.detach(|| {
+        threads.run(|| -> Result<(), (usize, FeprError)> {
+            for _ in 0..n {
+                fepr_core::simulation::step_bodies(&mut inners, &coeffs)?;
+            }
+            Ok(())
+        })
+    });
+    result.map_err(|(k, e)| PyRuntimeError::new_err((k, e.to_string())))
+}
+
+/// Validate a triangle-mesh obstacle: `vertices` (n * 3, m) and `triangles` (k * 3 indices), flattened.
+/// Returns whether it is closed; raises ValueError naming the vertex or triangle at fault.
+#[pyfunction]
+fn check_mesh_obstacle(vertices: Vec<f64>, triangles: Vec<u32>) -> PyResult<bool> {
+    if vertices.len() % 3 != 0 || triangles.len() % 3 != 0 {
+        return Err(PyValueError::new_err(
+            "vertices and triangles must hold 3 entries per item",
+        ));
+    }
+    let v: Vec<[f64; 3]> = vertices
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    let t: Vec<[u32; 3]> = triangles
+        .chunks_exact(3)
+        .map(|c| [c[0], c[1], c[2]])
+        .collect();
+    MeshCollider::new(&v, &t)
+        .map(|m| m.is_closed())
+        .map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(validate_mesh, m)?)?;
@@ -845,6 +942,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(check_projection, m)?)?;
     m.add_function(wrap_pyfunction!(conserved_material, m)?)?;
     m.add_function(wrap_pyfunction!(warm_start_threshold, m)?)?;
+    m.add_function(wrap_pyfunction!(check_mesh_obstacle, m)?)?;
+    m.add_function(wrap_pyfunction!(step_bodies, m)?)?;
     // The name lists, each defined once in the core.
     m.add("INTEGRATORS", INTEGRATOR_NAMES.to_vec())?;
     m.add("MATERIALS", MATERIAL_NAMES.to_vec())?;

@@ -73,9 +73,21 @@ def make_obstacle(o: ObstacleSettings):
     """The obstacle object of one ``[[world.obstacles]]`` entry (:class:`fepr.Plane`, ...)."""
     from .. import world
 
-    cls = {"plane": world.Plane, "sphere": world.Sphere, "box": world.Box, "capsule": world.Capsule}[o.type]
     try:
+        if o.type == "mesh":
+            g = o.geometry
+            if "terrain" in g:
+                terrain = world.MeshObstacle.terrain(**g["terrain"], restitution=o.restitution, friction=o.friction)
+                if not g.get("flip_normals"):
+                    return terrain
+                return world.MeshObstacle(
+                    (terrain.vertices, terrain.triangles), o.restitution, o.friction, flip_normals=True
+                )
+            return world.MeshObstacle(g["path"], o.restitution, o.friction, flip_normals=g.get("flip_normals", False))
+        cls = {"plane": world.Plane, "sphere": world.Sphere, "box": world.Box, "capsule": world.Capsule}[o.type]
         return cls(**o.geometry, restitution=o.restitution, friction=o.friction)
+    except MeshError as exc:
+        raise MeshError(f"{o.label}: {exc}") from None
     except (ConfigError, ValueError, TypeError) as exc:
         raise ConfigError(f"{o.label}: {exc}") from None
 

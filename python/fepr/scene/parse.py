@@ -32,6 +32,7 @@ from .schema import (
     PROJECTION_ROWS,
     SCENE_KEYS,
     SLACK_MODES,
+    TERRAIN_KEYS,
     BodySettings,
     ExportSettings,
     InitialSettings,
@@ -381,7 +382,7 @@ def _list_of_tables(raw: Any, owner: str, key: str, toml_name: str) -> List[Mapp
     return list(raw)
 
 
-def _parse_obstacles(raw: Any, where: str) -> Tuple[ObstacleSettings, ...]:
+def _parse_obstacles(raw: Any, where: str, base_dir: Path) -> Tuple[ObstacleSettings, ...]:
     items = _list_of_tables(raw, f"{where}[world]", "obstacles", "world.obstacles")
     out = []
     for k, item in enumerate(items, 1):
@@ -429,6 +430,20 @@ def _parse_obstacles(raw: Any, where: str) -> Tuple[ObstacleSettings, ...]:
                 # fepr.Box takes the box's local axes in world coordinates as rows: the columns of R.
                 rotation = tuple(tuple(float(c) for c in row) for row in np.asarray(r).T)
             geometry["rotation"] = rotation
+        elif kind == "mesh":
+            if t.has("path") == t.has("terrain"):
+                raise t.error("give exactly one of 'path' (a surface file: OBJ, OFF, STL, PLY) and 'terrain' (a table)")
+            if t.has("path"):
+                geometry["path"] = t.path("path", base_dir)
+            else:
+                terrain = t.data["terrain"]
+                if not isinstance(terrain, dict):
+                    raise t.error(f"terrain must be a table (keys: {', '.join(TERRAIN_KEYS)}), got {terrain!r}")
+                unknown = sorted(set(terrain) - set(TERRAIN_KEYS))
+                if unknown:
+                    raise t.error(f"terrain: unknown key {unknown[0]!r} (known: {', '.join(TERRAIN_KEYS)})")
+                geometry["terrain"] = dict(terrain)
+            geometry["flip_normals"] = t.boolean("flip_normals", False)
         else:  # capsule
             geometry["a"] = t.vec3("a")
             geometry["b"] = t.vec3("b")
@@ -499,7 +514,7 @@ def _parse_kinematic_pins(
 _BODY_PIN_KEYS = ("pinned", "pin_below", "kinematic_pins")
 
 
-def _parse_world(t: _Table, multibody: bool = False) -> WorldSettings:
+def _parse_world(t: _Table, base_dir: Path, multibody: bool = False) -> WorldSettings:
     w = WorldSettings(
         gravity=t.vec3("gravity", (0.0, 0.0, 0.0)),
         damping=t.number("damping", 0.0, nonnegative=True),
@@ -516,7 +531,7 @@ def _parse_world(t: _Table, multibody: bool = False) -> WorldSettings:
     if t.has("pin_below"):
         w.pin_below = _parse_pin_below(t)
     if t.has("obstacles"):
-        w.obstacles = _parse_obstacles(t.data["obstacles"], t.where)
+        w.obstacles = _parse_obstacles(t.data["obstacles"], t.where, base_dir)
     if t.has("kinematic_pins"):
         w.kinematic_pins = _parse_kinematic_pins(
             t.data["kinematic_pins"], t.where, "[world]", "[[world.kinematic_pins]]", "world.kinematic_pins"
@@ -669,7 +684,7 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
             substeps=integ.integer("substeps", None, minimum=1),
         ),
         projection=_parse_projection(table("projection")),
-        world=_parse_world(table("world"), multibody=multibody),
+        world=_parse_world(table("world"), base, multibody=multibody),
         run=RunSettings(steps=run.integer("steps", 100, minimum=0), threads=run.integer("threads", None, minimum=1)),
         export=_parse_export(table("export")),
         source=source,

@@ -80,7 +80,10 @@ OBSTACLE_KEYS: Dict[str, Tuple[str, ...]] = {
     "sphere": ("center", "radius"),
     "box": ("center", "half_extents", "size", "rotate"),
     "capsule": ("a", "b", "radius"),
+    "mesh": ("path", "terrain", "flip_normals"),
 }
+#: Keys of the ``terrain`` table of a mesh obstacle (the keyword arguments of :meth:`fepr.MeshObstacle.terrain`).
+TERRAIN_KEYS: Tuple[str, ...] = ("size", "cells", "height", "wavelength", "center", "depth")
 #: Keys every obstacle accepts.
 OBSTACLE_COMMON_KEYS: Tuple[str, ...] = ("type", "restitution", "friction")
 #: Keys of a ``[[world.kinematic_pins]]`` table.
@@ -259,10 +262,11 @@ class PinBelow:
 class ObstacleSettings:
     """One ``[[world.obstacles]]`` entry: a fixed rigid obstacle the bodies' vertices collide with.
 
-    ``type`` is ``"plane"``, ``"sphere"``, ``"box"`` or ``"capsule"``; ``geometry`` holds the keyword arguments
-    of the matching :mod:`fepr.world` class (``point``/``normal``; ``center``/``radius``;
+    ``type`` is ``"plane"``, ``"sphere"``, ``"box"``, ``"capsule"`` or ``"mesh"``; ``geometry`` holds the keyword
+    arguments of the matching :mod:`fepr.world` class (``point``/``normal``; ``center``/``radius``;
     ``center``/``half_extents``/``rotation`` (3x3, rows the box's axes in world coordinates, or ``None``);
-    ``a``/``b``/``radius``; all in m).
+    ``a``/``b``/``radius``; all in m); a mesh has ``path`` (a surface file, resolved against the scene's folder)
+    or ``terrain`` (the keyword arguments of :meth:`fepr.MeshObstacle.terrain`), and ``flip_normals``.
     ``restitution`` is in [0, 1] (1: elastic), ``friction`` the Coulomb coefficient (>= 0). ``label`` names the
     entry in messages (``[[world.obstacles]] #2``).
     """
@@ -274,7 +278,8 @@ class ObstacleSettings:
     label: str = ""
 
     def make(self):
-        """The obstacle object (:class:`fepr.Plane`, :class:`fepr.Sphere`, :class:`fepr.Box`, :class:`fepr.Capsule`)."""
+        """The obstacle object (:class:`fepr.Plane`, :class:`fepr.Sphere`, :class:`fepr.Box`, :class:`fepr.Capsule`,
+        :class:`fepr.MeshObstacle`)."""
         return _build.make_obstacle(self)
 
 

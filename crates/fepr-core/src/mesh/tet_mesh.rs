@@ -176,6 +176,37 @@ impl TetMesh {
         RestShape { dm_inv, volume }
     }
 
+    /// The boundary: every tet face no other tet shares, as a triangle wound outward (right-hand rule), in a
+    /// fixed order (sorted by corner indices), so surface contact is deterministic.
+    pub fn boundary_triangles(&self) -> Vec<[u32; 3]> {
+        // Faces of a positively oriented tet (a, b, c, d), each wound so its normal points away from the
+        // opposite corner.
+        const FACES: [[usize; 3]; 4] = [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]];
+        let mut faces: Vec<([usize; 3], [u32; 3])> = Vec::with_capacity(4 * self.tets.len());
+        for t in &self.tets {
+            for f in FACES {
+                let tri = f.map(|c| t[c] as u32);
+                let mut key = f.map(|c| t[c]);
+                key.sort_unstable();
+                faces.push((key, tri));
+            }
+        }
+        faces.sort_unstable_by(|a, b| a.0.cmp(&b.0));
+        let mut out = Vec::new();
+        let mut k = 0;
+        while k < faces.len() {
+            let mut j = k + 1;
+            while j < faces.len() && faces[j].0 == faces[k].0 {
+                j += 1;
+            }
+            if j - k == 1 {
+                out.push(faces[k].1);
+            }
+            k = j;
+        }
+        out
+    }
+
     /// For each vertex, the list of `(tet * 4 + corner)` slots that touch it, in increasing order (CSR).
     /// The fixed order makes gathers deterministic for any thread count.
     pub fn vertex_incidence(&self) -> (Vec<usize>, Vec<u32>) {

@@ -5,7 +5,7 @@ use super::StepDiagnostics;
 
 /// The names of the diagnostics columns, in the order of [`history_row`] (Python: `Simulation.history`,
 /// CLI: `diagnostics.csv`; every column is described in `docs/concepts.md`).
-pub const HISTORY_COLUMNS: [&str; 58] = [
+pub const HISTORY_COLUMNS: [&str; 59] = [
     "base_iterations",
     "base_residual",
     "base_line_search",
@@ -64,6 +64,7 @@ pub const HISTORY_COLUMNS: [&str; 58] = [
     "lz_target",
     "proj_gap",
     "proj_stood_down",
+    "work_deferred",
 ];
 
 /// The columns of [`HISTORY_COLUMNS`] that hold counts or 0/1 flags (integer-valued floats in a row; written as
@@ -159,6 +160,7 @@ pub fn history_row(d: &StepDiagnostics) -> [f64; HISTORY_COLUMNS.len()] {
         lt[2],
         nan_if(p.gap),
         if has { p.stood_down as u8 as f64 } else { 0.0 },
+        d.work.deferred,
     ]
 }
 

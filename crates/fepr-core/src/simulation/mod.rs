@@ -5,8 +5,10 @@
 //! other would evaluate again): it passes it to every base step and moves its entries to and from the
 //! projection; [`crate::integrators::HandOver`]'s module says what it carries and when an entry is valid.
 
+mod bodies;
 mod history;
 mod policy;
+pub use bodies::*;
 pub use history::*;
 pub use policy::*;
 
@@ -20,7 +22,7 @@ use crate::math::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, State};
 use crate::projection::{ProjectionReport, Projector, SystemMetric, Targets};
 use crate::world::{max_penetration, near_obstacles, resolve_contacts, Obstacle};
-use crate::world::{Drag, KinematicPins, Work, World};
+use crate::world::{BodyExchange, BodySurface, Drag, KinematicPins, Work, World};
 
 /// Contact push-outs deeper than this fraction of the mean rest edge length make the step redo itself in
 /// substeps (see [`Simulation::step`]).
@@ -152,6 +154,12 @@ impl References {
     }
 }
 
+/// A step between [`Simulation::begin_step`] and [`Simulation::finish_step`].
+pub(crate) struct BegunStep {
+    adv: Advance,
+    base_ms: f64,
+}
+
 /// A running simulation.
 pub struct Simulation {
     pub model: Model,
@@ -184,6 +192,11 @@ pub struct Simulation {
     start_unchecked: bool,
     /// Consecutive contact steps at rest whose projection did not converge or stood down.
     resting_steps: usize,
+    /// Energy the last step's projection left off its target, J (state minus target; 0 after a step that
+    /// reached it): booked as `Work::deferred` until a later step places it.
+    deferred: f64,
+    /// The body's surface as other bodies collide with it (built at the first step among bodies).
+    surface: Option<BodySurface>,
 }
 
 impl Simulation {
@@ -257,6 +270,8 @@ impl Simulation {
             unresolved_totals: (0.0, 0.0),
             start_unchecked: true,
             resting_steps: 0,
+            deferred: 0.0,
+            surface: None,
         };
         sim.mean_edge = mean_edge_length(&sim.model);
         sim.reset_references();
@@ -296,6 +311,7 @@ impl Simulation {
         // Kinematic pins follow their path from where the state now has them.
         self.world.anchor_pins(&self.state);
         self.start_unchecked = true;
+        self.deferred = 0.0;
     }
 
     /// An error naming the vertex, the obstacle and the depth when a free vertex starts deeper inside an obstacle
@@ -593,6 +609,16 @@ impl Simulation {
     /// [`Simulation::step`], on a thread of a rayon pool: the base step (with impact substeps), the targets, the
     /// projection (or a measurement), the books, one history row.
     fn step_on_pool(&mut self) -> Result<()> {
+        let begun = self.begin_step()?;
+        self.finish_step(begun, &BodyExchange::default())
+    }
+
+    /// The first half of a step, up to the projection: the base step with the world's processes (impact
+    /// substeps included). Between it and [`Simulation::finish_step`] the state is the base step's result, which
+    /// contact between bodies may still change ([`crate::world::resolve_body_contacts`]); a step begun must be
+    /// finished or abandoned ([`Simulation::abandon_step`]). On a non-finite result the step is undone and an
+    /// error names it.
+    pub(crate) fn begin_step(&mut self) -> Result<BegunStep> {
         if self.start_unchecked {
             self.check_start_outside_obstacles()?;
             self.start_unchecked = false;
@@ -601,15 +627,6 @@ impl Simulation {
         let h = self.dt;
         let t0 = Instant::now();
         let (adv, finite) = self.advance_resolving_impacts(h)?;
-        let Advance {
-            mut report,
-            mut work,
-            contacts,
-            has_forces,
-            force_impulse,
-            ..
-        } = adv;
-        report.energy_budget = work.total();
         let base_ms = t0.elapsed().as_secs_f64() * 1e3;
         let step = self.num_steps() + 1;
         if !finite {
@@ -620,6 +637,60 @@ impl Simulation {
                 "use a smaller dt or a stiffer-stable integrator",
             ));
         }
+        Ok(BegunStep { adv, base_ms })
+    }
+
+    /// Undo a step begun with [`Simulation::begin_step`] (another body's step failed): the state is the one
+    /// before it.
+    pub(crate) fn abandon_step(&mut self) {
+        std::mem::swap(&mut self.state, &mut self.previous);
+    }
+
+    /// The second half of a step: what contact with other bodies did to this one (`exchange`: its velocity
+    /// changes' work, impulse and moment, the vertices it touched), the targets, the projection (or a
+    /// measurement), the books, one history row.
+    ///
+    /// Contact between bodies is internal to the scene: the impulses are equal and opposite at one point, so
+    /// the bodies' targets together keep the scene's total momenta. The angular target is set so that the body's
+    /// angular momentum about the world origin, `L_cm + C x P`, changes by exactly the moment of its contact
+    /// impulses about the origin, given the centre of mass and momentum the projection holds it to (for a step
+    /// without obstacle impacts: `C' = C_ref + h/M (P_ref + J/2)`, `P' = P_ref + J`). Then the bodies' changes
+    /// cancel and the scene's angular momentum is conserved to the projection's tolerance.
+    pub(crate) fn finish_step(&mut self, begun: BegunStep, exchange: &BodyExchange) -> Result<()> {
+        let BegunStep { adv, base_ms } = begun;
+        let h = self.dt;
+        let Advance {
+            mut report,
+            mut work,
+            mut contacts,
+            has_forces,
+            force_impulse,
+            ..
+        } = adv;
+        if exchange.contacts > 0 {
+            contacts += exchange.contacts;
+            work.contact += exchange.work;
+            let j = exchange.impulse;
+            let r = &self.references;
+            let moment = if report.impulsive {
+                // Obstacle impacts too: the centre of mass is not held; the moment about where it is now.
+                let c = center_of_mass(&self.model.masses, self.model.total_mass, &self.state.x);
+                sub(exchange.moment, cross(c, j))
+            } else {
+                let about_ref = sub(exchange.moment, cross(r.center_of_mass, j));
+                sub(
+                    about_ref,
+                    scale(cross(r.momentum, j), 0.5 * h / self.model.total_mass),
+                )
+            };
+            report.impulse = add(report.impulse, j);
+            report.angular_impulse = add(report.angular_impulse, moment);
+            self.contact_vertices.extend_from_slice(&exchange.vertices);
+            self.contact_vertices.sort_unstable();
+            self.contact_vertices.dedup();
+        }
+        report.energy_budget = work.total();
+        let step = self.num_steps() + 1;
         let mut targets = self.targets(&report);
         if has_forces && !report.impulsive {
             // The work of the forces' resultant belongs to the centre of mass's path, which the projection
@@ -867,6 +938,17 @@ impl Simulation {
             report.energy_budget += booked;
             targets.energy += booked;
         }
+        // What a failed contact step leaves off its target is deferred, not lost from the books: the state's
+        // energy differs from the target by `pending`, which the budget carries (the references do not: the next
+        // projection still aims at the target and, when it reaches it, the deferral is reversed). So
+        // `total - (H0 + budget_total)` stays closed through steps the projection could not converge.
+        let pending = match projection {
+            Some(p) if contacts > 0 && !p.converged => inv.total - targets.energy,
+            _ => 0.0,
+        };
+        work.deferred = pending - self.deferred;
+        report.energy_budget += work.deferred;
+        self.deferred = pending;
     }
 }
 

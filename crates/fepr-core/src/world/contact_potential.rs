@@ -29,7 +29,7 @@
 //! curved surfaces (`k phi dn/dx`, negative inside a sphere or capsule) is left out so that the term stays
 //! positive semi-definite.
 
-use super::{ContactReport, Obstacle};
+use super::{ContactReport, Obstacle, Shape};
 use crate::math::{add, cross, dot, norm, scale, sub, Mat3, Vec3};
 use crate::model::{Model, State};
 
@@ -46,16 +46,71 @@ pub const RESTING_SPEED_STEPS: f64 = 2.0;
 pub const ACTIVATION_MARGIN: f64 = 1e-4;
 
 /// The obstacles an implicit step keeps its free vertices out of (see the module comment).
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Debug, Default)]
 pub struct ContactPotential {
     obstacles: Vec<Obstacle>,
+    /// For each closed-mesh obstacle and vertex, a position and the exact signed distance there (`(obstacle *
+    /// m + vertex)`; empty until the first query). A closed surface's signed distance is 1-Lipschitz, so
+    /// `phi(x) >= phi_ref - |x - x_ref|`: a vertex that cannot have come within reach since needs no BVH query.
+    /// The solve evaluates the potential many times per step with each vertex moving little in between, so
+    /// most mesh queries are skipped; the answers are exact either way.
+    clear: std::sync::Mutex<Vec<(Vec3, f64)>>,
+}
+
+impl Clone for ContactPotential {
+    fn clone(&self) -> Self {
+        Self::new(&self.obstacles)
+    }
+}
+
+impl PartialEq for ContactPotential {
+    fn eq(&self, other: &Self) -> bool {
+        self.obstacles == other.obstacles
+    }
 }
 
 impl ContactPotential {
     pub fn new(obstacles: &[Obstacle]) -> Self {
         Self {
             obstacles: obstacles.to_vec(),
+            clear: Default::default(),
         }
+    }
+
+    /// The cache of [`ContactPotential::clear`], locked and sized for `m` vertices.
+    fn clear_cache(&self, m: usize) -> std::sync::MutexGuard<'_, Vec<(Vec3, f64)>> {
+        let mut clear = self.clear.lock().unwrap_or_else(|e| e.into_inner());
+        if clear.len() != self.obstacles.len() * m {
+            // Unknown: a reference infinitely far below reach.
+            *clear = vec![([0.0; 3], f64::NEG_INFINITY); self.obstacles.len() * m];
+        }
+        clear
+    }
+
+    /// `(phi, n)` of obstacle `k` at `x`, the position of vertex `i` of `m`, when `phi < below` (m); `None`
+    /// otherwise, without a query when a closed mesh's cached bound already proves it.
+    fn near(
+        &self,
+        clear: &mut [(Vec3, f64)],
+        m: usize,
+        k: usize,
+        i: usize,
+        x: Vec3,
+        below: f64,
+    ) -> Option<(f64, Vec3)> {
+        let ob = &self.obstacles[k];
+        let cached = matches!(&ob.shape, Shape::Mesh(mesh) if mesh.is_closed());
+        if cached {
+            let (x_ref, phi_ref) = clear[k * m + i];
+            if phi_ref - norm(sub(x, x_ref)) >= below {
+                return None;
+            }
+        }
+        let (phi, n) = ob.signed_distance(x);
+        if cached {
+            clear[k * m + i] = (x, phi);
+        }
+        (phi < below).then_some((phi, n))
     }
 
     /// True when there is no obstacle (the potential is 0 everywhere).
@@ -90,10 +145,15 @@ impl ContactPotential {
             return;
         }
         let margin = Self::margin(model);
+        let m = x.len();
+        let mut clear = self.clear_cache(m);
         for (i, xi) in x.iter().enumerate() {
             if !model.pinned[i] {
-                for (gap, n) in self.reaching(margin, *xi) {
-                    f(i, Self::stiffness(model, i, h), gap, n);
+                let stiffness = Self::stiffness(model, i, h);
+                for k in 0..self.obstacles.len() {
+                    if let Some((phi, n)) = self.near(&mut clear, m, k, i, *xi, margin) {
+                        f(i, stiffness, phi - margin, n);
+                    }
                 }
             }
         }
@@ -265,13 +325,14 @@ impl ContactPotential {
         if self.obstacles.is_empty() {
             return 0;
         }
+        let m = x.len();
+        let mut clear = self.clear_cache(m);
         for (i, xi) in x.iter_mut().enumerate() {
             if model.pinned[i] {
                 continue;
             }
-            for ob in &self.obstacles {
-                let (phi, n) = ob.signed_distance(*xi);
-                if phi < 0.0 {
+            for k in 0..self.obstacles.len() {
+                if let Some((phi, n)) = self.near(&mut clear, m, k, i, *xi, 0.0) {
                     for a in 0..3 {
                         xi[a] -= phi * n[a];
                     }
@@ -291,8 +352,7 @@ mod tests {
     use super::*;
     use crate::elasticity::tests::grid_model;
     use crate::material::{Material, NeoHookean};
-    use crate::world::Shape;
-
+    
     fn model_and_potential() -> (Model, ContactPotential) {
         let model = grid_model(2, Material::NeoHookean(NeoHookean::new(1e4, 0.3).unwrap()));
         let obstacles = [

@@ -16,11 +16,15 @@
 //! - damping: an operator on the velocities after the base step; its work is the kinetic energy it removes;
 //! - contact ([`crate::world`]): after damping.
 
+mod body_contact;
 mod contact_potential;
+mod mesh_collider;
 mod obstacles;
 
+pub use body_contact::*;
 pub use contact_potential::*;
 
+pub use mesh_collider::MeshCollider;
 pub use obstacles::*;
 
 use crate::elasticity::deformation_gradient;
@@ -187,9 +191,14 @@ pub struct Work {
     /// [`crate::projection::ProjectionReport::unresolved`]): what the time step could not carry within the
     /// projection's quality guard.
     pub unresolved: f64,
+    /// Change of the energy a failed contact-step projection left off its target (the state's energy minus
+    /// the target; positive: the state has more). Booked so that the books close while the projection is off
+    /// target, reversed by the step that reaches it; the targets never include it.
+    pub deferred: f64,
 }
 
 impl Work {
+    /// The work of the processes that set the step's energy target (everything but `deferred`).
     pub fn total(&self) -> f64 {
         self.contact + self.damping + self.pins + self.forces + self.unresolved
     }

@@ -1,4 +1,4 @@
-//! Static obstacles (plane, sphere, box, capsule) and vertex contact with them.
+//! Static obstacles (plane, sphere, box, capsule, triangle mesh) and vertex contact with them.
 //!
 //! Contact is resolved per vertex after the base step (fepr-spec section 2, "contact"): a vertex found inside
 //! an obstacle is put back outside, its normal velocity is reflected with the restitution coefficient and its
@@ -10,6 +10,8 @@
 use crate::error::{invalid, Result};
 use crate::math::{add, cross, dot, norm, scale, sub, Mat3, Vec3};
 use crate::model::{Model, State};
+
+use super::MeshCollider;
 
 /// Geometry of an obstacle (metres). The solid is where the signed distance is negative.
 #[derive(Clone, Debug, PartialEq)]
@@ -26,6 +28,8 @@ pub enum Shape {
     },
     /// Points within `radius` of the segment `a`-`b`.
     Capsule { a: Vec3, b: Vec3, radius: f64 },
+    /// A static triangle mesh, the solid behind its outward normals (closed, or open and one-sided).
+    Mesh(MeshCollider),
 }
 
 /// A static obstacle with its contact coefficients.
@@ -131,6 +135,8 @@ impl Obstacle {
                 positive(radius, "capsule radius")?;
                 Shape::Capsule { a, b, radius }
             }
+            // Validated when it was built.
+            Shape::Mesh(mesh) => Shape::Mesh(mesh),
         };
         Ok(Self {
             shape,
@@ -145,10 +151,24 @@ impl Obstacle {
     /// obstacle can be on its far side) and for one that passed through within one step.
     ///
     /// Written here, not taken from a collision library: the shapes are given by their exact signed distances,
-    /// which are convex along any segment (every shape is convex), so the minimum along the segment is found by a
+    /// which are convex along any segment (each analytic shape is convex), so the minimum along the segment is found by a
     /// golden-section search and the first crossing before it by bisection, to 1e-12 of the segment, for every
-    /// shape alike.
+    /// analytic shape alike (a mesh ray-casts its triangles).
+    ///
+    /// A segment that ends outside on the side it started (the outward normals at its ends point the same way)
+    /// is not a crossing even where its chord dips into the solid: a vertex sliding over a bump or around a
+    /// sphere ends its step on the surface, and only the straight line between its positions cuts the curve.
+    /// Passing through a thin obstacle ends on its far side, where the normal points the other way.
     pub fn first_crossing(&self, p0: Vec3, p1: Vec3) -> Option<(f64, Vec3, Vec3)> {
+        let (d0, n0) = self.signed_distance(p0);
+        let (d1, n1) = self.signed_distance(p1);
+        if d0 < 0.0 || (d1 >= 0.0 && dot(n0, n1) > 0.0) {
+            return None;
+        }
+        if let Shape::Mesh(mesh) = &self.shape {
+            // A mesh is not convex: its own ray cast finds the crossing.
+            return mesh.first_crossing(p0, p1);
+        }
         let at = |t: f64| add(p0, scale(sub(p1, p0), t));
         let phi = |t: f64| self.signed_distance(at(t)).0;
         let (d0, d1) = (phi(0.0), phi(1.0));
@@ -208,13 +228,14 @@ impl Obstacle {
         (lo, sub(at(lo), scale(n, dist)), n)
     }
 
-    /// The shape's name as scene files write it: "plane", "sphere", "box" or "capsule".
+    /// The shape's name as scene files write it: "plane", "sphere", "box", "capsule" or "mesh".
     pub fn kind_name(&self) -> &'static str {
         match self.shape {
             Shape::Plane { .. } => "plane",
             Shape::Sphere { .. } => "sphere",
             Shape::Box { .. } => "box",
             Shape::Capsule { .. } => "capsule",
+            Shape::Mesh(_) => "mesh",
         }
     }
 
@@ -272,6 +293,7 @@ impl Obstacle {
                 );
                 (d, n)
             }
+            Shape::Mesh(mesh) => mesh.signed_distance(x),
         }
     }
 }
@@ -338,11 +360,12 @@ pub fn resolve_contacts(
             // obstacle, to where the path first touched it.
             // The crossing test applies where the nearest surface would be wrong: a vertex that ends outside
             // but passed through, or one that ends inside nearer the far side than the side it came in by (its
-            // nearest surface's normal points along its motion). Elsewhere (resting, sliding, ordinary impacts)
-            // the nearest surface point is the answer.
-            let far_side = x_start
-                .get(i)
-                .is_some_and(|&x0| dot(n, sub(state.x[i], x0)) > 0.0);
+            // nearest surface's normal points along its motion and away from the normal where it started).
+            // Elsewhere (resting, sliding over a bump, ordinary impacts) the nearest surface point is the answer.
+            let far_side = phi < 0.0
+                && x_start.get(i).is_some_and(|&x0| {
+                    dot(n, sub(state.x[i], x0)) > 0.0 && dot(n, ob.signed_distance(x0).1) < 0.0
+                });
             let crossing = if phi >= 0.0 || far_side {
                 x_start
                     .get(i)
