@@ -189,7 +189,8 @@ def test_a_mesh_obstacle_reads_a_surface_file_and_names_a_bad_one(tmp_path):
     vertices, triangles = _cube_surface((0.0, 0.0, -0.5), (1.0, 1.0, 0.5))
     obj = tmp_path / "ground.obj"
     obj.write_text(
-        "".join(f"v {x} {y} {z}\n" for x, y, z in vertices) + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in triangles)
+        "".join(f"v {x} {y} {z}\n" for x, y, z in vertices)
+        + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in triangles)
     )
     ground = fepr.MeshObstacle(obj, friction=0.2)
     assert ground.closed and len(ground.triangles) == 12 and ground.path == str(obj)
@@ -211,7 +212,7 @@ def test_a_mesh_obstacle_reads_a_surface_file_and_names_a_bad_one(tmp_path):
         ((np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]], float), np.array([[0, 1, 2]])), "triangle 0 .* no area"),
         ((np.eye(3), np.array([[0, 1, 1]])), "repeats a vertex"),
         ((np.eye(3), np.array([[0.0, 1.0, 2.0]])), "integer"),
-        ("not a tuple".encode(), "file path or"),
+        (b"not a tuple", "file path or"),
     ],
 )
 def test_a_bad_mesh_obstacle_is_a_named_error(source, message):
@@ -260,7 +261,9 @@ steps = 40
 """
     )
     out = subprocess.run(
-        [sys.executable, "-m", "fepr", "run", str(scene), "--out", str(tmp_path / "out")], capture_output=True, text=True
+        [sys.executable, "-m", "fepr", "run", str(scene), "--out", str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
     )
     assert out.returncode == 0, out.stdout + out.stderr
     import csv
@@ -272,7 +275,7 @@ steps = 40
     text = scene.read_text()
     for entry, message in [
         ('terrain = { size = 2.0, cells = 16, height = 0.05 }\npath = "x.obj"', "exactly one of 'path'"),
-        ('terrain = { size = 2.0, bumps = 3 }', "unknown key 'bumps'"),
+        ("terrain = { size = 2.0, bumps = 3 }", "unknown key 'bumps'"),
         ('path = "missing.obj"', "missing.obj"),
     ]:
         bad = tmp_path / "bad.toml"

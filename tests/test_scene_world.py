@@ -166,7 +166,18 @@ def test_bodies_parse_with_default_names_and_per_body_pins():
     b1, b2 = s.bodies
     assert b1.pinned == (0,) and b1.kinematic_pins[0].label == "[[bodies]] #1 [[kinematic_pins]] #1"
     assert b2.pin_below.value == -0.1 and b2.mesh.builtin == "sphere"
-    assert set(BODY_KEYS) == {"name", "mesh", "material", "mass", "initial", "pinned", "pin_below", "kinematic_pins"}
+    assert set(BODY_KEYS) == {
+        "name",
+        "mesh",
+        "material",
+        "mass",
+        "initial",
+        "pinned",
+        "pin_below",
+        "kinematic_pins",
+        "restitution",
+        "friction",
+    }
 
 
 def test_one_body_scene_is_its_own_single_body():

@@ -103,6 +103,11 @@ def conserved_material(integrator: str) -> Optional[str]:
 def warm_start_threshold(integrator: str) -> float:
     """The projection's warm-start threshold under ``warm_start="auto"`` after ``integrator`` (inf: off)."""
 
+def step_bodies(sims: Sequence[Simulation], n: int, coefficients: Sequence[Tuple[float, float]]) -> None:
+    """Advance the bodies ``sims`` (same dt) ``n`` steps together with contact between them; ``coefficients``
+    holds each body's ``(restitution, friction)``. On a failure raises RuntimeError with args ``(body index,
+    message)``; the steps completed before it stay."""
+
 def check_mesh_obstacle(vertices: Sequence[float], triangles: Sequence[int]) -> bool:
     """Validate a triangle-mesh obstacle (``vertices`` (n * 3) m and ``triangles`` (k * 3), flattened); returns
     whether it is closed. Raises ValueError naming the vertex or triangle at fault."""

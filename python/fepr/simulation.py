@@ -470,7 +470,9 @@ class Simulation:
         obstacles = list(obstacles or ())
         for k, ob in enumerate(obstacles):
             if not isinstance(ob, OBSTACLE_TYPES):
-                raise ConfigError(f"obstacles[{k}] must be fepr.Plane, Sphere, Box, Capsule or MeshObstacle, got {ob!r}")
+                raise ConfigError(
+                    f"obstacles[{k}] must be fepr.Plane, Sphere, Box, Capsule or MeshObstacle, got {ob!r}"
+                )
         kinematic = list(kinematic_pins or ())
         groups = []
         for k, kp in enumerate(kinematic):

@@ -4,8 +4,8 @@ Obstacles are passed to :class:`fepr.Simulation` as ``obstacles=[...]``; the fre
 (vertex contact with restitution and Coulomb friction). Kinematic pins (``kinematic_pins=[...]``) move groups
 of vertices along a prescribed path. The energy that contacts remove and the work the pins do enter each
 step's energy budget (history columns ``budget``, ``work_contact``, ``work_pins``), so FEPR conserves
-``H_0 + budget_total`` instead of undoing them. Bodies of a :class:`fepr.MultiBody` do not collide with each
-other.
+``H_0 + budget_total`` instead of undoing them. Bodies of a :class:`fepr.MultiBody` also collide with each
+other (see :mod:`fepr.multibody`).
 """
 
 from __future__ import annotations
@@ -234,7 +234,7 @@ class MeshObstacle:
         depth: Optional[float] = None,
         restitution: float = 1.0,
         friction: float = 0.0,
-    ) -> "MeshObstacle":
+    ) -> MeshObstacle:
         """A built-in bumpy ground, needing no file: a square slab of edge ``size`` (m) about ``center`` whose top
         is a height field ``z = center_z + height * b(x, y)`` over ``cells`` x ``cells`` squares (two triangles
         each), with smooth bumps ``b`` in [-1, 1] of about ``wavelength`` (m); its flat bottom lies ``depth`` (m,

@@ -25,8 +25,8 @@ use fepr_core::projection::{
 };
 use fepr_core::simulation::{
     auto_warm_start_threshold, conserved_material_name, history_row, material_for_integrator,
-    BodyCoefficients, Simulation as CoreSimulation, HISTORY_COLUMNS, HISTORY_INTEGER_COLUMNS, PD_WARM_START,
-    XPBD_WARM_START,
+    BodyCoefficients, Simulation as CoreSimulation, HISTORY_COLUMNS, HISTORY_INTEGER_COLUMNS,
+    PD_WARM_START, XPBD_WARM_START,
 };
 use fepr_core::world::{Drag, KinematicPins, PinMotion};
 use fepr_core::world::{MeshCollider, Obstacle, Shape};
@@ -656,7 +656,7 @@ impl Simulation {
                     p.len()
                 )));
             }
-            if (kind == "mesh") != !triangles.is_empty() || triangles.len() % 3 != 0 {
+            if (kind == "mesh") == triangles.is_empty() || !triangles.len().is_multiple_of(3) {
                 return Err(PyValueError::new_err(format!(
                     "obstacle {k} ({kind}): triangles must be given (3 indices each) for a mesh and only for a mesh"
                 )));
@@ -875,7 +875,8 @@ fn step_bodies(
         .iter()
         .enumerate()
         .map(|(k, &(e, mu))| {
-            BodyCoefficients::new(e, mu).map_err(|err| PyValueError::new_err(format!("body {k}: {err}")))
+            BodyCoefficients::new(e, mu)
+                .map_err(|err| PyValueError::new_err(format!("body {k}: {err}")))
         })
         .collect::<PyResult<Vec<_>>>()?;
     let Some(first) = sims.first() else {
@@ -913,7 +914,7 @@ fn step_bodies(
 /// Returns whether it is closed; raises ValueError naming the vertex or triangle at fault.
 #[pyfunction]
 fn check_mesh_obstacle(vertices: Vec<f64>, triangles: Vec<u32>) -> PyResult<bool> {
-    if vertices.len() % 3 != 0 || triangles.len() % 3 != 0 {
+    if !vertices.len().is_multiple_of(3) || !triangles.len().is_multiple_of(3) {
         return Err(PyValueError::new_err(
             "vertices and triangles must hold 3 entries per item",
         ));

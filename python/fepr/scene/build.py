@@ -288,7 +288,12 @@ def build_multibody(scene: Scene, projection=None):
     from ..multibody import MultiBody
 
     bodies = scene.body_settings()
-    return MultiBody(build_bodies(scene, projection), names=[b.name for b in bodies])
+    return MultiBody(
+        build_bodies(scene, projection),
+        names=[b.name for b in bodies],
+        restitution=[b.restitution for b in bodies],
+        friction=[b.friction for b in bodies],
+    )
 
 
 def build_bodies(scene: Scene, projection=None) -> list:

@@ -591,6 +591,10 @@ def _parse_bodies(raw: Any, where: str, base: Path) -> Tuple[BodySettings, ...]:
             initial=_parse_initial(sub("initial"), base),
             label=label,
         )
+        body.restitution = bt.number("restitution", 1.0)
+        if not 0.0 <= body.restitution <= 1.0:
+            raise bt.error(f"restitution must be in [0, 1], got {body.restitution!r}")
+        body.friction = bt.number("friction", 0.0, nonnegative=True)
         if bt.has("pinned"):
             body.pinned = _parse_pinned(bt)
         if bt.has("pin_below"):

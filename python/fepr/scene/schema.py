@@ -72,7 +72,18 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
 
 #: Keys of a ``[[bodies]]`` table (a multi-body scene); ``mesh``, ``material``, ``mass`` and ``initial`` are
 #: tables with the keys of the sections of the same name.
-BODY_KEYS: Tuple[str, ...] = ("name", "mesh", "material", "mass", "initial", "pinned", "pin_below", "kinematic_pins")
+BODY_KEYS: Tuple[str, ...] = (
+    "name",
+    "mesh",
+    "material",
+    "mass",
+    "initial",
+    "pinned",
+    "pin_below",
+    "kinematic_pins",
+    "restitution",
+    "friction",
+)
 #: Obstacle types of ``[[world.obstacles]]`` and the geometry keys of each (``box`` takes one of
 #: ``half_extents`` and ``size``; ``rotate`` is optional).
 OBSTACLE_KEYS: Dict[str, Tuple[str, ...]] = {
@@ -362,6 +373,10 @@ class BodySettings:
     pinned: Tuple[int, ...] = ()
     pin_below: Optional[PinBelow] = None
     kinematic_pins: Tuple[KinematicPinSettings, ...] = ()
+    #: Contact with the other bodies: restitution in [0, 1] and Coulomb friction (a pair uses the smaller
+    #: restitution and the geometric mean of the frictions).
+    restitution: float = 1.0
+    friction: float = 0.0
     label: str = ""
 
     def section(self, name: str) -> str:

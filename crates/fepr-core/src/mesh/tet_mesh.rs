@@ -191,7 +191,7 @@ impl TetMesh {
                 faces.push((key, tri));
             }
         }
-        faces.sort_unstable_by(|a, b| a.0.cmp(&b.0));
+        faces.sort_unstable_by_key(|f| f.0);
         let mut out = Vec::new();
         let mut k = 0;
         while k < faces.len() {

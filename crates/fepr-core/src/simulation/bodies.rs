@@ -9,9 +9,13 @@
 //! one projection per body rather than one over the scene: a body out of contact keeps exactly the trajectory
 //! it has alone, and each body's books stay its own (a body's energy budget says what contact took from it).
 
-use super::{Simulation, IMPACT_DEPTH_FRACTION};
+use std::time::Instant;
+
+use super::{Advance, BegunStep, Simulation, IMPACT_DEPTH_FRACTION, MAX_IMPACT_SUBSTEPS};
 use crate::error::{invalid, FeprError, Result};
-use crate::world::{deepest_between_bodies, resolve_body_contacts, BodyInContact, BodySurface};
+use crate::world::{
+    deepest_between_bodies, resolve_body_contacts, BodyExchange, BodyInContact, BodySurface,
+};
 
 /// Contact coefficients of one body among others: restitution in [0, 1], Coulomb friction >= 0. A pair uses
 /// the smaller restitution and the geometric mean of the frictions.
@@ -48,7 +52,11 @@ pub fn step_bodies(
     sims: &mut [&mut Simulation],
     coefficients: &[BodyCoefficients],
 ) -> std::result::Result<(), (usize, FeprError)> {
-    assert_eq!(sims.len(), coefficients.len(), "one coefficient pair per body");
+    assert_eq!(
+        sims.len(),
+        coefficients.len(),
+        "one coefficient pair per body"
+    );
     crate::exec::on_pool(|| crate::exec::with_threads_ready(|| step_on_pool(sims, coefficients)))
 }
 
@@ -64,31 +72,90 @@ fn step_on_pool(
     if sims.iter().any(|s| s.start_unchecked) {
         check_apart(sims, coefficients)?;
     }
-    let mut begun = Vec::with_capacity(sims.len());
     for k in 0..sims.len() {
-        match sims[k].begin_step() {
-            Ok(b) => begun.push(b),
-            Err(e) => {
-                for sim in &mut sims[..k] {
-                    sim.abandon_step();
-                }
-                return Err((k, e));
-            }
-        }
-    }
-    let exchanges = {
-        let mut bodies = in_contact(sims, coefficients);
-        resolve_body_contacts(&mut bodies)
-    };
-    for (k, (b, e)) in begun.into_iter().zip(&exchanges).enumerate() {
-        if let Err(err) = sims[k].finish_step(b, e) {
-            for sim in &mut sims[k + 1..] {
+        if let Err(e) = sims[k].open_step() {
+            for sim in &mut sims[..k] {
                 sim.abandon_step();
             }
-            return Err((k, err));
+            return Err((k, e));
         }
     }
-    Ok(())
+    // An impact between bodies deeper than a tenth of the finer body's mean edge (and fast enough to have gone
+    // that deep within the part) would strain the contact layer when pushed apart after the step: the step is
+    // redone from its start in parts short enough for the depth, each part every body's advance and then the
+    // contact (as the obstacles' impact substeps do for one body).
+    let limit = IMPACT_DEPTH_FRACTION
+        * sims
+            .iter()
+            .map(|s| s.mean_edge)
+            .fold(f64::INFINITY, f64::min);
+    let dt = sims[0].dt;
+    let nb = sims.len();
+    let mut parts = 1usize;
+    loop {
+        let mut advances = vec![Advance::default(); nb];
+        let mut exchanges = vec![BodyExchange::default(); nb];
+        let mut base_ms = vec![0.0; nb];
+        for _ in 0..parts {
+            for k in 0..nb {
+                let t0 = Instant::now();
+                match sims[k].advance_part(dt / parts as f64) {
+                    Ok(a) => {
+                        let substeps = advances[k].report.substeps.max(a.report.substeps);
+                        advances[k].add(&a);
+                        advances[k].report.substeps = substeps;
+                    }
+                    Err(e) => {
+                        for (j, sim) in sims.iter_mut().enumerate() {
+                            if j != k {
+                                sim.abandon_step();
+                            }
+                        }
+                        return Err((k, e));
+                    }
+                }
+                base_ms[k] += t0.elapsed().as_secs_f64() * 1e3;
+            }
+            let part = {
+                let mut bodies = in_contact(sims, coefficients);
+                resolve_body_contacts(&mut bodies)
+            };
+            for (total, e) in exchanges.iter_mut().zip(part) {
+                total.accumulate(e);
+            }
+        }
+        let deepest = exchanges.iter().map(|e| e.max_depth).fold(0.0, f64::max);
+        // Only an impact is redone in parts: bodies resting on each other sink by about g h^2 per step under
+        // their weight, which parts would not remove (each part sinks again) and would multiply the cost by.
+        let approach = exchanges.iter().map(|e| e.max_approach).fold(0.0, f64::max);
+        let impact = approach * dt / parts as f64 > limit;
+        if deepest > limit && impact && parts < MAX_IMPACT_SUBSTEPS {
+            // Parts short enough that the fastest approach goes at most `limit` deep within one.
+            parts = ((approach * dt / limit).ceil() as usize).clamp(parts + 1, MAX_IMPACT_SUBSTEPS);
+            for sim in sims.iter_mut() {
+                sim.abandon_step();
+            }
+            continue;
+        }
+        for (k, ((mut adv, e), ms)) in advances
+            .into_iter()
+            .zip(&exchanges)
+            .zip(base_ms)
+            .enumerate()
+        {
+            adv.report.energy_budget = adv.work.total();
+            if parts > 1 {
+                adv.report.substeps = adv.report.substeps.max(parts);
+            }
+            if let Err(err) = sims[k].finish_step(BegunStep { adv, base_ms: ms }, e) {
+                for sim in &mut sims[k + 1..] {
+                    sim.abandon_step();
+                }
+                return Err((k, err));
+            }
+        }
+        return Ok(());
+    }
 }
 
 fn in_contact<'a>(
@@ -134,7 +201,7 @@ fn check_apart(
                 a,
                 FeprError::Simulation(format!(
                     "body {a} starts inside body {b}: its vertex {i} at [{:.4}, {:.4}, {:.4}] m is {depth:.4} m \
-                     deep (more than a tenth of body {b}'s mean edge, {limit:.3e} m); place the bodies apart",
+                     deep (more than a tenth of the mean edge of body {b}, {limit:.3e} m); place the bodies apart",
                     x[0], x[1], x[2]
                 )),
             ));

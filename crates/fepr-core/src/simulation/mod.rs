@@ -155,7 +155,7 @@ impl References {
 }
 
 /// A step between [`Simulation::begin_step`] and [`Simulation::finish_step`].
-pub(crate) struct BegunStep {
+struct BegunStep {
     adv: Advance,
     base_ms: f64,
 }
@@ -197,6 +197,8 @@ pub struct Simulation {
     deferred: f64,
     /// The body's surface as other bodies collide with it (built at the first step among bodies).
     surface: Option<BodySurface>,
+    /// The state at the start of the current part of a step (what its impact substeps start again from).
+    part_start: State,
 }
 
 impl Simulation {
@@ -272,6 +274,11 @@ impl Simulation {
             resting_steps: 0,
             deferred: 0.0,
             surface: None,
+            part_start: State {
+                x: Vec::new(),
+                v: Vec::new(),
+                time: 0.0,
+            },
         };
         sim.mean_edge = mean_edge_length(&sim.model);
         sim.reset_references();
@@ -618,32 +625,46 @@ impl Simulation {
     /// contact between bodies may still change ([`crate::world::resolve_body_contacts`]); a step begun must be
     /// finished or abandoned ([`Simulation::abandon_step`]). On a non-finite result the step is undone and an
     /// error names it.
-    pub(crate) fn begin_step(&mut self) -> Result<BegunStep> {
+    fn begin_step(&mut self) -> Result<BegunStep> {
+        self.open_step()?;
+        let t0 = Instant::now();
+        let adv = self.advance_part(self.dt)?;
+        let base_ms = t0.elapsed().as_secs_f64() * 1e3;
+        Ok(BegunStep { adv, base_ms })
+    }
+
+    /// Start a step made of parts ([`Simulation::advance_part`]): the start-of-step checks and the copy of the
+    /// state the step can be undone to.
+    fn open_step(&mut self) -> Result<()> {
         if self.start_unchecked {
             self.check_start_outside_obstacles()?;
             self.start_unchecked = false;
         }
         copy_state(&self.state, &mut self.previous);
-        let h = self.dt;
-        let t0 = Instant::now();
+        Ok(())
+    }
+
+    /// Advance the base step and the world's processes over `h` (the whole step, or a part of it when bodies
+    /// in contact take the step in substeps), with the obstacles' impact substeps. On a non-finite result the
+    /// whole step is undone and an error names it.
+    fn advance_part(&mut self, h: f64) -> Result<Advance> {
         let (adv, finite) = self.advance_resolving_impacts(h)?;
-        let base_ms = t0.elapsed().as_secs_f64() * 1e3;
-        let step = self.num_steps() + 1;
         if !finite {
-            std::mem::swap(&mut self.state, &mut self.previous);
+            let step = self.num_steps() + 1;
+            self.abandon_step();
             return Err(self.unstable(
                 step,
                 "the state became non-finite",
                 "use a smaller dt or a stiffer-stable integrator",
             ));
         }
-        Ok(BegunStep { adv, base_ms })
+        Ok(adv)
     }
 
-    /// Undo a step begun with [`Simulation::begin_step`] (another body's step failed): the state is the one
-    /// before it.
-    pub(crate) fn abandon_step(&mut self) {
-        std::mem::swap(&mut self.state, &mut self.previous);
+    /// Undo a step begun with [`Simulation::open_step`] (its parts, or another body's step, failed, or it is
+    /// redone in substeps): the state is the one before it.
+    fn abandon_step(&mut self) {
+        copy_state(&self.previous, &mut self.state);
     }
 
     /// The second half of a step: what contact with other bodies did to this one (`exchange`: its velocity
@@ -656,7 +677,7 @@ impl Simulation {
     /// impulses about the origin, given the centre of mass and momentum the projection holds it to (for a step
     /// without obstacle impacts: `C' = C_ref + h/M (P_ref + J/2)`, `P' = P_ref + J`). Then the bodies' changes
     /// cancel and the scene's angular momentum is conserved to the projection's tolerance.
-    pub(crate) fn finish_step(&mut self, begun: BegunStep, exchange: &BodyExchange) -> Result<()> {
+    fn finish_step(&mut self, begun: BegunStep, exchange: &BodyExchange) -> Result<()> {
         let BegunStep { adv, base_ms } = begun;
         let h = self.dt;
         let Advance {
@@ -790,11 +811,12 @@ impl Simulation {
     /// projection). Returns the advance and whether the state is finite.
     fn advance_resolving_impacts(&mut self, h: f64) -> Result<(Advance, bool)> {
         self.contact_vertices.clear();
+        copy_state(&self.state, &mut self.part_start);
         let mut adv = self.advance(h)?;
         let limit = IMPACT_DEPTH_FRACTION * self.mean_edge;
         if adv.max_depth > limit && self.state.is_finite() {
             let k = ((adv.max_depth / limit).ceil() as usize).clamp(2, MAX_IMPACT_SUBSTEPS);
-            self.state.clone_from(&self.previous);
+            copy_state(&self.part_start, &mut self.state);
             self.contact_vertices.clear();
             let mut total = Advance::default();
             for _ in 0..k {
@@ -942,8 +964,12 @@ impl Simulation {
         // energy differs from the target by `pending`, which the budget carries (the references do not: the next
         // projection still aims at the target and, when it reaches it, the deferral is reversed). So
         // `total - (H0 + budget_total)` stays closed through steps the projection could not converge.
+        // (A failed step right after one, contact or not, keeps deferring: the deferral is reversed only by a
+        // step that reaches its target.)
         let pending = match projection {
-            Some(p) if contacts > 0 && !p.converged => inv.total - targets.energy,
+            Some(p) if !p.converged && (contacts > 0 || self.deferred != 0.0) => {
+                inv.total - targets.energy
+            }
             _ => 0.0,
         };
         work.deferred = pending - self.deferred;

@@ -84,6 +84,23 @@ pub struct BodyExchange {
     pub vertices: Vec<u32>,
     /// Deepest penetration resolved, m.
     pub max_depth: f64,
+    /// Fastest relative approach speed of a contact, m/s (0 when none approached).
+    pub max_approach: f64,
+}
+
+impl BodyExchange {
+    /// Add the exchange of a later part of the same step.
+    pub fn accumulate(&mut self, e: BodyExchange) {
+        self.contacts += e.contacts;
+        self.work += e.work;
+        self.impulse = add(self.impulse, e.impulse);
+        self.moment = add(self.moment, e.moment);
+        self.vertices.extend(e.vertices);
+        self.vertices.sort_unstable();
+        self.vertices.dedup();
+        self.max_depth = self.max_depth.max(e.max_depth);
+        self.max_approach = self.max_approach.max(e.max_approach);
+    }
 }
 
 /// One body as contact between bodies sees it.
@@ -193,6 +210,7 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
                     e.moment = add(e.moment, cross(point, got));
                     e.vertices.extend(verts.iter().map(|&v| v as u32));
                     e.max_depth = e.max_depth.max(depth);
+                    e.max_approach = e.max_approach.max(-u);
                 }
             }
         }

@@ -352,7 +352,7 @@ mod tests {
     use super::*;
     use crate::elasticity::tests::grid_model;
     use crate::material::{Material, NeoHookean};
-    
+
     fn model_and_potential() -> (Model, ContactPotential) {
         let model = grid_model(2, Material::NeoHookean(NeoHookean::new(1e4, 0.3).unwrap()));
         let obstacles = [

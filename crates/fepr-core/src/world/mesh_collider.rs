@@ -127,7 +127,11 @@ impl MeshCollider {
     /// Vertices (m) and triangles, oriented outward.
     pub fn geometry(&self) -> (Vec<Vec3>, Vec<[u32; 3]>) {
         (
-            self.mesh.vertices().iter().map(|&v| from_parry(v)).collect(),
+            self.mesh
+                .vertices()
+                .iter()
+                .map(|&v| from_parry(v))
+                .collect(),
             self.mesh.indices().to_vec(),
         )
     }
@@ -385,9 +389,7 @@ mod tests {
         ];
         let t = vec![[0, 1, 2], [0, 2, 3]];
         let m = MeshCollider::new(&v, &t).unwrap();
-        let (t, p, n) = m
-            .first_crossing([0.1, 0.2, 0.5], [0.1, 0.2, -1.5])
-            .unwrap();
+        let (t, p, n) = m.first_crossing([0.1, 0.2, 0.5], [0.1, 0.2, -1.5]).unwrap();
         assert!((t - 0.25).abs() < 1e-12 && p[2].abs() < 1e-12 && (n[2] - 1.0).abs() < 1e-12);
         // Passing beside the sheet, and moving away from it, cross nothing.
         assert!(m.first_crossing([3.0, 0.0, 0.5], [3.0, 0.0, 0.4]).is_none());

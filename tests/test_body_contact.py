@@ -1,0 +1,160 @@
+"""Contact between bodies (fepr.MultiBody with contact, scene [[bodies]]): two bodies thrown at each other in
+space keep the scene's energy and momenta, with every integrator the momenta exactly and the books of each body
+closed, no vertex of one body ends inside the other (measured here by ray parity and exact point-triangle
+distances), and bad input is named."""
+
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+import fepr
+from fepr.errors import ConfigError, SimulationError
+from fepr.multibody import MultiBody
+
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+from test_mesh_obstacle import _inside, _mean_edge, _point_triangle_distance  # noqa: E402
+
+MAT = fepr.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.4)
+
+
+def _surface(sim):
+    """Boundary triangles of a body's tets (faces used once), as indices into its vertices."""
+    t = np.asarray(sim.tets)
+    f = np.concatenate([t[:, [1, 2, 3]], t[:, [0, 3, 2]], t[:, [0, 1, 3]], t[:, [0, 2, 1]]])
+    _, first, count = np.unique(np.sort(f, axis=1), axis=0, return_index=True, return_counts=True)
+    return f[first[count == 1]]
+
+
+def _penetration(x, body):
+    """The deepest any point of ``x`` lies inside ``body``'s surface, m."""
+    s, y = _surface(body), body.positions
+    a, b, c = y[s[:, 0]], y[s[:, 1]], y[s[:, 2]]
+    inside = _inside(x, a, b, c)
+    return float(_point_triangle_distance(x[inside], a, b, c).min(1).max()) if inside.any() else 0.0
+
+
+def _totals(system):
+    """Energy (J), momentum (kg m/s) and angular momentum about the origin (kg m^2/s) from the raw arrays."""
+    m, x, v = system.masses, system.positions, system.velocities
+    return system.energy().total, (m[:, None] * v).sum(0), np.cross(x, m[:, None] * v).sum(0)
+
+
+def _pair(integrator, dt, restitution=1.0, friction=0.0, speed=2.0):
+    box = fepr.Simulation(
+        fepr.meshes.box(size=0.3, resolution=3, center=(-0.3, 0.0, 0.0)),
+        material=MAT,
+        density=1000.0,
+        dt=dt,
+        integrator=integrator,
+    )
+    ball = fepr.Simulation(
+        fepr.meshes.sphere(radius=0.15, resolution=3, center=(0.3, 0.08, 0.0)),
+        material=MAT,
+        density=1000.0,
+        dt=dt,
+        integrator=integrator,
+    )
+    box.velocities = np.tile([speed, 0.0, 0.0], (len(box.positions), 1))
+    ball.velocities = np.tile([-speed, 0.0, 0.0], (len(ball.positions), 1))
+    return box, ball, MultiBody([box, ball], names=["box", "ball"], restitution=restitution, friction=friction)
+
+
+def test_two_bodies_colliding_in_space_keep_the_scenes_energy_and_momenta():
+    # Restitution 1, no friction, nothing outside the scene: H to 1e-8, P and L to 1e-10 through the collision.
+    box, ball, system = _pair("symplectic_euler", 5e-4)
+    h0, p0, l0 = _totals(system)
+    mv = system.total_mass * 2.0
+    worst = np.zeros(3)
+    for _ in range(600):
+        system.step(1)
+        h, p, ang = _totals(system)
+        worst = np.maximum(worst, [abs(h - h0) / h0, np.abs(p - p0).max() / mv, np.abs(ang - l0).max() / (mv * 0.3)])
+    assert box.history["contacts"].max() > 0, "they met"
+    assert worst[0] <= 1e-8 and worst[1] <= 1e-10 and worst[2] <= 1e-10, worst
+    # They bounced apart: the box now moves back, the ball forward.
+    assert box.velocities[:, 0].mean() < 0.5 < ball.velocities[:, 0].mean()
+    # What one body's contact work took, the other's gave.
+    assert box.history["work_contact"].sum() == pytest.approx(-ball.history["work_contact"].sum(), abs=1e-9 * h0)
+    assert _penetration(box.positions, ball) <= 0.01 * _mean_edge(fepr.meshes.sphere(radius=0.15, resolution=3))
+
+
+@pytest.mark.parametrize("integrator", ["implicit_euler", "projective_dynamics", "xpbd"])
+def test_an_implicit_collision_at_a_sixtieth_keeps_the_momenta_and_each_bodys_books(integrator):
+    box, ball, system = _pair(integrator, 1 / 60)
+    _, p0, l0 = _totals(system)
+    mv = system.total_mass * 2.0
+    edge = min(_mean_edge(fepr.meshes.box(size=0.3, resolution=3)), _mean_edge(fepr.meshes.sphere(0.15, 3)))
+    deepest = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for _ in range(30):
+            system.step(1)
+            deepest = max(deepest, _penetration(box.positions, ball), _penetration(ball.positions, box))
+    _, p, ang = _totals(system)
+    assert box.history["contacts"].max() > 0
+    assert np.abs(p - p0).max() <= 1e-10 * mv and np.abs(ang - l0).max() <= 1e-10 * mv * 0.3
+    for body in (box, ball):
+        h = body.history
+        assert np.max(np.abs(h["total"] - h["total"][0] - h["budget_total"])) <= 1e-8 * abs(h["total"][0])
+        assert h["inverted"].max() == 0
+    assert deepest <= 0.01 * edge
+    assert box.velocities[:, 0].mean() < ball.velocities[:, 0].mean(), "they separate"
+
+
+def test_an_inelastic_collision_books_its_loss():
+    box, ball, system = _pair("symplectic_euler", 5e-4, restitution=0.3, friction=0.2)
+    h0 = system.energy().total
+    system.step(600)
+    loss = box.history["work_contact"].sum() + ball.history["work_contact"].sum()
+    assert loss < -0.01 * h0
+    books = system.energy().total - (h0 + box.history["budget_total"][-1] + ball.history["budget_total"][-1])
+    assert abs(books) <= 1e-8 * h0
+
+
+def test_bodies_that_start_inside_each_other_are_an_error_naming_both():
+    a = fepr.Simulation(fepr.meshes.box(size=0.3, resolution=2), material=MAT, density=1000.0, dt=1e-3)
+    b = fepr.Simulation(
+        fepr.meshes.box(size=0.3, resolution=2, center=(0.1, 0, 0)), material=MAT, density=1000.0, dt=1e-3
+    )
+    system = MultiBody([a, b], names=["left", "right"])
+    with pytest.raises(SimulationError, match=r"body '(left|right)' starts inside body '(left|right)'.* m deep"):
+        system.step(1)
+    assert a.num_steps == b.num_steps == 0, "nothing advanced"
+    # Stepped apart, as before contact existed, they pass through each other.
+    MultiBody([a, b], names=["left", "right"], contact=False).step(1)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"restitution": 1.5}, r"restitution of body 'body1' must be in \[0, 1\]"),
+        ({"friction": -0.1}, "friction of body 'body1'"),
+        ({"restitution": [0.5]}, "restitution has 1 entries but there are 2 bodies"),
+        ({"contact": "yes"}, "contact must be True or False"),
+    ],
+)
+def test_bad_contact_settings_are_named(kwargs, message):
+    a = fepr.Simulation(fepr.meshes.box(), material=MAT, density=1000.0, dt=1e-3)
+    b = fepr.Simulation(fepr.meshes.box(center=(3, 0, 0)), material=MAT, density=1000.0, dt=1e-3)
+    with pytest.raises(ConfigError, match=message):
+        MultiBody([a, b], **kwargs)
+
+
+def test_scene_bodies_take_contact_coefficients():
+    from fepr.scene import scene_from_dict
+
+    body = {
+        "mesh": {"builtin": "box"},
+        "material": {"youngs_modulus": 1e5, "poisson_ratio": 0.3},
+        "mass": {"density": 1000.0},
+    }
+    d = {
+        "bodies": [dict(body, restitution=0.2, friction=0.7), dict(body, mesh={"builtin": "box", "center": [3, 0, 0]})]
+    }
+    system = scene_from_dict(d, ".").build_multibody()
+    assert system.coefficients == ((0.2, 0.7), (1.0, 0.0))
+    d["bodies"][0]["restitution"] = 2.0
+    with pytest.raises(ConfigError, match=r"\[\[bodies\]\] #1: restitution must be in \[0, 1\]"):
+        scene_from_dict(d, ".")
