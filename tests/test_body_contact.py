@@ -158,3 +158,26 @@ def test_scene_bodies_take_contact_coefficients():
     d["bodies"][0]["restitution"] = 2.0
     with pytest.raises(ConfigError, match=r"\[\[bodies\]\] #1: restitution must be in \[0, 1\]"):
         scene_from_dict(d, ".")
+
+
+def test_the_pile_example_is_the_bench_pile():
+    from pathlib import Path
+
+    from fepr.cli.bench_contact import pile_scene
+    from fepr.scene import load_scene, scene_from_dict
+
+    f = load_scene(Path(__file__).resolve().parents[1] / "examples" / "pile.toml")
+    s = scene_from_dict(pile_scene(), ".")
+    assert f.world == s.world and f.run == s.run and f.integrator.name == s.integrator.name
+    assert [(b.name, b.mesh, b.material, b.mass, b.restitution, b.friction) for b in f.bodies] == [
+        (b.name, b.mesh, b.material, b.mass, b.restitution, b.friction) for b in s.bodies
+    ]
+
+
+def test_the_bench_contact_scenes_run_and_report():
+    from fepr.cli.bench_contact import contact_suite, format_contact
+
+    c = contact_suite(quick=True)
+    assert c["pile"]["bodies"] == 8 and c["pile"]["ms_per_step"] > 0 and 0 < c["pile"]["detection_share"]
+    assert c["terrain"]["terrain_books"] <= 1e-8 and len(c["detection"]["seconds"]) == 4
+    assert "grows as n^" in format_contact(c)

@@ -108,6 +108,10 @@ def step_bodies(sims: Sequence[Simulation], n: int, coefficients: Sequence[Tuple
     holds each body's ``(restitution, friction)``. On a failure raises RuntimeError with args ``(body index,
     message)``; the steps completed before it stay."""
 
+def bench_body_detection(sims: Sequence[Simulation], repeats: int) -> float:
+    """Seconds per detection pass of contact between ``sims`` at their current states (nothing changes), the
+    mean over ``repeats``."""
+
 def check_mesh_obstacle(vertices: Sequence[float], triangles: Sequence[int]) -> bool:
     """Validate a triangle-mesh obstacle (``vertices`` (n * 3) m and ``triangles`` (k * 3), flattened); returns
     whether it is closed. Raises ValueError naming the vertex or triangle at fault."""

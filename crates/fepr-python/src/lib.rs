@@ -910,6 +910,14 @@ fn step_bodies(
     result.map_err(|(k, e)| PyRuntimeError::new_err((k, e.to_string())))
 }
 
+/// Seconds per detection pass of contact between `sims` at their current states (nothing changes), the mean
+/// over `repeats` (`fepr_core::simulation::time_body_detection`; for `fepr bench`).
+#[pyfunction]
+fn bench_body_detection(mut sims: Vec<PyRefMut<'_, Simulation>>, repeats: usize) -> PyResult<f64> {
+    let mut inners: Vec<&mut CoreSimulation> = sims.iter_mut().map(|s| &mut s.inner).collect();
+    fepr_core::simulation::time_body_detection(&mut inners, repeats).map_err(value_error)
+}
+
 /// Validate a triangle-mesh obstacle: `vertices` (n * 3, m) and `triangles` (k * 3 indices), flattened.
 /// Returns whether it is closed; raises ValueError naming the vertex or triangle at fault.
 #[pyfunction]
@@ -945,6 +953,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(warm_start_threshold, m)?)?;
     m.add_function(wrap_pyfunction!(check_mesh_obstacle, m)?)?;
     m.add_function(wrap_pyfunction!(step_bodies, m)?)?;
+    m.add_function(wrap_pyfunction!(bench_body_detection, m)?)?;
     // The name lists, each defined once in the core.
     m.add("INTEGRATORS", INTEGRATOR_NAMES.to_vec())?;
     m.add("MATERIALS", MATERIAL_NAMES.to_vec())?;

@@ -553,12 +553,16 @@ def cmd_bench(args) -> int:
         **sync_floor(args.threads or os.cpu_count() or 1),
     }
     results = run_suite(names, quick=args.quick, threads=args.threads, meshes=args.meshes, progress=progress)
+    from .bench_contact import contact_suite, format_contact
+
+    contact = contact_suite(quick=args.quick)
     doc = {
         "fepr_bench": 1,
         "quick": bool(args.quick),
         "machine": machine,
         "wall_s": time.perf_counter() - t0,
         "scenes": results,
+        "contact": contact,
     }
     if args.json:
         text = json.dumps(doc, indent=1)
@@ -569,6 +573,7 @@ def cmd_bench(args) -> int:
     if not to_stdout:
         print(format_table(results))
         print(format_sync_floor(machine))
+        print(format_contact(contact))
     return 1 if any("error" in r for r in results) else 0
 
 
