@@ -12,9 +12,10 @@
 use std::time::Instant;
 
 use super::{Advance, BegunStep, Simulation, IMPACT_DEPTH_FRACTION, MAX_IMPACT_SUBSTEPS};
-use crate::error::{invalid, FeprError, Result};
+use crate::error::{FeprError, Result};
 use crate::world::{
-    deepest_between_bodies, resolve_body_contacts, BodyExchange, BodyInContact, BodySurface,
+    check_contact_coefficients, deepest_between_bodies, resolve_body_contacts, BodyExchange,
+    BodyInContact, BodySurface,
 };
 
 /// Contact coefficients of one body among others: restitution in [0, 1], Coulomb friction >= 0. A pair uses
@@ -27,18 +28,7 @@ pub struct BodyCoefficients {
 
 impl BodyCoefficients {
     pub fn new(restitution: f64, friction: f64) -> Result<Self> {
-        if !(restitution.is_finite() && (0.0..=1.0).contains(&restitution)) {
-            return Err(invalid(
-                "restitution",
-                format!("must be in [0, 1], got {restitution}"),
-            ));
-        }
-        if !(friction.is_finite() && friction >= 0.0) {
-            return Err(invalid(
-                "friction",
-                format!("must be a finite coefficient >= 0, got {friction}"),
-            ));
-        }
+        check_contact_coefficients(restitution, friction)?;
         Ok(Self {
             restitution,
             friction,

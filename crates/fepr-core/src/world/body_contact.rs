@@ -139,13 +139,7 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
     if nb < 2 {
         return out;
     }
-    for b in bodies.iter_mut() {
-        b.surface.follow(&b.state.x);
-    }
-    let bounds: Vec<(Vec3, Vec3)> = bodies
-        .iter()
-        .map(|b| b.surface.bounds(&b.state.x))
-        .collect();
+    let bounds = follow_bodies(bodies);
     // Velocities before, for each body's kinetic energy change (only touched vertices change).
     let v_before: Vec<Vec<Vec3>> = bodies.iter().map(|b| b.state.v.clone()).collect();
     for a in 0..nb {
@@ -235,13 +229,7 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
 /// The deepest surface vertex of any body inside another: `(body, vertex, other body, depth in m)`, or `None`
 /// when no vertex is inside another body. Positions are not changed (the surfaces follow them).
 pub fn deepest_between_bodies(bodies: &mut [BodyInContact]) -> Option<(usize, usize, usize, f64)> {
-    for b in bodies.iter_mut() {
-        b.surface.follow(&b.state.x);
-    }
-    let bounds: Vec<(Vec3, Vec3)> = bodies
-        .iter()
-        .map(|b| b.surface.bounds(&b.state.x))
-        .collect();
+    let bounds = follow_bodies(bodies);
     let mut deepest: Option<(usize, usize, usize, f64)> = None;
     for a in 0..bodies.len() {
         for b in 0..bodies.len() {
@@ -261,6 +249,17 @@ pub fn deepest_between_bodies(bodies: &mut [BodyInContact]) -> Option<(usize, us
         }
     }
     deepest
+}
+
+/// Move every body's surface to its positions; each surface's bounding box `(lo, hi)`, m.
+fn follow_bodies(bodies: &mut [BodyInContact]) -> Vec<(Vec3, Vec3)> {
+    bodies
+        .iter_mut()
+        .map(|b| {
+            b.surface.follow(&b.state.x);
+            b.surface.bounds(&b.state.x)
+        })
+        .collect()
 }
 
 fn overlap(a: (Vec3, Vec3), b: (Vec3, Vec3)) -> bool {

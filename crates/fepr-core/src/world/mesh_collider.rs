@@ -139,20 +139,8 @@ impl MeshCollider {
     /// Signed distance from `x` to the surface (m, negative on the solid side) and the unit outward normal
     /// at the nearest surface point, so that `x - d n` is that point.
     pub fn signed_distance(&self, x: Vec3) -> (f64, Vec3) {
-        let p = to_parry(x);
-        let (proj, (tri, location)) = self.mesh.project_local_point_and_get_location(p, false);
-        let pseudo = self.pseudo_normal(tri, location);
-        let r = sub(x, from_parry(proj.point));
-        let d = norm(r);
-        let inside = dot(r, pseudo) < 0.0;
-        let n = if d > 1e-14 * (1.0 + norm(x)) {
-            // The gradient of the distance: away from the surface outside, towards it inside.
-            scale(r, if inside { -1.0 / d } else { 1.0 / d })
-        } else {
-            let l = norm(pseudo);
-            scale(pseudo, 1.0 / l)
-        };
-        (if inside { -d } else { d }, n)
+        let (phi, n, _, _) = self.closest(x);
+        (phi, n)
     }
 
     /// [`MeshCollider::signed_distance`] with where it was measured: `(phi, n, triangle, barycentric
@@ -161,11 +149,11 @@ impl MeshCollider {
         let p = to_parry(x);
         let (proj, (tri, location)) = self.mesh.project_local_point_and_get_location(p, false);
         let pseudo = self.pseudo_normal(tri, location);
-        let q = from_parry(proj.point);
-        let r = sub(x, q);
+        let r = sub(x, from_parry(proj.point));
         let d = norm(r);
         let inside = dot(r, pseudo) < 0.0;
         let n = if d > 1e-14 * (1.0 + norm(x)) {
+            // The gradient of the distance: away from the surface outside, towards it inside.
             scale(r, if inside { -1.0 / d } else { 1.0 / d })
         } else {
             scale(pseudo, 1.0 / norm(pseudo))

@@ -62,21 +62,27 @@ fn positive(x: f64, what: &'static str) -> Result<()> {
     }
 }
 
+/// Check contact coefficients: restitution in [0, 1], Coulomb friction finite and >= 0.
+pub fn check_contact_coefficients(restitution: f64, friction: f64) -> Result<()> {
+    if !(restitution.is_finite() && (0.0..=1.0).contains(&restitution)) {
+        return Err(invalid(
+            "restitution",
+            format!("must be in [0, 1], got {restitution}"),
+        ));
+    }
+    if !(friction.is_finite() && friction >= 0.0) {
+        return Err(invalid(
+            "friction",
+            format!("must be a finite coefficient >= 0, got {friction}"),
+        ));
+    }
+    Ok(())
+}
+
 impl Obstacle {
     /// Validate the geometry and coefficients (normalises a plane's normal).
     pub fn new(shape: Shape, restitution: f64, friction: f64) -> Result<Self> {
-        if !(restitution.is_finite() && (0.0..=1.0).contains(&restitution)) {
-            return Err(invalid(
-                "restitution",
-                format!("must be in [0, 1], got {restitution}"),
-            ));
-        }
-        if !(friction.is_finite() && friction >= 0.0) {
-            return Err(invalid(
-                "friction",
-                format!("must be a finite coefficient >= 0, got {friction}"),
-            ));
-        }
+        check_contact_coefficients(restitution, friction)?;
         let shape = match shape {
             Shape::Plane { point, normal } => {
                 finite3(point, "plane point")?;
