@@ -169,3 +169,15 @@ def test_several_integrators_get_their_own_runs(tmp_path):
     assert [(r.spec.integrator, r.spec.projection) for r in res.runs] == [(n, p) for n in names for p in (True, False)]
     assert (tmp_path / "implicit_euler-fepr" / "diagnostics.csv").is_file()
     assert len(md_rows((tmp_path / "summary.md").read_text())) == 2 * len(names)
+
+
+def test_a_scene_of_several_bodies_is_compared_as_one(tmp_path):
+    # Two bodies colliding in space: both runs hold the scene's totals, and the frames hold every body's vertices.
+    from fepr.cli.compare import compare
+
+    scene = Path(__file__).resolve().parents[1] / "examples" / "collide.toml"
+    res = compare(scene, tmp_path, steps=20, video=False, plots=False)
+    assert [r.spec.projection for r in res.runs] == [True, False]
+    for r in res.runs:
+        assert r.frames.shape[1] == len(r.rest_positions) and len(r.tets) > 0
+    assert (tmp_path / "fepr" / "diagnostics.csv").is_file()

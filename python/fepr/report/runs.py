@@ -168,9 +168,12 @@ def record_run(
         Called with the number of steps just done (for progress bars).
     """
     variant = scene_with_integrator(scene, spec.integrator)
-    sim = variant.build(projection=None if spec.projection else False)
-    if spec.projection and sim.projection is None:
-        sim = variant.build(projection=True)  # the scene disables FEPR; the "on" run turns it on with defaults
+    build = variant.build_multibody if variant.is_multibody else variant.build
+    sim = build(projection=None if spec.projection else False)
+    first = sim.bodies[0] if variant.is_multibody else sim
+    if spec.projection and first.projection is None:
+        sim = build(projection=True)  # the scene disables FEPR; the "on" run turns it on with defaults
+        first = sim.bodies[0] if variant.is_multibody else sim
     frames_at = [int(s) for s in frames_at]
     frames: List[np.ndarray] = []
     runaway: Optional[int] = None
@@ -207,9 +210,9 @@ def record_run(
         rest_positions=np.array(sim.rest_positions),
         tets=np.array(sim.tets),
         masses=np.array(sim.masses),
-        pinned=bool(np.any(sim.pinned)),
-        gravity=np.array(sim.gravity, dtype=np.float64),
-        material=sim.material,
+        pinned=bool(any(np.any(b.pinned) for b in getattr(sim, "bodies", [sim]))),
+        gravity=np.array(first.gravity, dtype=np.float64),
+        material=first.material,
     )
     if out_dir is not None:
         folder = Path(out_dir) / spec.folder
