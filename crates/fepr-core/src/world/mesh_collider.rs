@@ -302,6 +302,17 @@ mod tests {
         (v, t)
     }
 
+    /// Two triangles of the square [-1, 1]^2 at z = 0, normals +z.
+    fn sheet() -> MeshCollider {
+        let v = [
+            [-1.0, -1.0, 0.0],
+            [1.0, -1.0, 0.0],
+            [1.0, 1.0, 0.0],
+            [-1.0, 1.0, 0.0],
+        ];
+        MeshCollider::new(&v, &[[0, 1, 2], [0, 2, 3]]).unwrap()
+    }
+
     #[test]
     fn a_closed_cube_gives_exact_signed_distances_whichever_way_it_is_wound() {
         for inward in [false, true] {
@@ -352,15 +363,7 @@ mod tests {
 
     #[test]
     fn an_open_sheet_is_one_sided_with_the_solid_behind_its_normals() {
-        // Two triangles of the square [-1, 1]^2 at z = 0, normals +z.
-        let v = vec![
-            [-1.0, -1.0, 0.0],
-            [1.0, -1.0, 0.0],
-            [1.0, 1.0, 0.0],
-            [-1.0, 1.0, 0.0],
-        ];
-        let t = vec![[0, 1, 2], [0, 2, 3]];
-        let m = MeshCollider::new(&v, &t).unwrap();
+        let m = sheet();
         assert!(!m.is_closed());
         assert!((m.signed_distance([0.2, 0.1, 0.3]).0 - 0.3).abs() < 1e-12);
         let (d, n) = m.signed_distance([0.2, 0.1, -0.3]);
@@ -369,14 +372,7 @@ mod tests {
 
     #[test]
     fn a_segment_through_a_thin_sheet_is_caught_where_it_crosses() {
-        let v = vec![
-            [-1.0, -1.0, 0.0],
-            [1.0, -1.0, 0.0],
-            [1.0, 1.0, 0.0],
-            [-1.0, 1.0, 0.0],
-        ];
-        let t = vec![[0, 1, 2], [0, 2, 3]];
-        let m = MeshCollider::new(&v, &t).unwrap();
+        let m = sheet();
         let (t, p, n) = m.first_crossing([0.1, 0.2, 0.5], [0.1, 0.2, -1.5]).unwrap();
         assert!((t - 0.25).abs() < 1e-12 && p[2].abs() < 1e-12 && (n[2] - 1.0).abs() < 1e-12);
         // Passing beside the sheet, and moving away from it, cross nothing.
