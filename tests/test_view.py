@@ -340,3 +340,28 @@ def test_view_page_draws_the_scene_and_the_projection_toggle_reaches_the_server(
             server.stdout.close()
     assert server.returncode == 0, "".join(lines[-20:])
     assert any("fepr view: stopped" in ln for ln in lines)
+
+
+def test_a_scene_of_several_bodies_is_viewed_dragged_and_switched_as_one():
+    # examples/collide.toml: both bodies in the snapshot, a drag on the second body's vertex reaches that body,
+    # and switching the projection off continues from the same state.
+    scene = load_scene(Path(__file__).resolve().parents[1] / "examples" / "collide.toml")
+    s = ViewerSession(scene_builder(scene), integrator="symplectic_euler", dt=5e-4, running=False)
+    system = s.simulation
+    n = len(system.rest_positions)
+    assert s.snapshot().positions.shape == (n, 3) and len(system.bodies) == 2
+    x = s.snapshot().positions
+    k = n - 1  # a vertex of the ball
+    assert s.grab(x[k]) == k
+    s.drag_to(x[k] + np.array([0.0, 0.0, 0.2]))
+    for _ in range(5):
+        s.step_once()
+        s.run_pending()
+    snap = s.snapshot()
+    assert snap.steps == 5 and snap.error is None and snap.drag_work != 0.0
+    ball = s.simulation.bodies[1]
+    assert ball.history["work_forces"][1:].sum() != 0.0 and s.simulation.bodies[0].history["work_forces"].sum() == 0.0
+    s.release()
+    s.set_projection(False)
+    s.run_pending()
+    np.testing.assert_array_equal(s.snapshot().positions, snap.positions)

@@ -223,13 +223,67 @@ class MultiBody:
 
     @property
     def positions(self) -> np.ndarray:
-        """Positions of all bodies concatenated in order, (n, 3) float64, m (a copy)."""
+        """Positions of all bodies concatenated in order, (n, 3) float64, m (a copy). Setting it sets every
+        body's positions from its rows (each body re-measures its references, as :attr:`Simulation.positions`)."""
         return np.concatenate([np.asarray(b.positions) for b in self._bodies])
+
+    @positions.setter
+    def positions(self, x) -> None:
+        for b, part in zip(self._bodies, self._split(x, "positions")):
+            b.positions = part
 
     @property
     def velocities(self) -> np.ndarray:
-        """Velocities of all bodies concatenated in order, (n, 3) float64, m/s (a copy)."""
+        """Velocities of all bodies concatenated in order, (n, 3) float64, m/s (a copy); settable as
+        :attr:`positions`."""
         return np.concatenate([np.asarray(b.velocities) for b in self._bodies])
+
+    @velocities.setter
+    def velocities(self, v) -> None:
+        for b, part in zip(self._bodies, self._split(v, "velocities")):
+            b.velocities = part
+
+    def _split(self, a, what: str) -> list:
+        """``a`` ((n, 3), the concatenated vertices) cut into the bodies' rows."""
+        arr = np.asarray(a, dtype=np.float64)
+        offs = self.offsets
+        if arr.shape != (int(offs[-1]), 3):
+            raise ConfigError(f"{what} must have shape ({int(offs[-1])}, 3) (all bodies' vertices), got {arr.shape}")
+        return [arr[offs[k] : offs[k + 1]] for k in range(len(self._bodies))]
+
+    def _body_of(self, vertex: int) -> Tuple[int, int]:
+        """``(body, its vertex)`` of a vertex of the concatenated arrays."""
+        offs = self.offsets
+        if not 0 <= int(vertex) < int(offs[-1]):
+            raise ConfigError(f"vertex {vertex} is out of range: the bodies have {int(offs[-1])} vertices")
+        k = int(np.searchsorted(offs, int(vertex), side="right")) - 1
+        return k, int(vertex) - int(offs[k])
+
+    @property
+    def pinned(self) -> np.ndarray:
+        """Pinned-vertex mask of all bodies concatenated in order, (n,) bool."""
+        return np.concatenate([np.asarray(b.pinned, dtype=bool) for b in self._bodies])
+
+    def set_drag(self, vertex: int, target, stiffness: float) -> None:
+        """Pull ``vertex`` (an index into the concatenated arrays) towards ``target`` ((3,) m) with a spring of
+        ``stiffness`` N/m (the viewer's mouse drag); the other bodies are released."""
+        k, i = self._body_of(vertex)
+        for j, b in enumerate(self._bodies):
+            if j == k:
+                b.set_drag(i, target, stiffness)
+            else:
+                b.clear_drag()
+
+    def clear_drag(self) -> None:
+        """Release the drag spring."""
+        for b in self._bodies:
+            b.clear_drag()
+
+    @property
+    def last_projection(self):
+        """The last step's projection report of the body that iterated most, or None (no projection)."""
+        reports = [r for r in (b.last_projection for b in self._bodies) if r is not None]
+        return max(reports, key=lambda r: r.iterations) if reports else None
 
     @property
     def rest_positions(self) -> np.ndarray:

@@ -41,9 +41,11 @@ def scene_builder(scene) -> Callable[[str, float, bool], object]:
     def build(integrator: str, dt: float, projection: bool):
         sc = scene_with_integrator(scene, integrator)
         sc = dataclasses.replace(sc, integrator=dataclasses.replace(sc.integrator, dt=float(dt)))
-        sim = sc.build(projection=None if projection else False)
-        if projection and sim.projection is None:
-            sim = sc.build(projection=True)
+        build_one = sc.build_multibody if sc.is_multibody else sc.build
+        sim = build_one(projection=None if projection else False)
+        first = sim.bodies[0] if sc.is_multibody else sim
+        if projection and first.projection is None:
+            sim = build_one(projection=True)
         return sim
 
     return build
