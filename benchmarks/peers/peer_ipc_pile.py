@@ -81,8 +81,8 @@ def main() -> int:
     }
     print(
         f"pile after {args.steps} steps, {out['surface_vertices']} surface vertices, {out['surface_faces']} faces: "
-        f"fepr detection {out['fepr_detection_ms']:.2f} ms, ipctk NormalCollisions.build {out['ipctk_build_ms']:.2f} ms "
-        f"({found} pairs within dhat = {dhat} m)"
+        f"fepr detection {out['fepr_detection_ms']:.2f} ms, "
+        f"ipctk NormalCollisions.build {out['ipctk_build_ms']:.2f} ms ({found} pairs within dhat = {dhat} m)"
     )
     if args.json:
         with open(args.json, "w") as fh:
