@@ -197,7 +197,8 @@ pub struct Simulation {
     deferred: f64,
     /// The body's surface as other bodies collide with it (built at the first step among bodies).
     surface: Option<BodySurface>,
-    /// The state at the start of the current part of a step (what its impact substeps start again from).
+    /// The state at the start of a later part of a step among bodies (what its impact substeps start again
+    /// from; the first part starts again from `previous`).
     part_start: State,
 }
 
@@ -628,7 +629,7 @@ impl Simulation {
     fn begin_step(&mut self) -> Result<BegunStep> {
         self.open_step()?;
         let t0 = Instant::now();
-        let adv = self.advance_part(self.dt)?;
+        let adv = self.advance_part(self.dt, true)?;
         let base_ms = t0.elapsed().as_secs_f64() * 1e3;
         Ok(BegunStep { adv, base_ms })
     }
@@ -645,10 +646,10 @@ impl Simulation {
     }
 
     /// Advance the base step and the world's processes over `h` (the whole step, or a part of it when bodies
-    /// in contact take the step in substeps), with the obstacles' impact substeps. On a non-finite result the
-    /// whole step is undone and an error names it.
-    fn advance_part(&mut self, h: f64) -> Result<Advance> {
-        let (adv, finite) = self.advance_resolving_impacts(h)?;
+    /// in contact take the step in substeps; `first`: the part starts at the start of the step), with the
+    /// obstacles' impact substeps. On a non-finite result the whole step is undone and an error names it.
+    fn advance_part(&mut self, h: f64, first: bool) -> Result<Advance> {
+        let (adv, finite) = self.advance_resolving_impacts(h, first)?;
         if !finite {
             let step = self.num_steps() + 1;
             self.abandon_step();
@@ -809,14 +810,23 @@ impl Simulation {
     /// The base step over `h`, redone from the start in substeps (up to [`MAX_IMPACT_SUBSTEPS`]) when an obstacle's
     /// push-out was deeper than the impact limit; collects the vertices in or near contact (frozen for the
     /// projection). Returns the advance and whether the state is finite.
-    fn advance_resolving_impacts(&mut self, h: f64) -> Result<(Advance, bool)> {
+    fn advance_resolving_impacts(&mut self, h: f64, first: bool) -> Result<(Advance, bool)> {
         self.contact_vertices.clear();
-        copy_state(&self.state, &mut self.part_start);
+        // Where impact substeps start again: the step's start (kept in `previous`), or, for a later part of a
+        // step among bodies, a copy of where this part starts.
+        if !first {
+            copy_state(&self.state, &mut self.part_start);
+        }
         let mut adv = self.advance(h)?;
         let limit = IMPACT_DEPTH_FRACTION * self.mean_edge;
         if adv.max_depth > limit && self.state.is_finite() {
             let k = ((adv.max_depth / limit).ceil() as usize).clamp(2, MAX_IMPACT_SUBSTEPS);
-            copy_state(&self.part_start, &mut self.state);
+            let start = if first {
+                &self.previous
+            } else {
+                &self.part_start
+            };
+            copy_state(start, &mut self.state);
             self.contact_vertices.clear();
             let mut total = Advance::default();
             for _ in 0..k {

@@ -141,7 +141,9 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
     }
     let bounds = follow_bodies(bodies);
     // Velocities before, for each body's kinetic energy change (only touched vertices change).
-    let v_before: Vec<Vec<Vec3>> = bodies.iter().map(|b| b.state.v.clone()).collect();
+    // Velocities before the contacts, copied for a body when it first takes part in one (for its kinetic energy
+    // change; bodies that touch nothing are not copied).
+    let mut v_before: Vec<Option<Vec<Vec3>>> = vec![None; nb];
     for a in 0..nb {
         for b in 0..nb {
             if a == b || !overlap(bounds[a], bounds[b]) {
@@ -167,6 +169,9 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
                     continue;
                 }
                 let depth = -phi;
+                for (k, body) in [(a, &*ba), (b, &*bb)] {
+                    v_before[k].get_or_insert_with(|| body.state.v.clone());
+                }
                 ba.state.x[i] = add(x, scale(n, depth * inv_i / k_eff));
                 for c in 0..3 {
                     let j = idx[c];
@@ -218,7 +223,8 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
             .iter()
             .map(|&i| {
                 let i = i as usize;
-                let (v0, v1) = (v_before[k][i], body.state.v[i]);
+                let v0 = v_before[k].as_ref().expect("copied at its first contact")[i];
+                let v1 = body.state.v[i];
                 0.5 * body.model.masses[i] * (dot(v1, v1) - dot(v0, v0))
             })
             .sum();

@@ -222,10 +222,17 @@ impl MeshCollider {
     /// nearest its end.
     pub fn first_crossing(&self, p0: Vec3, p1: Vec3) -> Option<(f64, Vec3, Vec3)> {
         let (d0, _) = self.signed_distance(p0);
-        let dir = sub(p1, p0);
-        if d0 < 0.0 || norm(dir) <= d0 {
+        if d0 < 0.0 || norm(sub(p1, p0)) <= d0 {
             return None;
         }
+        let (d1, n1) = self.signed_distance(p1);
+        self.ray_entry(p0, p1, d1, n1)
+    }
+
+    /// [`MeshCollider::first_crossing`] for a segment known to start outside, given the signed distance `d1`
+    /// (m) and normal `n1` at its end.
+    pub fn ray_entry(&self, p0: Vec3, p1: Vec3, d1: f64, n1: Vec3) -> Option<(f64, Vec3, Vec3)> {
+        let dir = sub(p1, p0);
         let ray = Ray::new(to_parry(p0), to_parry(dir));
         if let Some(hit) = self.mesh.cast_local_ray_and_get_normal(&ray, 1.0, false) {
             let n = from_parry(self.mesh.triangle(hit.subshape).scaled_normal());
@@ -235,7 +242,6 @@ impl MeshCollider {
                 return Some((t, point, scale(n, 1.0 / norm(n))));
             }
         }
-        let (d1, n1) = self.signed_distance(p1);
         (d1 <= 0.0).then(|| (1.0, sub(p1, scale(n1, d1)), n1))
     }
 }

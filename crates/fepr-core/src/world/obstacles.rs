@@ -156,10 +156,10 @@ impl Obstacle {
     /// Both for a segment that ends inside (the entry point, not the surface point nearest `p1`, which for a thin
     /// obstacle can be on its far side) and for one that passed through within one step.
     ///
-    /// Written here, not taken from a collision library: the shapes are given by their exact signed distances,
-    /// which are convex along any segment (each analytic shape is convex), so the minimum along the segment is found by a
-    /// golden-section search and the first crossing before it by bisection, to 1e-12 of the segment, for every
-    /// analytic shape alike (a mesh ray-casts its triangles).
+    /// Written here, not taken from a collision library: the analytic shapes are given by their exact signed
+    /// distances, which are convex along any segment (each shape is convex), so the minimum along the segment is
+    /// found by a golden-section search and the first crossing before it by bisection, to 1e-12 of the segment,
+    /// for every analytic shape alike. A mesh ray-casts its triangles ([`MeshCollider::ray_entry`]).
     ///
     /// A segment that ends outside on the side it started (the outward normals at its ends point the same way)
     /// is not a crossing even where its chord dips into the solid: a vertex sliding over a bump or around a
@@ -167,29 +167,24 @@ impl Obstacle {
     /// Passing through a thin obstacle ends on its far side, where the normal points the other way.
     pub fn first_crossing(&self, p0: Vec3, p1: Vec3) -> Option<(f64, Vec3, Vec3)> {
         let (d0, n0) = self.signed_distance(p0);
-        let (d1, n1) = self.signed_distance(p1);
-        if d0 < 0.0 || (d1 >= 0.0 && dot(n0, n1) > 0.0) {
-            return None;
-        }
-        if let Shape::Mesh(mesh) = &self.shape {
-            // A mesh is not convex: its own ray cast finds the crossing.
-            return mesh.first_crossing(p0, p1);
-        }
-        let at = |t: f64| add(p0, scale(sub(p1, p0), t));
-        let phi = |t: f64| self.signed_distance(at(t)).0;
-        let (d0, d1) = (phi(0.0), phi(1.0));
         let len = norm(sub(p1, p0));
         // The signed distance changes by at most the distance moved: a segment shorter than the clearance at
-        // either end cannot reach the obstacle.
+        // its start cannot reach the obstacle (most vertices stop here, after one query).
         // A start on the surface (where the last push-out left the vertex) counts as outside.
         if d0 < 0.0 || len <= d0 {
             return None;
         }
+        let (d1, n1) = self.signed_distance(p1);
+        if d1 >= 0.0 && (dot(n0, n1) > 0.0 || len <= d1) {
+            return None;
+        }
+        if let Shape::Mesh(mesh) = &self.shape {
+            // A mesh is not convex: its own ray cast finds the crossing.
+            return mesh.ray_entry(p0, p1, d1, n1);
+        }
+        let phi = |t: f64| self.signed_distance(add(p0, scale(sub(p1, p0), t))).0;
         if d1 <= 0.0 {
             return Some(self.entry(p0, p1, 1.0));
-        }
-        if len <= d1 {
-            return None;
         }
         let inv_golden = 0.5 * (5f64.sqrt() - 1.0);
         let (mut a, mut b) = (0.0f64, 1.0f64);
