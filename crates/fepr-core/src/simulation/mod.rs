@@ -333,8 +333,8 @@ impl Simulation {
                 continue;
             }
             for (k, ob) in self.world.obstacles.iter().enumerate() {
-                let depth = -ob.signed_distance(*x).0;
-                if depth > limit {
+                if let Some((phi, _)) = ob.signed_distance_below(*x, -limit) {
+                    let depth = -phi;
                     return Err(FeprError::Simulation(format!(
                         "vertex {i} at ({:.4}, {:.4}, {:.4}) m starts {depth:.4} m inside obstacle {k} ({}); a body must \
                          start outside the obstacles (at most {limit:.2e} m inside, a tenth of its mean edge): move \

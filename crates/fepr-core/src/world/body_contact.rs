@@ -247,8 +247,11 @@ pub fn deepest_between_bodies(bodies: &mut [BodyInContact]) -> Option<(usize, us
                 if !inside(x, bounds[b]) {
                     continue;
                 }
-                let phi = bodies[b].surface.collider.signed_distance(x).0;
-                if phi < 0.0 && deepest.is_none_or(|d| -phi > d.3) {
+                let Some((phi, _)) = bodies[b].surface.collider.signed_distance_below(x, 0.0)
+                else {
+                    continue;
+                };
+                if deepest.is_none_or(|d| -phi > d.3) {
                     deepest = Some((a, i as usize, b, -phi));
                 }
             }

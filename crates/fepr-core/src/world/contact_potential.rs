@@ -106,11 +106,12 @@ impl ContactPotential {
                 return None;
             }
         }
-        let (phi, n) = ob.signed_distance(x);
+        let near = ob.signed_distance_below(x, below);
         if cached {
-            clear[k * m + i] = (x, phi);
+            // Exact where found; otherwise `below` is a lower bound of the distance, as good for the next query.
+            clear[k * m + i] = (x, near.map_or(below, |(phi, _)| phi));
         }
-        (phi < below).then_some((phi, n))
+        near
     }
 
     /// True when there is no obstacle (the potential is 0 everywhere).
@@ -127,8 +128,8 @@ impl ContactPotential {
     /// the activation distance `margin`, negative, m; the obstacle's outward normal).
     fn reaching(&self, margin: f64, x: Vec3) -> impl Iterator<Item = (f64, Vec3)> + '_ {
         self.obstacles.iter().filter_map(move |ob| {
-            let (phi, n) = ob.signed_distance(x);
-            (phi < margin).then_some((phi - margin, n))
+            ob.signed_distance_below(x, margin)
+                .map(|(phi, n)| (phi - margin, n))
         })
     }
 
@@ -296,8 +297,7 @@ impl ContactPotential {
     pub fn nearest_outside(&self, model: &Model, mut x: Vec3) -> Vec3 {
         let margin = Self::margin(model);
         for ob in &self.obstacles {
-            let (phi, n) = ob.signed_distance(x);
-            if phi < margin {
+            if let Some((phi, n)) = ob.signed_distance_below(x, margin) {
                 for a in 0..3 {
                     x[a] -= (phi - margin) * n[a];
                 }

@@ -166,12 +166,12 @@ impl Obstacle {
     /// sphere ends its step on the surface, and only the straight line between its positions cuts the curve.
     /// Passing through a thin obstacle ends on its far side, where the normal points the other way.
     pub fn first_crossing(&self, p0: Vec3, p1: Vec3) -> Option<(f64, Vec3, Vec3)> {
-        let (d0, n0) = self.signed_distance(p0);
         let len = norm(sub(p1, p0));
         // The signed distance changes by at most the distance moved: a segment shorter than the clearance at
-        // its start cannot reach the obstacle (most vertices stop here, after one query).
+        // its start cannot reach the obstacle (most vertices stop here, after one query bounded at `len`).
         // A start on the surface (where the last push-out left the vertex) counts as outside.
-        if d0 < 0.0 || len <= d0 {
+        let (d0, n0) = self.signed_distance_below(p0, len)?;
+        if d0 < 0.0 {
             return None;
         }
         let (d1, n1) = self.signed_distance(p1);
@@ -238,6 +238,16 @@ impl Obstacle {
             Shape::Capsule { .. } => "capsule",
             Shape::Mesh(_) => "mesh",
         }
+    }
+
+    /// [`Obstacle::signed_distance`] where it is below `below` (m), else `None`; for a closed mesh without
+    /// searching farther than needed ([`MeshCollider::signed_distance_below`]).
+    pub fn signed_distance_below(&self, x: Vec3, below: f64) -> Option<(f64, Vec3)> {
+        if let Shape::Mesh(mesh) = &self.shape {
+            return mesh.signed_distance_below(x, below);
+        }
+        let (phi, n) = self.signed_distance(x);
+        (phi < below).then_some((phi, n))
     }
 
     /// Signed distance from `x` to the obstacle's surface (m, negative inside) and the unit outward normal
@@ -356,18 +366,20 @@ pub fn resolve_contacts(
         let v_before = state.v[i];
         let mut hit = false;
         for ob in obstacles {
-            let (phi, n) = ob.signed_distance(state.x[i]);
+            // `Some` for a vertex inside (a distance query bounded at the surface: most vertices are far out).
+            let inside = ob.signed_distance_below(state.x[i], 0.0);
             // Where the vertex goes back to: onto the surface along the normal, or, when its path crossed the
             // obstacle, to where the path first touched it.
             // The crossing test applies where the nearest surface would be wrong: a vertex that ends outside
             // but passed through, or one that ends inside nearer the far side than the side it came in by (its
             // nearest surface's normal points along its motion and away from the normal where it started).
             // Elsewhere (resting, sliding over a bump, ordinary impacts) the nearest surface point is the answer.
-            let far_side = phi < 0.0
-                && x_start.get(i).is_some_and(|&x0| {
+            let far_side = inside.is_some_and(|(_, n)| {
+                x_start.get(i).is_some_and(|&x0| {
                     dot(n, sub(state.x[i], x0)) > 0.0 && dot(n, ob.signed_distance(x0).1) < 0.0
-                });
-            let crossing = if phi >= 0.0 || far_side {
+                })
+            });
+            let crossing = if inside.is_none() || far_side {
                 x_start
                     .get(i)
                     .and_then(|&x0| ob.first_crossing(x0, state.x[i]))
@@ -376,7 +388,7 @@ pub fn resolve_contacts(
             };
             let (n, surface, depth) = if let Some((_, point, n_hit)) = crossing {
                 (n_hit, point, norm(sub(state.x[i], point)))
-            } else if phi < 0.0 {
+            } else if let Some((phi, n)) = inside {
                 (n, sub(state.x[i], scale(n, phi)), -phi)
             } else {
                 continue;
@@ -454,7 +466,7 @@ pub fn near_obstacles(obstacles: &[Obstacle], model: &Model, state: &State, out:
         }
         if obstacles
             .iter()
-            .any(|ob| ob.signed_distance(state.x[i]).0 < floor)
+            .any(|ob| ob.signed_distance_below(state.x[i], floor).is_some())
         {
             out.push(i as u32);
         }
@@ -469,7 +481,9 @@ pub fn max_penetration(obstacles: &[Obstacle], model: &Model, x: &[Vec3]) -> f64
             continue;
         }
         for ob in obstacles {
-            worst = worst.max(-ob.signed_distance(*xi).0);
+            if let Some((phi, _)) = ob.signed_distance_below(*xi, 0.0) {
+                worst = worst.max(-phi);
+            }
         }
     }
     worst
