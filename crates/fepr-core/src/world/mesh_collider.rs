@@ -397,6 +397,31 @@ mod tests {
     }
 
     #[test]
+    fn a_bounded_query_answers_exactly_where_the_distance_is_below_the_bound() {
+        let (v, t) = cube(false);
+        let m = MeshCollider::new(&v, &t).unwrap();
+        let points = [
+            [0.9, 0.5, 0.45], // inside, 0.1 from a face
+            [0.5, 0.5, 0.5],  // inside, deepest
+            [2.0, 2.0, 2.0],  // far outside a corner
+            [1.05, 0.5, 0.5], // just outside
+            [0.3, 0.4, 1.0],  // on the surface
+            [0.5, -3.0, 0.5], // far outside, level with the cube
+        ];
+        for x in points {
+            let exact = m.signed_distance(x);
+            for below in [-0.3, -0.05, 0.0, 0.01, 0.2, 5.0] {
+                let got = m.signed_distance_below(x, below);
+                if exact.0 < below {
+                    assert_eq!(got, Some(exact), "{x:?} below {below}");
+                } else {
+                    assert_eq!(got, None, "{x:?} below {below}");
+                }
+            }
+        }
+    }
+
+    #[test]
     fn the_nearest_point_is_the_barycentric_combination_reported() {
         let (v, t) = cube(false);
         let m = MeshCollider::new(&v, &t).unwrap();
