@@ -81,6 +81,44 @@ pub trait Integrator: Send + Sync {
     fn is_implicit(&self) -> bool {
         false
     }
+    /// The step as iterations that several bodies take together ([`CoupledSolve`]), for an integrator that
+    /// can hold contact between bodies inside its solve; `None` (the default): it cannot, and contact between
+    /// bodies is answered after its step.
+    fn coupled(&mut self) -> Option<&mut dyn CoupledSolve> {
+        None
+    }
+}
+
+/// An implicit step whose iterations bodies in contact take together, each a linear solve that the caller
+/// may correct between the solve and its acceptance (contact between bodies as constraints of the bodies'
+/// joint global step, [`crate::simulation::step_bodies`]). `begin`, then for `it` in `0..iterations()`:
+/// `solve`, any correction of `solution_mut`, `accept` (true: converged); then `finish`. Without corrections
+/// this is [`Integrator::step`], bit for bit.
+pub trait CoupledSolve {
+    /// Start a step of `h` seconds from `state`.
+    fn begin(&mut self, model: &Model, state: &State, h: f64, hand_over: &mut HandOver);
+    /// Iterations the step takes at most (0 after a failed start).
+    fn iterations(&self) -> usize;
+    /// The current iterate, m (all vertices).
+    fn positions(&self) -> &[Vec3];
+    /// The iteration's local step and linear solve; its solution is then in [`CoupledSolve::solution_mut`].
+    fn solve(&mut self, model: &Model);
+    /// The free vertices, in the order of the solution's rows.
+    fn free_vertices(&self) -> Vec<usize>;
+    /// The last solve's solution, one row (m) per free vertex, to correct before `accept`.
+    fn solution_mut(&mut self) -> &mut [Vec3];
+    /// Solve the step's current matrix (a scalar matrix, the same for x, y and z) for three right-hand sides
+    /// at once, in place: one column per component, one row per free vertex.
+    fn solve_columns(&mut self, columns: &mut [Vec3]);
+    /// Changes whenever the matrix [`CoupledSolve::solve_columns`] solves with changes.
+    fn matrix_version(&self) -> usize;
+    /// The solution becomes the iterate (iteration `it`). Returns true when the step converged.
+    fn accept(&mut self, model: &Model, it: usize) -> bool;
+    /// Whether the last `accept` added vertices to the obstacles' contact constraints (the next solve differs).
+    fn contacts_grew(&self) -> bool;
+    /// End the step: the state at its end and the report (without contact between bodies, which the caller
+    /// books).
+    fn finish(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport;
 }
 
 /// End a step of a position-based integrator (backward Euler, Projective Dynamics): the new positions

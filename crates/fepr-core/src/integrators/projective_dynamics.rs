@@ -29,7 +29,9 @@ use std::time::Instant;
 
 use crate::elasticity::shape_gradients;
 use crate::error::{invalid, FeprError, Result};
-use crate::integrators::{finish_positional_step, HandOver, Integrator, SharedMetric, StepReport};
+use crate::integrators::{
+    finish_positional_step, CoupledSolve, HandOver, Integrator, SharedMetric, StepReport,
+};
 use crate::material::Material;
 use crate::math::{add, scale, Vec3};
 use crate::math::{LowerPattern, SparseCholesky};
@@ -39,6 +41,9 @@ use crate::world::{ContactPotential, Obstacle, STIFFNESS_RATIO};
 
 /// How often a step may add the vertices its iterations brought into an obstacle's reach to the contact active set.
 const ACTIVE_SET_REFRESHES: usize = 2;
+/// The same for a step taken together with other bodies, whose corrections may push vertices towards an obstacle
+/// at any iteration.
+const TOGETHER_REFRESHES: usize = 2;
 use std::sync::{Arc, Mutex};
 
 /// Projective Dynamics settings.
@@ -123,6 +128,16 @@ pub struct ProjectiveDynamics {
     /// iteration, m.
     active: Vec<usize>,
     targets: Vec<Vec3>,
+    target_vertices: Vec<usize>,
+    /// The step in progress: its size (s), report, active-set refreshes so far, and whether it failed.
+    step_h: f64,
+    report: StepReport,
+    refreshes: usize,
+    failed: bool,
+    /// Whether the step is taken together with other bodies ([`CoupledSolve`]), and whether the last
+    /// iteration added vertices to the contact active set.
+    together: bool,
+    set_grew: bool,
 }
 
 impl std::fmt::Debug for ProjectiveDynamics {
@@ -369,8 +384,10 @@ impl Integrator for ProjectiveDynamics {
         }
     }
 
-    // Long (about 200 lines): the PD step as the paper states it (prefactor on change, the contact set, then local
-    // and global steps in one loop, then velocities and the report), kept in one place to be read against it.
+    // The PD step as the paper states it, in three parts so that several bodies can take their iterations
+    // together (contact between bodies inside their solves, [`CoupledSolve`]): `begin` (prefactor on change,
+    // the prediction, the contact set), `iterate` (one local and global step), `finish` (velocities and the
+    // contacts' report).
     fn step(
         &mut self,
         model: &Model,
@@ -379,6 +396,92 @@ impl Integrator for ProjectiveDynamics {
         hand_over: &mut HandOver,
     ) -> StepReport {
         hand_over.share_metric(&(Arc::clone(&self.matrix) as SharedMetric));
+        self.begin_step(model, state, h);
+        for it in 0..self.settings.iterations {
+            self.solve_unconstrained(model);
+            if self.accept_solution(model, it) {
+                break;
+            }
+        }
+        self.finish_step(model, state, h)
+    }
+
+    fn coupled(&mut self) -> Option<&mut dyn CoupledSolve> {
+        Some(self)
+    }
+}
+
+impl CoupledSolve for ProjectiveDynamics {
+    fn begin(&mut self, model: &Model, state: &State, h: f64, hand_over: &mut HandOver) {
+        hand_over.share_metric(&(Arc::clone(&self.matrix) as SharedMetric));
+        self.begin_step(model, state, h);
+        self.together = true;
+    }
+
+    fn contacts_grew(&self) -> bool {
+        self.set_grew
+    }
+
+    fn iterations(&self) -> usize {
+        if self.failed {
+            0
+        } else {
+            self.settings.iterations
+        }
+    }
+
+    fn positions(&self) -> &[Vec3] {
+        &self.x
+    }
+
+    fn solve(&mut self, model: &Model) {
+        self.solve_unconstrained(model);
+    }
+
+    fn free_vertices(&self) -> Vec<usize> {
+        let matrix = self.matrix.lock().unwrap_or_else(|e| e.into_inner());
+        matrix
+            .pre
+            .as_ref()
+            .map_or_else(Vec::new, |p| p.free_vertices.clone())
+    }
+
+    fn solution_mut(&mut self) -> &mut [Vec3] {
+        &mut self.rhs
+    }
+
+    fn solve_columns(&mut self, columns: &mut [Vec3]) {
+        let mut matrix = self.matrix.lock().unwrap_or_else(|e| e.into_inner());
+        let pre = matrix.pre.as_mut().expect("begun");
+        match (&mut pre.contact, self.active.is_empty()) {
+            (Some((chol, _)), false) => chol.solve3_in_place(columns),
+            _ => pre.chol.solve3_in_place(columns),
+        }
+    }
+
+    fn matrix_version(&self) -> usize {
+        self.factorizations * 2 + usize::from(self.active.is_empty())
+    }
+
+    fn accept(&mut self, model: &Model, it: usize) -> bool {
+        self.accept_solution(model, it)
+    }
+
+    fn finish(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
+        self.finish_step(model, state, h)
+    }
+}
+
+impl ProjectiveDynamics {
+    /// The step's start: the matrix (factorised again when `h` or the model changed), the inertial prediction
+    /// and the contact constraints' active set. A failure (only a singular matrix or a wrong material, which
+    /// `check` refuses) is remembered: the iterations do nothing and [`Self::finish_step`] poisons the state.
+    fn begin_step(&mut self, model: &Model, state: &State, h: f64) {
+        self.failed = false;
+        self.together = false;
+        self.set_grew = false;
+        self.timing = PdTiming::default();
+        self.refreshes = 0;
         let mut matrix = self.matrix.lock().unwrap_or_else(|e| e.into_inner());
         // The matrix depends on h, the masses, the pins and the material's mu: refactorise when the simulation
         // changes h (impact substeps) or the model changed since the factorisation (a user of the Rust API may
@@ -400,24 +503,17 @@ impl Integrator for ProjectiveDynamics {
                     self.factorizations += 1;
                 }
                 Err(_) => {
-                    // Only reachable without `check` (wrong material) or a singular matrix: poison the state
-                    // so that the simulation reports it instead of silently standing still.
-                    state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
-                    return StepReport::default();
+                    self.failed = true;
+                    return;
                 }
             }
         }
         let pre = matrix.pre.as_mut().expect("prefactored");
         let m = model.num_vertices();
-        let n = pre.free_vertices.len();
         let inv_h2 = 1.0 / (h * h);
         // Workspaces (no allocation in the step loop): the start positions, the iterate (from the inertial
         // prediction with gravity) and the inertial target y = x_n + h v_n.
-        let (mut x_n, mut x, mut y) = (
-            std::mem::take(&mut self.x_n),
-            std::mem::take(&mut self.x),
-            std::mem::take(&mut self.y),
-        );
+        let (x_n, x, y) = (&mut self.x_n, &mut self.x, &mut self.y);
         x_n.clone_from(&state.x);
         y.clear();
         x.clear();
@@ -432,142 +528,175 @@ impl Integrator for ProjectiveDynamics {
                 );
             }
         }
-        let mut report = StepReport {
+        self.report = StepReport {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()
         };
+        self.step_h = h;
         // The contact constraints' active set: the free vertices the inertial prediction puts inside an obstacle.
         self.active.clear();
-        match Self::extend_active_set(&self.contact, &mut self.active, pre, model, &x, inv_h2) {
+        match Self::extend_active_set(&self.contact, &mut self.active, pre, model, x, inv_h2) {
             Ok(factorized) => self.factorizations += factorized as usize,
             Err(_) => {
                 // Cannot happen for a positive definite matrix plus positive diagonal weights; poison the state
                 // as for the plain matrix so that the simulation reports it.
-                state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
-                return StepReport::default();
+                self.failed = true;
+                return;
             }
         }
-        let mut refreshes = 0;
         // The first local step starts from the prediction with the active vertices on the surface (their
         // constraints' targets), not from deep inside the obstacle, which would strain the elements around them.
         for &v in &self.active {
             x[v] = self.contact.nearest_outside(model, x[v]);
         }
         self.corner_terms.resize(model.num_tets(), [[0.0; 3]; 4]);
-        let mut timing = PdTiming::default();
-        for it in 0..self.settings.iterations {
-            let t0 = Instant::now();
-            // Local step: the closest rotation R_e to each F_e and its corner terms w_e R_e g_k, in parallel
-            // (rotation_blocks: bit for bit linalg::polar_rotation).
-            crate::elasticity::pd_rotation_terms(pre.mu, model, &x, &mut self.corner_terms);
-            let t1 = Instant::now();
-            // Global step right-hand side, row c for free vertex c: M (y / h^2 + g) + sum_e w_e R_e g_e,k over
-            // the tets at the vertex, gathered in parallel in ascending block position (deterministic).
-            let terms = self.corner_terms.as_flattened();
-            let g = model.gravity;
-            self.rhs.resize(n, [0.0; 3]);
-            for_each_chunk_mut(&mut self.rhs, RHS_CHUNK, |ci, chunk| {
-                for (k, out) in chunk.iter_mut().enumerate() {
-                    let v = pre.free_vertices[ci * RHS_CHUNK + k];
-                    let mut acc = [0.0; 3];
+    }
+
+    /// The local step and the global solve of one iteration, with the contact constraints of the obstacles,
+    /// leaving the solution in `self.rhs` (one row per free vertex) for [`Self::accept_solution`] (between them, contact
+    /// between bodies may correct it, [`CoupledSolve`]).
+    fn solve_unconstrained(&mut self, model: &Model) {
+        if self.failed {
+            return;
+        }
+        let h = self.step_h;
+        let inv_h2 = 1.0 / (h * h);
+        let mut matrix = self.matrix.lock().unwrap_or_else(|e| e.into_inner());
+        let pre = matrix.pre.as_mut().expect("begun");
+        let n = pre.free_vertices.len();
+        let (x, y) = (&self.x, &self.y);
+        let t0 = Instant::now();
+        // Local step: the closest rotation R_e to each F_e and its corner terms w_e R_e g_k, in parallel
+        // (rotation_blocks: bit for bit linalg::polar_rotation).
+        crate::elasticity::pd_rotation_terms(pre.mu, model, x, &mut self.corner_terms);
+        let t1 = Instant::now();
+        // Global step right-hand side, row c for free vertex c: M (y / h^2 + g) + sum_e w_e R_e g_e,k over
+        // the tets at the vertex, gathered in parallel in ascending block position (deterministic).
+        let terms = self.corner_terms.as_flattened();
+        let g = model.gravity;
+        self.rhs.resize(n, [0.0; 3]);
+        for_each_chunk_mut(&mut self.rhs, RHS_CHUNK, |ci, chunk| {
+            for (k, out) in chunk.iter_mut().enumerate() {
+                let v = pre.free_vertices[ci * RHS_CHUNK + k];
+                let mut acc = [0.0; 3];
+                for a in 0..3 {
+                    acc[a] = model.masses[v] * (inv_h2 * y[v][a] + g[a]);
+                }
+                let r = model.kernel_rank[v] as usize;
+                let slots = &model.incidence_slots
+                    [model.incidence_offsets[r]..model.incidence_offsets[r + 1]];
+                for &slot in slots {
+                    let t = terms[slot as usize];
                     for a in 0..3 {
-                        acc[a] = model.masses[v] * (inv_h2 * y[v][a] + g[a]);
-                    }
-                    let r = model.kernel_rank[v] as usize;
-                    let slots = &model.incidence_slots
-                        [model.incidence_offsets[r]..model.incidence_offsets[r + 1]];
-                    for &slot in slots {
-                        let t = terms[slot as usize];
-                        for a in 0..3 {
-                            acc[a] += t[a];
-                        }
-                    }
-                    *out = acc;
-                }
-            });
-            for &(row, p, coef) in &pre.pinned_coupling {
-                for a in 0..3 {
-                    self.rhs[row][a] -= coef * x[p][a];
-                }
-            }
-            // Contact constraints: each active vertex pulled to the surface point nearest its iterate.
-            self.targets.clear();
-            for &v in &self.active {
-                let c = pre.free_vertices.partition_point(|&f| f < v);
-                let target = self.contact.nearest_outside(model, x[v]);
-                let w = STIFFNESS_RATIO * model.masses[v] * inv_h2;
-                for a in 0..3 {
-                    self.rhs[c][a] += w * target[a];
-                }
-                self.targets.push(target);
-            }
-            let t2 = Instant::now();
-            match (&mut pre.contact, self.active.is_empty()) {
-                (Some((chol, _)), false) => chol.solve3_in_place(&mut self.rhs),
-                _ => pre.chol.solve3_in_place(&mut self.rhs),
-            }
-            let t3 = Instant::now();
-            timing.local += (t1 - t0).as_secs_f64();
-            timing.rhs += (t2 - t1).as_secs_f64();
-            timing.solve += (t3 - t2).as_secs_f64();
-            let mut change: f64 = 0.0;
-            let mut size: f64 = 0.0;
-            for (c, &v) in pre.free_vertices.iter().enumerate() {
-                for a in 0..3 {
-                    let new = self.rhs[c][a];
-                    change = change.max((new - x[v][a]).abs());
-                    size = size.max((new - x_n[v][a]).abs());
-                    x[v][a] = new;
-                }
-            }
-            // Vertices that the iterations brought into an obstacle's reach join the active set (at most
-            // ACTIVE_SET_REFRESHES times a step, each a numeric factorisation): else they would end the step
-            // inside and be pushed out after it, in substeps when deep.
-            if !self.contact.is_empty()
-                && refreshes < ACTIVE_SET_REFRESHES
-                && it + 1 < self.settings.iterations
-            {
-                match Self::extend_active_set(
-                    &self.contact,
-                    &mut self.active,
-                    pre,
-                    model,
-                    &x,
-                    inv_h2,
-                ) {
-                    Ok(factorized) => {
-                        refreshes += factorized as usize;
-                        self.factorizations += factorized as usize;
-                    }
-                    Err(_) => {
-                        state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
-                        return StepReport::default();
+                        acc[a] += t[a];
                     }
                 }
+                *out = acc;
             }
-            report.iterations = it + 1;
-            report.residual = if size > 0.0 { change / size } else { 0.0 };
-            if let Some(tol) = self.settings.tolerance {
-                if report.residual <= tol {
-                    break;
+        });
+        for &(row, p, coef) in &pre.pinned_coupling {
+            for a in 0..3 {
+                self.rhs[row][a] -= coef * x[p][a];
+            }
+        }
+        // Contact constraints: each active vertex pulled to the surface point nearest its iterate.
+        self.targets.clear();
+        for &v in &self.active {
+            let c = pre.free_vertices.partition_point(|&f| f < v);
+            let target = self.contact.nearest_outside(model, x[v]);
+            let w = STIFFNESS_RATIO * model.masses[v] * inv_h2;
+            for a in 0..3 {
+                self.rhs[c][a] += w * target[a];
+            }
+            self.targets.push(target);
+        }
+        // The set the targets belong to (a later iteration's `accept` may grow the active set).
+        self.target_vertices.clone_from(&self.active);
+        let t2 = Instant::now();
+        match (&mut pre.contact, self.active.is_empty()) {
+            (Some((chol, _)), false) => chol.solve3_in_place(&mut self.rhs),
+            _ => pre.chol.solve3_in_place(&mut self.rhs),
+        }
+        let t3 = Instant::now();
+        self.timing.local += (t1 - t0).as_secs_f64();
+        self.timing.rhs += (t2 - t1).as_secs_f64();
+        self.timing.solve += (t3 - t2).as_secs_f64();
+    }
+
+    /// The end of iteration `it`: the solution becomes the iterate; vertices the iterations brought into an
+    /// obstacle's reach join the active set. Returns true when the positions' relative change is below the
+    /// tolerance (or the step failed).
+    fn accept_solution(&mut self, model: &Model, it: usize) -> bool {
+        if self.failed {
+            return true;
+        }
+        let inv_h2 = 1.0 / (self.step_h * self.step_h);
+        let mut matrix = self.matrix.lock().unwrap_or_else(|e| e.into_inner());
+        let pre = matrix.pre.as_mut().expect("begun");
+        let (x_n, x) = (&self.x_n, &mut self.x);
+        let mut change: f64 = 0.0;
+        let mut size: f64 = 0.0;
+        for (c, &v) in pre.free_vertices.iter().enumerate() {
+            for a in 0..3 {
+                let new = self.rhs[c][a];
+                change = change.max((new - x[v][a]).abs());
+                size = size.max((new - x_n[v][a]).abs());
+                x[v][a] = new;
+            }
+        }
+        // Vertices that the iterations brought into an obstacle's reach join the active set (at most
+        // ACTIVE_SET_REFRESHES times a step, each a numeric factorisation): else they would end the step
+        // inside and be pushed out after it, in substeps when deep.
+        // Among bodies taking their iterations together the step goes on while contact changes (their rows'
+        // corrections push vertices towards the obstacles), so the set may grow more often and at any iteration.
+        self.set_grew = false;
+        let (limit, later) = if self.together {
+            (TOGETHER_REFRESHES, true)
+        } else {
+            (ACTIVE_SET_REFRESHES, it + 1 < self.settings.iterations)
+        };
+        if !self.contact.is_empty() && self.refreshes < limit && later {
+            match Self::extend_active_set(&self.contact, &mut self.active, pre, model, x, inv_h2) {
+                Ok(factorized) => {
+                    self.set_grew = factorized;
+                    self.refreshes += factorized as usize;
+                    self.factorizations += factorized as usize;
+                }
+                Err(_) => {
+                    self.failed = true;
+                    return true;
                 }
             }
         }
-        self.timing = timing;
-        finish_positional_step(model, state, &x, &x_n, h);
+        self.report.iterations = it + 1;
+        self.report.residual = if size > 0.0 { change / size } else { 0.0 };
+        self.settings
+            .tolerance
+            .is_some_and(|tol| self.report.residual <= tol)
+    }
+
+    /// The step's end: velocities from the final iterate, the obstacles' contacts held in the solve (their
+    /// impacts and friction, [`ContactPotential::apply_impacts`]) and the report.
+    fn finish_step(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport {
+        if self.failed {
+            // Only reachable without `check` (wrong material) or a singular matrix: poison the state so that
+            // the simulation reports it instead of silently standing still.
+            state.x.iter_mut().for_each(|p| *p = [f64::NAN; 3]);
+            return StepReport::default();
+        }
+        let (x, x_n, y) = (&self.x, &self.x_n, &self.y);
+        finish_positional_step(model, state, x, x_n, h);
+        let mut report = std::mem::take(&mut self.report);
         // The contact impulse of the last global solve: its constraint force w (p - x) at the final iterate.
-        let (active, targets) = (&self.active, &self.targets);
+        let (active, targets, contact) = (&self.target_vertices, &self.targets, &self.contact);
         let v_start = |i: usize| [0, 1, 2].map(|a| (y[i][a] - x_n[i][a]) / h);
-        report.contact = self
-            .contact
-            .apply_impacts(model, state, h, v_start, |i, x| {
-                let k = active.binary_search(&i).ok()?;
-                let d = [0, 1, 2].map(|a| targets[k][a] - x[a]);
-                (d != [0.0; 3]).then(|| scale(d, STIFFNESS_RATIO / h))
-            });
+        report.contact = contact.apply_impacts(model, state, h, v_start, |i, x| {
+            let k = active.binary_search(&i).ok()?;
+            let d = [0, 1, 2].map(|a| targets[k][a] - x[a]);
+            (d != [0.0; 3]).then(|| scale(d, STIFFNESS_RATIO / h))
+        });
         report.impulse = add(report.impulse, report.contact.impulse);
         report.angular_impulse = add(report.angular_impulse, report.contact.angular_impulse);
-        (self.x_n, self.x, self.y) = (x_n, x, y);
         report
     }
 }

@@ -2,7 +2,10 @@
 //!
 //! Each body keeps its own simulation (mesh, material, masses, pins, integrator, projection); a step of the
 //! scene is every body's base step, then contact between the bodies ([`crate::world::resolve_body_contacts`]),
-//! then every body's projection onto targets that include what the contact exchanged with it. Contact between
+//! then every body's projection onto targets that include what the contact exchanged with it. When every
+//! body's integrator can take its iterations together with the others' ([`crate::integrators::CoupledSolve`]:
+//! Projective Dynamics), the base steps are taken together and contact between the bodies is held inside
+//! their joint solve ([`BodyConstraints`]); the pass after the step then answers only what that left. Contact between
 //! bodies is internal: its impulses are equal and opposite at one point and, with restitution 1 and no
 //! friction, it conserves the pair's kinetic energy, so the bodies' targets together keep the scene's total
 //! energy, momentum and angular momentum (about the origin); their projections enforce them body by body. Why
@@ -11,6 +14,7 @@
 
 use std::time::Instant;
 
+use super::body_constraints::BodyConstraints;
 use super::{Advance, BegunStep, Simulation, IMPACT_DEPTH_FRACTION, MAX_IMPACT_SUBSTEPS};
 use crate::error::{FeprError, Result};
 use crate::world::{
@@ -86,25 +90,46 @@ fn step_on_pool(
         let mut advances = vec![Advance::default(); nb];
         let mut exchanges = vec![BodyExchange::default(); nb];
         let mut base_ms = vec![0.0; nb];
+        // The deepest push-out out of an obstacle when the bodies take their solves together (their own impact
+        // substeps are then the scene's parts).
+        let mut deepest_obstacle: f64 = 0.0;
+        let together = sims.iter_mut().all(|s| s.integrator.coupled().is_some());
         for part in 0..parts {
-            for k in 0..nb {
+            let h = dt / parts as f64;
+            if together {
                 let t0 = Instant::now();
-                match sims[k].advance_part(dt / parts as f64, part == 0) {
-                    Ok(a) => {
-                        let substeps = advances[k].report.substeps.max(a.report.substeps);
-                        advances[k].add(&a);
-                        advances[k].report.substeps = substeps;
-                    }
-                    Err(e) => {
-                        for (j, sim) in sims.iter_mut().enumerate() {
-                            if j != k {
-                                sim.abandon_step();
-                            }
-                        }
-                        return Err((k, e));
-                    }
+                let (advs, held) = advance_together(sims, coefficients, h, part == 0, limit)?;
+                let ms = t0.elapsed().as_secs_f64() * 1e3 / nb as f64;
+                for (k, a) in advs.into_iter().enumerate() {
+                    let substeps = advances[k].report.substeps.max(a.report.substeps);
+                    deepest_obstacle = deepest_obstacle.max(a.max_depth);
+                    advances[k].add(&a);
+                    advances[k].report.substeps = substeps;
+                    base_ms[k] += ms;
                 }
-                base_ms[k] += t0.elapsed().as_secs_f64() * 1e3;
+                for (total, e) in exchanges.iter_mut().zip(held) {
+                    total.accumulate(e);
+                }
+            } else {
+                for k in 0..nb {
+                    let t0 = Instant::now();
+                    match sims[k].advance_part(h, part == 0) {
+                        Ok(a) => {
+                            let substeps = advances[k].report.substeps.max(a.report.substeps);
+                            advances[k].add(&a);
+                            advances[k].report.substeps = substeps;
+                        }
+                        Err(e) => {
+                            for (j, sim) in sims.iter_mut().enumerate() {
+                                if j != k {
+                                    sim.abandon_step();
+                                }
+                            }
+                            return Err((k, e));
+                        }
+                    }
+                    base_ms[k] += t0.elapsed().as_secs_f64() * 1e3;
+                }
             }
             let part = {
                 let mut bodies = in_contact(sims, coefficients);
@@ -119,9 +144,16 @@ fn step_on_pool(
         // their weight, which parts would not remove (each part sinks again) and would multiply the cost by.
         let approach = exchanges.iter().map(|e| e.max_approach).fold(0.0, f64::max);
         let impact = approach * dt / parts as f64 > limit;
-        if deepest > limit && impact && parts < MAX_IMPACT_SUBSTEPS {
-            // Parts short enough that the fastest approach goes at most `limit` deep within one.
-            parts = ((approach * dt / limit).ceil() as usize).clamp(parts + 1, MAX_IMPACT_SUBSTEPS);
+        let obstacle_impact = deepest_obstacle > limit;
+        if ((deepest > limit && impact) || obstacle_impact) && parts < MAX_IMPACT_SUBSTEPS {
+            // Parts short enough that the fastest approach goes at most `limit` deep within one (for an
+            // obstacle: that the push-out would be at most `limit`).
+            let need = if obstacle_impact {
+                parts as f64 * deepest_obstacle / limit
+            } else {
+                approach * dt / limit
+            };
+            parts = (need.ceil() as usize).clamp(parts + 1, MAX_IMPACT_SUBSTEPS);
             for sim in sims.iter_mut() {
                 sim.abandon_step();
             }
@@ -217,3 +249,140 @@ pub fn time_body_detection(sims: &mut [&mut Simulation], repeats: usize) -> Resu
     }
     Ok(t0.elapsed().as_secs_f64() / repeats.max(1) as f64)
 }
+
+/// One part (`h` seconds) of a step of bodies whose integrators take their solves together
+/// ([`crate::integrators::CoupledSolve`], Projective Dynamics): every body's iterations run in lockstep, with
+/// contact between the bodies as constraints of their joint global step ([`BodyConstraints`]): rows for the
+/// surface vertices the inertial prediction puts within `margin` (m) of another body, and for those the
+/// first iterations bring inside one. Returns each body's advance and what the constraints exchanged with it.
+fn advance_together(
+    sims: &mut [&mut Simulation],
+    coefficients: &[BodyCoefficients],
+    h: f64,
+    first: bool,
+    margin: f64,
+) -> std::result::Result<(Vec<Advance>, Vec<BodyExchange>), (usize, FeprError)> {
+    let nb = sims.len();
+    let mut starts = Vec::with_capacity(nb);
+    for sim in sims.iter_mut() {
+        starts.push(sim.part_before_base(h, first));
+    }
+    for sim in sims.iter_mut() {
+        let Simulation {
+            integrator,
+            model,
+            state,
+            hand_over,
+            ..
+        } = &mut **sim;
+        integrator
+            .coupled()
+            .expect("checked by the caller")
+            .begin(model, state, h, hand_over);
+    }
+    let iterations: Vec<usize> = sims
+        .iter_mut()
+        .map(|s| s.integrator.coupled().expect("coupled").iterations())
+        .collect();
+    let mut constraints = BodyConstraints::new(sims, h, margin);
+    let mut done: Vec<bool> = iterations.iter().map(|&n| n == 0).collect();
+    for it in 0..iterations.iter().copied().max().unwrap_or(0) {
+        if done.iter().all(|&d| d) {
+            break;
+        }
+        if it < DETECTIONS {
+            constraints.detect(sims, if it == 0 { 0.25 * margin } else { 0.0 });
+        }
+        for (k, sim) in sims.iter_mut().enumerate() {
+            if !done[k] {
+                let Simulation {
+                    integrator, model, ..
+                } = &mut **sim;
+                integrator.coupled().expect("coupled").solve(model);
+            }
+        }
+        constraints.correct(sims, &done);
+        for (k, sim) in sims.iter_mut().enumerate() {
+            if done[k] {
+                continue;
+            }
+            let Simulation {
+                integrator, model, ..
+            } = &mut **sim;
+            done[k] =
+                integrator.coupled().expect("coupled").accept(model, it) || it + 1 >= iterations[k];
+        }
+    }
+    // While a vertex is still inside another body deeper than a tenth of the limit (the rows' planes are their
+    // triangles' at the iterate before the last solve, and the solve moves the triangles), more iterations,
+    // each one with the rows taken again from the iterate: cheaper than redoing the step in parts, and no
+    // push-out straining the surface afterwards.
+    let last = iterations.iter().copied().max().unwrap_or(0);
+    if last > 0 {
+        for it in last..last + EXTRA_ITERATIONS {
+            let d = constraints.detect(sims, 0.0);
+            let grew = sims
+                .iter_mut()
+                .any(|s| s.integrator.coupled().expect("coupled").contacts_grew());
+            if d <= 0.1 * margin && !grew {
+                break;
+            }
+            for sim in sims.iter_mut() {
+                let Simulation {
+                    integrator, model, ..
+                } = &mut **sim;
+                integrator.coupled().expect("coupled").solve(model);
+            }
+            constraints.correct(sims, &vec![false; nb]);
+            for sim in sims.iter_mut() {
+                let Simulation {
+                    integrator, model, ..
+                } = &mut **sim;
+                integrator.coupled().expect("coupled").accept(model, it);
+            }
+        }
+    }
+    let mut reports = Vec::with_capacity(nb);
+    for sim in sims.iter_mut() {
+        let Simulation {
+            integrator,
+            model,
+            state,
+            ..
+        } = &mut **sim;
+        reports.push(
+            integrator
+                .coupled()
+                .expect("coupled")
+                .finish(model, state, h),
+        );
+    }
+    let exchanges = constraints.exchanges(sims, coefficients);
+    let mut advances = Vec::with_capacity(nb);
+    for (k, (start, report)) in starts.into_iter().zip(reports).enumerate() {
+        match sims[k].part_after_base(h, start, report) {
+            Ok(mut a) => {
+                // Forces held inside the solve move the centre of mass with them (as an obstacle's held
+                // contacts do): the projection keeps the step's centre of mass (the exchange's moment then
+                // follows it, `Simulation::finish_step`).
+                a.report.impulsive |= exchanges[k].held;
+                advances.push(a)
+            }
+            Err(e) => {
+                for (j, sim) in sims.iter_mut().enumerate() {
+                    if j != k {
+                        sim.abandon_step();
+                    }
+                }
+                return Err((k, e));
+            }
+        }
+    }
+    Ok((advances, exchanges))
+}
+
+/// Iterations of a joint step that look for new contact rows (the first ones; each a detection pass).
+const DETECTIONS: usize = 3;
+
+/// Iterations a joint step may add while a vertex is still inside another body.
+const EXTRA_ITERATIONS: usize = 10;

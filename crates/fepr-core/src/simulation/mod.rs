@@ -6,6 +6,7 @@
 //! projection; [`crate::integrators::HandOver`]'s module says what it carries and when an entry is valid.
 
 mod bodies;
+mod body_constraints;
 mod history;
 mod policy;
 pub use bodies::*;
@@ -120,6 +121,18 @@ impl StepDiagnostics {
             ),
         )
     }
+}
+
+/// What a step's part keeps from before its base step for after it ([`Simulation::advance`]).
+struct BaseStart {
+    /// The time at the end of the part, s.
+    t_next: f64,
+    /// The pins' work so far, J.
+    work: Work,
+    /// The external forces' kick: impulse (kg m/s) and its moment about the centre of mass (kg m^2/s).
+    force_impulse: Vec3,
+    force_torque: Vec3,
+    has_forces: bool,
 }
 
 /// Mean length of the tets' edges in the rest shape, m (each edge counted once per tet).
@@ -498,11 +511,21 @@ impl Simulation {
     /// the force kick, the base step, damping and contact. Appends the vertices to freeze to
     /// `contact_vertices`.
     fn advance(&mut self, h: f64) -> Result<Advance> {
+        let start = self.advance_before_base(h);
+        let report = self
+            .integrator
+            .step(&self.model, &mut self.state, h, &mut self.hand_over);
+        self.advance_after_base(h, start, report)
+    }
+
+    /// What comes before the base step over `h`: kinematic pins to their end-of-step path, the copies of the
+    /// start positions, the kick of the external forces.
+    fn advance_before_base(&mut self, h: f64) -> BaseStart {
         let t_next = self.state.time + h;
         // Kinematic pins move to their end-of-step path first (a Dirichlet condition at t_{n+1}), with the free
         // vertices held: that is their work. The base step then moves the free vertices with the pins held
         // there, which conserves H (to the integrator's accuracy, and exactly with the projection).
-        let mut work = Work {
+        let work = Work {
             pins: self.world.pin_work(&self.model, &self.state, t_next),
             ..Default::default()
         };
@@ -534,9 +557,30 @@ impl Simulation {
             }
             None => false,
         };
-        let mut report = self
-            .integrator
-            .step(&self.model, &mut self.state, h, &mut self.hand_over);
+        BaseStart {
+            t_next,
+            work,
+            force_impulse,
+            force_torque,
+            has_forces,
+        }
+    }
+
+    /// What comes after the base step over `h` (its `report`): pins' velocities, the forces' work, damping,
+    /// the obstacles' contacts.
+    fn advance_after_base(
+        &mut self,
+        h: f64,
+        start: BaseStart,
+        mut report: StepReport,
+    ) -> Result<Advance> {
+        let BaseStart {
+            t_next,
+            mut work,
+            force_impulse,
+            force_torque,
+            has_forces,
+        } = start;
         work.damping += report.energy_budget;
         // Contacts held inside an implicit solve: their work is contact work (their impulses are in the report's).
         work.contact += report.contact.work;
@@ -651,14 +695,49 @@ impl Simulation {
     fn advance_part(&mut self, h: f64, first: bool) -> Result<Advance> {
         let (adv, finite) = self.advance_resolving_impacts(h, first)?;
         if !finite {
-            let step = self.num_steps() + 1;
-            self.abandon_step();
-            return Err(self.unstable(
-                step,
-                "the state became non-finite",
-                "use a smaller dt or a stiffer-stable integrator",
-            ));
+            return Err(self.abandon_non_finite());
         }
+        Ok(adv)
+    }
+
+    /// Undo a step whose state became non-finite; the error that names it.
+    fn abandon_non_finite(&mut self) -> FeprError {
+        let step = self.num_steps() + 1;
+        self.abandon_step();
+        self.unstable(
+            step,
+            "the state became non-finite",
+            "use a smaller dt or a stiffer-stable integrator",
+        )
+    }
+
+    /// A part of a step whose base step the caller takes (bodies that take their solves together,
+    /// [`bodies`]): what comes before the base step. `first` as for [`Simulation::advance_part`].
+    fn part_before_base(&mut self, h: f64, first: bool) -> BaseStart {
+        self.contact_vertices.clear();
+        if !first {
+            copy_state(&self.state, &mut self.part_start);
+        }
+        self.advance_before_base(h)
+    }
+
+    /// The rest of a part begun with [`Simulation::part_before_base`], after its base step (`report`): the
+    /// world's processes, the vertices in or near contact. Impacts with the obstacles are not redone here (the
+    /// caller redoes the whole scene's step in parts). On a non-finite result the whole step is undone and an
+    /// error names it.
+    fn part_after_base(&mut self, h: f64, start: BaseStart, report: StepReport) -> Result<Advance> {
+        let adv = self.advance_after_base(h, start, report)?;
+        self.contact_vertices.sort_unstable();
+        self.contact_vertices.dedup();
+        if !self.state.is_finite() {
+            return Err(self.abandon_non_finite());
+        }
+        near_obstacles(
+            &self.world.obstacles,
+            &self.model,
+            &self.state,
+            &mut self.contact_vertices,
+        );
         Ok(adv)
     }
 
@@ -694,7 +773,23 @@ impl Simulation {
             work.contact += exchange.work;
             let j = exchange.impulse;
             let r = &self.references;
-            let moment = if report.impulsive {
+            let moment = if exchange.held {
+                // Forces held in the solve: the centre of mass is not held, and it moved with them. About where
+                // it is now, less what that move adds to `C x P` beyond the path without them
+                // (`C_o = C_ref + h/M (P_ref + J_o/2)`, `J_o` the other impulses), so that the body's angular
+                // momentum about the origin changes by exactly the moment of the exchange there, and the
+                // bodies' changes cancel.
+                let c = center_of_mass(&self.model.masses, self.model.total_mass, &self.state.x);
+                let p_o = add(r.momentum, report.impulse);
+                let c_o = add(
+                    r.center_of_mass,
+                    scale(
+                        add(r.momentum, scale(report.impulse, 0.5)),
+                        h / self.model.total_mass,
+                    ),
+                );
+                sub(sub(exchange.moment, cross(c, j)), cross(sub(c, c_o), p_o))
+            } else if report.impulsive {
                 // Obstacle impacts too: the centre of mass is not held; the moment about where it is now.
                 let c = center_of_mass(&self.model.masses, self.model.total_mass, &self.state.x);
                 sub(exchange.moment, cross(c, j))
@@ -974,10 +1069,12 @@ impl Simulation {
         // energy differs from the target by `pending`, which the budget carries (the references do not: the next
         // projection still aims at the target and, when it reaches it, the deferral is reversed). So
         // `total - (H0 + budget_total)` stays closed through steps the projection could not converge.
-        // (A failed step right after one, contact or not, keeps deferring: the deferral is reversed only by a
-        // step that reaches its target.)
+        // (A failed step right after a contact step, or after a deferring one, defers too: a body bouncing off
+        // another leaves the contact with velocities the next projections may still be working off; the
+        // deferral is reversed only by a step that reaches its target.)
+        let after_contact = self.history.last().is_some_and(|d| d.contacts > 0);
         let pending = match projection {
-            Some(p) if !p.converged && (contacts > 0 || self.deferred != 0.0) => {
+            Some(p) if !p.converged && (contacts > 0 || after_contact || self.deferred != 0.0) => {
                 inv.total - targets.energy
             }
             _ => 0.0,

@@ -1,5 +1,6 @@
 //! Contact between bodies: the vertices of one body's surface against the triangles of another's, after the
-//! bodies' base steps and before their projections ([`crate::simulation::step_bodies`]).
+//! bodies' base steps and before their projections ([`crate::simulation::step_bodies`]); and the candidates of
+//! the contact held inside the bodies' joint solve ([`body_contact_pairs`], [`body_pairs_at`]).
 //!
 //! Each body's surface (its boundary triangles, [`crate::mesh::TetMesh::boundary_triangles`]) is a
 //! [`MeshCollider`] whose vertices follow the body: `parry3d-f64` refits its BVH each step (a refit, not a
@@ -49,6 +50,11 @@ impl BodySurface {
         Ok(Self { collider, vertices })
     }
 
+    /// The vertices on the surface, increasing.
+    pub fn vertices(&self) -> &[u32] {
+        &self.vertices
+    }
+
     /// Move the surface to the positions `x` (m, all the body's vertices).
     pub fn follow(&mut self, x: &[Vec3]) {
         self.collider.set_vertices(x);
@@ -86,6 +92,9 @@ pub struct BodyExchange {
     pub max_depth: f64,
     /// Fastest relative approach speed of a contact, m/s (0 when none approached).
     pub max_approach: f64,
+    /// Whether the impulses were forces held inside the body's solve over the step (they moved its centre of
+    /// mass within it), not velocity changes after it.
+    pub held: bool,
 }
 
 impl BodyExchange {
@@ -100,6 +109,7 @@ impl BodyExchange {
         self.vertices.dedup();
         self.max_depth = self.max_depth.max(e.max_depth);
         self.max_approach = self.max_approach.max(e.max_approach);
+        self.held |= e.held;
     }
 }
 
@@ -230,6 +240,131 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
             .sum();
     }
     out
+}
+
+/// One body's iterate inside a step that bodies in contact take together
+/// ([`crate::integrators::CoupledSolve`]).
+pub struct BodyIterate<'a> {
+    pub model: &'a Model,
+    /// The iterate, m (all vertices).
+    pub x: &'a [Vec3],
+    pub surface: &'a mut BodySurface,
+}
+
+/// A surface vertex of one body near or inside another's surface.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BodyPair {
+    /// The body whose vertex is inside, and the vertex.
+    pub body: usize,
+    pub vertex: usize,
+    /// The body it is inside, and the vertices of the nearest triangle of its surface with the nearest point's
+    /// barycentric weights.
+    pub other: usize,
+    pub triangle: [usize; 3],
+    pub weights: Vec3,
+    /// The other's outward normal there, the depth (m; negative: the gap outside) and the nearest point (m).
+    pub normal: Vec3,
+    pub depth: f64,
+    pub point: Vec3,
+    /// The pair's effective inverse mass `1/m_i + sum_j w_j^2 / m_j`, 1/kg.
+    pub inverse_mass: f64,
+}
+
+/// The surface vertices of each of `bodies` within `margin` (m) of another body's surface or inside it, at
+/// their iterates, each with the nearest point of that surface (exact point-triangle distance): the
+/// candidates of contact between bodies inside their joint solve. Deterministic: bodies in order, vertices in
+/// increasing order.
+pub fn body_contact_pairs(bodies: &mut [BodyIterate], margin: f64) -> Vec<BodyPair> {
+    let nb = bodies.len();
+    let mut pairs = Vec::new();
+    if nb < 2 {
+        return pairs;
+    }
+    let bounds: Vec<(Vec3, Vec3)> = bodies
+        .iter_mut()
+        .map(|b| {
+            b.surface.follow(b.x);
+            b.surface.bounds(b.x)
+        })
+        .collect();
+    let grown = |(lo, hi): (Vec3, Vec3)| (lo.map(|c| c - margin), hi.map(|c| c + margin));
+    for a in 0..nb {
+        for b in 0..nb {
+            let reach = grown(bounds[b]);
+            if a == b || !overlap(bounds[a], reach) {
+                continue;
+            }
+            let (ba, bb) = (&bodies[a], &bodies[b]);
+            for &i in &ba.surface.vertices {
+                let i = i as usize;
+                let x = ba.x[i];
+                if !inside(x, reach) {
+                    continue;
+                }
+                if bb
+                    .surface
+                    .collider
+                    .signed_distance_below(x, margin)
+                    .is_none()
+                {
+                    continue;
+                }
+                if let Some(pair) = nearest_pair(ba, a, i, bb, b) {
+                    if -pair.depth < margin {
+                        pairs.push(pair);
+                    }
+                }
+            }
+        }
+    }
+    pairs
+}
+
+/// The pairs `(body, vertex, other)` of `candidates` with the geometry of `bodies` as they are now (each
+/// surface follows its `x`): the nearest point of the other's surface to the vertex, exact. Candidates found
+/// on predicted positions take their triangle and normal from the start of the step this way: a vertex the
+/// prediction puts deep inside another body is nearest to a face it never crossed.
+pub fn body_pairs_at(
+    bodies: &mut [BodyIterate],
+    candidates: &[(usize, usize, usize)],
+) -> Vec<BodyPair> {
+    for b in bodies.iter_mut() {
+        b.surface.follow(b.x);
+    }
+    candidates
+        .iter()
+        .filter_map(|&(a, i, b)| nearest_pair(&bodies[a], a, i, &bodies[b], b))
+        .collect()
+}
+
+/// Vertex `i` of body `ba` (index `a`) against the nearest point of `bb`'s surface (index `b`): exact
+/// point-triangle distance, signed by pseudo-normals; `None` for a pinned vertex or a pinned triangle.
+fn nearest_pair(
+    ba: &BodyIterate,
+    a: usize,
+    i: usize,
+    bb: &BodyIterate,
+    b: usize,
+) -> Option<BodyPair> {
+    let x = ba.x[i];
+    let (phi, n, tri, w) = bb.surface.collider.closest(x);
+    let idx = bb.surface.collider.triangles()[tri].map(|j| j as usize);
+    let inv_i = inverse_mass(ba.model, i);
+    let k_eff = inv_i
+        + (0..3)
+            .map(|c| w[c] * w[c] * inverse_mass(bb.model, idx[c]))
+            .sum::<f64>();
+    (inv_i > 0.0 && k_eff > 0.0).then(|| BodyPair {
+        body: a,
+        vertex: i,
+        other: b,
+        triangle: idx,
+        weights: w,
+        normal: n,
+        depth: -phi,
+        point: sub(x, scale(n, phi)),
+        inverse_mass: k_eff,
+    })
 }
 
 /// The deepest surface vertex of any body inside another: `(body, vertex, other body, depth in m)`, or `None`

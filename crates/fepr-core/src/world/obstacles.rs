@@ -161,9 +161,10 @@ impl Obstacle {
     /// found by a golden-section search and the first crossing before it by bisection, to 1e-12 of the segment,
     /// for every analytic shape alike. A mesh ray-casts its triangles ([`MeshCollider::ray_entry`]).
     ///
-    /// A segment that ends outside on the side it started (the outward normals at its ends point the same way)
-    /// is not a crossing even where its chord dips into the solid: a vertex sliding over a bump or around a
-    /// sphere ends its step on the surface, and only the straight line between its positions cuts the curve.
+    /// A segment that ends outside on the side it started, or on a side at right angles to it (the outward
+    /// normals at its ends are not opposed), is not a crossing even where its chord dips into the solid: a vertex
+    /// sliding over a bump or around a sphere ends its step on the surface, and only the straight line between
+    /// its positions cuts the curve; one in the corner where a box stands on the floor slides along both.
     /// Passing through a thin obstacle ends on its far side, where the normal points the other way.
     pub fn first_crossing(&self, p0: Vec3, p1: Vec3) -> Option<(f64, Vec3, Vec3)> {
         let len = norm(sub(p1, p0));
@@ -175,7 +176,7 @@ impl Obstacle {
             return None;
         }
         let (d1, n1) = self.signed_distance(p1);
-        if d1 >= 0.0 && (dot(n0, n1) > 0.0 || len <= d1) {
+        if d1 >= 0.0 && (dot(n0, n1) > -0.5 || len <= d1) {
             return None;
         }
         if let Shape::Mesh(mesh) = &self.shape {

@@ -1,0 +1,696 @@
+//! Contact between bodies as constraints of the bodies' joint global step, for integrators whose step is a
+//! sequence of linear solves ([`CoupledSolve`], Projective Dynamics).
+//!
+//! A surface vertex `i` of body A near the triangle `(j)` of body B (barycentric weights `w_j`, B's outward
+//! normal `n`) is the constraint row `s = (e_i - sum_j w_j e_j) (x) n`: its gap
+//! `s . x = n . (x_i - sum_j w_j x_j)` must not be negative. The rows enter each iteration's global step as
+//! the stiff penalty `k/2 (s . x)^2` on the rows that would otherwise end negative (an active set, with
+//! `k = ROW_STIFFNESS_RATIO / (h^2 K)`, `K` the row's effective inverse mass): the joint matrix is the bodies'
+//! own, block diagonal, plus a low-rank coupling, so each iteration solves it exactly through the
+//! Sherman-Morrison-Woodbury identity with the bodies' own factorisations: with `y` the bodies' unconstrained
+//! solutions, `z_r = A^{-1} s_r` (from the columns `A^{-1} e_v` of the vertices the rows touch, one solve per
+//! vertex, once per step and matrix) and the small dense system `(I/k + S^T Z) mu = -S^T y`, the solution is
+//! `x = y + Z mu`, and `mu_r` is the row's force (N). Rows whose force would pull (`mu_r < 0`) leave the set;
+//! rows that would end negative join it. Each iteration takes a row's triangle, weights and normal again from
+//! the current iterates (the vertex slides over the other's surface), unless the vertex is deeper than the
+//! impact limit (then the face it is nearest to is not the one it came through, and the row keeps the face it
+//! was found against at the start of the step). A vertex squeezed into an obstacle gets a row against it too
+//! (the obstacle's side does not move).
+//!
+//! Why: the force is one scalar per row acting on both bodies (`+mu n` on the vertex, `-w_j mu n` on the
+//! triangle's corners), so the bodies' momenta change by equal and opposite amounts in every iteration; each
+//! body's solve carries the support to the whole body within the step, so an impact needs no parts and a
+//! resting pile no push-out (which strains the surface layer and, in a pile, pumps it). Why not hold each
+//! body against the other's frozen surface (Jacobi): the two solves then disagree about the force (a heavy
+//! body is stopped, a light one receives all of it), the momenta drift (24% of a pair's momentum in one
+//! collision, measured) and energy is created.
+//! A hand-written solve: no maintained crate offers a Woodbury update over several sparse factorisations.
+
+use crate::integrators::CoupledSolve;
+use crate::math::{add, cross, dot, norm, scale, sub, Vec3};
+use crate::world::{
+    body_contact_pairs, body_pairs_at, BodyExchange, BodyIterate, BodyPair, RESTING_SPEED_STEPS,
+};
+
+use super::{BodyCoefficients, Simulation};
+
+/// One constraint row between two bodies, or between a body and an obstacle (`obstacle`: its index; then
+/// only the pair's body, vertex, normal and point mean anything: the obstacle does not move).
+struct Row {
+    pair: BodyPair,
+    obstacle: Option<usize>,
+    /// The relative normal velocity of the pair's points at the start of the step (m/s, negative: approach).
+    approach_speed: f64,
+    /// Its force in the last iteration (N; 0 when not in the active set).
+    force: f64,
+}
+
+/// The constraint rows of a step among bodies and the bodies' solve layouts.
+pub(super) struct BodyConstraints {
+    rows: Vec<Row>,
+    /// Per body, the row (in its solution) of each vertex, `u32::MAX` for pinned ones.
+    row_of: Vec<Vec<u32>>,
+    /// Per body and vertex, the column `A^{-1} e_v` (one value per free vertex) once solved.
+    columns: Vec<Vec<Option<Box<[f64]>>>>,
+    /// Per body, its matrix version when its columns were solved.
+    versions: Vec<usize>,
+    /// Per body, whether it is done iterating (in the current correction).
+    frozen: Vec<bool>,
+    h: f64,
+    /// Rows deeper than this keep their face (m).
+    limit: f64,
+    /// Per body, the velocities at the start of the part (m/s), for the rows' work.
+    v_start: Vec<Vec<Vec3>>,
+}
+
+fn coupled(sim: &mut Simulation) -> &mut dyn CoupledSolve {
+    sim.integrator
+        .coupled()
+        .expect("bodies take their solves together only when every integrator can")
+}
+
+/// The bodies' current iterates (`start`: their states' positions instead) as contact sees them.
+fn iterates<'a>(sims: &'a mut [&mut Simulation], start: bool) -> Vec<BodyIterate<'a>> {
+    sims.iter_mut()
+        .map(|sim| {
+            let Simulation {
+                integrator,
+                model,
+                state,
+                surface,
+                ..
+            } = &mut **sim;
+            BodyIterate {
+                model,
+                x: if start {
+                    &state.x
+                } else {
+                    integrator.coupled().expect("coupled").positions()
+                },
+                surface: surface.as_mut().expect("surfaces are built first"),
+            }
+        })
+        .collect()
+}
+
+impl BodyConstraints {
+    /// No rows yet; the bodies' steps are begun. `limit`: the impact limit (m).
+    pub(super) fn new(sims: &mut [&mut Simulation], h: f64, limit: f64) -> Self {
+        let mut row_of = Vec::with_capacity(sims.len());
+        let mut versions = Vec::with_capacity(sims.len());
+        let mut columns = Vec::with_capacity(sims.len());
+        for sim in sims.iter_mut() {
+            let m = sim.model.num_vertices();
+            let solve = coupled(sim);
+            let mut rows = vec![u32::MAX; m];
+            for (r, v) in solve.free_vertices().into_iter().enumerate() {
+                rows[v] = r as u32;
+            }
+            row_of.push(rows);
+            versions.push(solve.matrix_version());
+            columns.push(vec![None; m]);
+        }
+        Self {
+            rows: Vec::new(),
+            v_start: sims.iter().map(|s| s.state.v.clone()).collect(),
+            frozen: vec![false; row_of.len()],
+            row_of,
+            columns,
+            versions,
+            h,
+            limit,
+        }
+    }
+
+    /// Add the rows of the surface vertices within `margin` (m) of another body at the current iterates. A
+    /// vertex new to the rows takes its face from the start of the step (where both sides were apart, or
+    /// nearly: a vertex the prediction puts deep inside is nearest to a face it never crossed), unless it was
+    /// inside already; a vertex inside another body through a face none of its rows has (a crease, or the
+    /// dimple its push makes) gets a row for that face too (at most [`ROWS_PER_VERTEX`]; then it replaces the
+    /// row that pushes least). Returns the
+    /// deepest any surface vertex lies inside another body at the current iterates (m, 0 when none does).
+    pub(super) fn detect(&mut self, sims: &mut [&mut Simulation], margin: f64) -> f64 {
+        let found = body_contact_pairs(&mut iterates(sims, false), margin);
+        let deepest = found.iter().map(|p| p.depth).fold(0.0, f64::max);
+        let mut fresh = Vec::new();
+        let mut creases = Vec::new();
+        for pair in found {
+            let rows: Vec<usize> = (0..self.rows.len())
+                .filter(|&r| {
+                    let q = &self.rows[r].pair;
+                    self.rows[r].obstacle.is_none()
+                        && q.body == pair.body
+                        && q.vertex == pair.vertex
+                        && q.other == pair.other
+                })
+                .collect();
+            if rows.is_empty() {
+                fresh.push(pair);
+            } else if pair.depth > 0.0
+                && rows
+                    .iter()
+                    .all(|&r| self.rows[r].pair.triangle != pair.triangle)
+            {
+                if rows.len() < ROWS_PER_VERTEX {
+                    creases.push(pair);
+                } else {
+                    // The face the vertex is inside now replaces its row that pushes least.
+                    let weakest = rows
+                        .into_iter()
+                        .min_by(|&a, &b| self.rows[a].force.total_cmp(&self.rows[b].force))
+                        .expect("rows");
+                    self.rows[weakest].pair = pair;
+                    self.rows[weakest].force = 0.0;
+                }
+            }
+        }
+        let candidates: Vec<(usize, usize, usize)> =
+            fresh.iter().map(|p| (p.body, p.vertex, p.other)).collect();
+        let at_start = body_pairs_at(&mut iterates(sims, true), &candidates);
+        let chosen: Vec<BodyPair> = fresh
+            .into_iter()
+            .zip(at_start)
+            .map(|(now, start)| if start.depth > 0.0 { now } else { start })
+            .chain(creases)
+            .collect();
+        for pair in chosen {
+            let (va, vb) = (&sims[pair.body].state.v, &sims[pair.other].state.v);
+            let vp = (0..3).fold([0.0; 3], |s, c| {
+                add(s, scale(vb[pair.triangle[c]], pair.weights[c]))
+            });
+            let approach_speed = dot(sub(va[pair.vertex], vp), pair.normal);
+            self.rows.push(Row {
+                pair,
+                obstacle: None,
+                approach_speed,
+                force: 0.0,
+            });
+        }
+        deepest.max(self.detect_obstacles(sims))
+    }
+
+    /// Rows for the surface vertices within `margin` (m) of an obstacle or inside it, at the current iterates
+    /// (one per vertex and obstacle): among bodies in contact a vertex is squeezed between another body's rows
+    /// and an obstacle, and the obstacle's own constraint (a stiffness in the body's matrix, softer than a row)
+    /// would give way.
+    /// Returns the deepest a surface vertex lies inside an obstacle (m, 0 when none does).
+    fn detect_obstacles(&mut self, sims: &mut [&mut Simulation]) -> f64 {
+        let mut deepest: f64 = 0.0;
+        for (k, sim) in sims.iter_mut().enumerate() {
+            if sim.world.obstacles.is_empty() {
+                continue;
+            }
+            let Simulation {
+                integrator,
+                surface,
+                model,
+                world,
+                state,
+                ..
+            } = &mut **sim;
+            let surface = surface.as_ref().expect("surfaces are built first");
+            let x = integrator.coupled().expect("coupled").positions();
+            let mut found = Vec::new();
+            for &v in surface.vertices() {
+                let v = v as usize;
+                if model.pinned[v] {
+                    continue;
+                }
+                for (o, ob) in world.obstacles.iter().enumerate() {
+                    if let Some((phi, n)) = ob.signed_distance_below(x[v], 0.0) {
+                        // Shallow ones are the obstacle's own constraint's (in the body's matrix).
+                        if -phi > SHALLOW * self.limit {
+                            found.push((v, o, phi, n));
+                        }
+                    } else if let Some((_, _, n)) = ob.first_crossing(state.x[v], x[v]) {
+                        // Through a thin obstacle within the step: its row holds the face it came in by.
+                        found.push((v, o, 0.0, n));
+                    }
+                }
+            }
+            for (v, o, phi, n) in found {
+                deepest = deepest.max(-phi);
+                if self
+                    .rows
+                    .iter()
+                    .any(|r| r.obstacle == Some(o) && r.pair.body == k && r.pair.vertex == v)
+                {
+                    continue;
+                }
+                let vel = sim.state.v[v];
+                // The face the vertex came from when it started outside (a thin obstacle's far face is nearer
+                // to a vertex that went more than half through it).
+                let start = sim.state.x[v];
+                let (phi0, n0) = sim.world.obstacles[o].signed_distance(start);
+                let x = coupled(sim).positions();
+                let (phi, n, point) = if phi0 >= 0.0 {
+                    (
+                        dot(n0, sub(x[v], sub(start, scale(n0, phi0)))),
+                        n0,
+                        sub(start, scale(n0, phi0)),
+                    )
+                } else {
+                    (phi, n, sub(x[v], scale(n, phi)))
+                };
+                self.rows.push(Row {
+                    pair: BodyPair {
+                        body: k,
+                        vertex: v,
+                        other: k,
+                        triangle: [v; 3],
+                        weights: [0.0; 3],
+                        normal: n,
+                        depth: -phi,
+                        point,
+                        inverse_mass: 1.0 / sim.model.masses[v],
+                    },
+                    obstacle: Some(o),
+                    approach_speed: dot(vel, n),
+                    force: 0.0,
+                });
+            }
+        }
+        deepest
+    }
+
+    /// Take every row's geometry again from the current iterates, unless its vertex is deeper than the limit.
+    fn follow(&mut self, sims: &mut [&mut Simulation]) {
+        if self.rows.is_empty() {
+            return;
+        }
+        for row in self.rows.iter_mut() {
+            if let Some(o) = row.obstacle {
+                let sim = &mut *sims[row.pair.body];
+                let x = coupled(sim).positions()[row.pair.vertex];
+                let (phi, n) = sim.world.obstacles[o].signed_distance(x);
+                if -phi < self.limit {
+                    row.pair.normal = n;
+                    row.pair.depth = -phi;
+                    row.pair.point = sub(x, scale(n, phi));
+                }
+            }
+        }
+        let between: Vec<usize> = (0..self.rows.len())
+            .filter(|&r| self.rows[r].obstacle.is_none())
+            .collect();
+        let candidates: Vec<(usize, usize, usize)> = between
+            .iter()
+            .map(|&r| {
+                let p = &self.rows[r].pair;
+                (p.body, p.vertex, p.other)
+            })
+            .collect();
+        let now = body_pairs_at(&mut iterates(sims, false), &candidates);
+        let single: Vec<bool> = candidates
+            .iter()
+            .map(|c| candidates.iter().filter(|d| *d == c).count() == 1)
+            .collect();
+        for ((&r, pair), single) in between.iter().zip(now).zip(single) {
+            let row = &mut self.rows[r];
+            // A vertex with several rows keeps their faces (each is one side of its crease).
+            if row.pair.triangle == pair.triangle || (single && pair.depth < self.limit) {
+                row.pair = pair;
+            }
+        }
+    }
+
+    /// Solve the columns the rows need on every body (all again on a body whose matrix changed).
+    fn solve_columns(&mut self, sims: &mut [&mut Simulation]) {
+        for (k, sim) in sims.iter_mut().enumerate() {
+            if self.frozen[k] {
+                continue;
+            }
+            let solve = coupled(sim);
+            let version = solve.matrix_version();
+            if version != self.versions[k] {
+                self.columns[k].iter_mut().for_each(|c| *c = None);
+                self.versions[k] = version;
+            }
+            let row_of = &self.row_of[k];
+            let mut needed: Vec<usize> = Vec::new();
+            for r in &self.rows {
+                let p = &r.pair;
+                if p.body == k {
+                    needed.push(p.vertex);
+                }
+                if p.other == k && r.obstacle.is_none() {
+                    needed.extend(p.triangle.iter().filter(|&&j| row_of[j] != u32::MAX));
+                }
+            }
+            needed.sort_unstable();
+            needed.dedup();
+            needed.retain(|&v| self.columns[k][v].is_none());
+            let n = solve.free_vertices().len();
+            for chunk in needed.chunks(3) {
+                let mut cols = vec![[0.0; 3]; n];
+                for (c, &v) in chunk.iter().enumerate() {
+                    cols[row_of[v] as usize][c] = 1.0;
+                }
+                solve.solve_columns(&mut cols);
+                for (c, &v) in chunk.iter().enumerate() {
+                    self.columns[k][v] = Some(cols.iter().map(|row| row[c]).collect());
+                }
+            }
+        }
+    }
+
+    /// The entries `(body, vertex, coefficient)` of row `r`'s vector `a_r` on free vertices.
+    fn entries(&self, r: usize) -> impl Iterator<Item = (usize, usize, f64)> + '_ {
+        let row = &self.rows[r];
+        let p = &row.pair;
+        let sides = if row.obstacle.is_some() { 0 } else { 3 };
+        std::iter::once((p.body, p.vertex, 1.0)).chain(
+            (0..sides)
+                .map(move |t| (p.other, p.triangle[t], -p.weights[t]))
+                .filter(move |&(k, v, _)| self.row_of[k][v] != u32::MAX),
+        )
+    }
+
+    /// The rows' Delassus matrix `D_rc = (n_r . n_c) a_r . A^{-1} a_c` (row-major, rows x rows): how row `c`'s
+    /// unit force moves row `r`'s gap. Gathered per body from the columns at the rows' own vertices (a frozen
+    /// body's side does not move: no entries).
+    fn delassus(&self) -> Vec<f64> {
+        let nr = self.rows.len();
+        let nb = self.row_of.len();
+        // Per body, the rows' vertices on it (local indices) and the columns' values among them.
+        let mut local: Vec<Vec<usize>> = vec![Vec::new(); nb];
+        for r in 0..nr {
+            for (k, v, _) in self.entries(r) {
+                local[k].push(v);
+            }
+        }
+        for l in &mut local {
+            l.sort_unstable();
+            l.dedup();
+        }
+        let gram: Vec<Vec<f64>> = (0..nb)
+            .map(|k| {
+                if self.frozen[k] {
+                    return Vec::new();
+                }
+                let l = &local[k];
+                let mut g = vec![0.0; l.len() * l.len()];
+                for (a, &u) in l.iter().enumerate() {
+                    let col = self.columns[k][u].as_ref().expect("solved");
+                    for (b, &v) in l.iter().enumerate() {
+                        g[a * l.len() + b] = col[self.row_of[k][v] as usize];
+                    }
+                }
+                g
+            })
+            .collect();
+        let entries: Vec<Vec<(usize, usize, f64)>> = (0..nr)
+            .map(|r| {
+                self.entries(r)
+                    .filter(|&(k, _, _)| !self.frozen[k])
+                    .map(|(k, v, coef)| (k, local[k].binary_search(&v).expect("listed"), coef))
+                    .collect()
+            })
+            .collect();
+        let mut d = vec![0.0; nr * nr];
+        for r in 0..nr {
+            for c in 0..=r {
+                let along = dot(self.rows[r].pair.normal, self.rows[c].pair.normal);
+                let mut sum = 0.0;
+                for &(k, a, ca) in &entries[r] {
+                    let n = local[k].len();
+                    for &(kc, b, cb) in &entries[c] {
+                        if kc == k {
+                            sum += ca * cb * gram[k][b * n + a];
+                        }
+                    }
+                }
+                d[r * nr + c] = along * sum;
+                d[c * nr + r] = along * sum;
+            }
+        }
+        d
+    }
+
+    /// The row's stiffness `k = ROW_STIFFNESS_RATIO / (h^2 K)`, N/m.
+    fn stiffness(&self, r: usize) -> f64 {
+        ROW_STIFFNESS_RATIO / (self.h * self.h * self.rows[r].pair.inverse_mass)
+    }
+
+    /// Correct the bodies' solutions of this iteration (after the `solve` of every body not `done`) so that no
+    /// row ends with a negative gap, by the active-set Woodbury solve of the module comment. A body done
+    /// iterating stays at its iterate (its side of a row does not move).
+    pub(super) fn correct(&mut self, sims: &mut [&mut Simulation], done: &[bool]) {
+        self.frozen = done.to_vec();
+        self.follow(sims);
+        let nr = self.rows.len();
+        if nr == 0 {
+            return;
+        }
+        self.solve_columns(sims);
+        // The rows' gaps in the unconstrained solutions (pinned vertices and frozen bodies stay put).
+        let gaps: Vec<f64> = {
+            let solutions: Vec<Option<Vec<Vec3>>> = sims
+                .iter_mut()
+                .zip(done)
+                .map(|(s, &d)| (!d).then(|| coupled(s).solution_mut().to_vec()))
+                .collect();
+            let at = |sims: &mut [&mut Simulation], k: usize, v: usize| {
+                let q = self.row_of[k][v];
+                match &solutions[k] {
+                    Some(sol) if q != u32::MAX => sol[q as usize],
+                    _ => coupled(sims[k]).positions()[v],
+                }
+            };
+            let mut gaps = Vec::with_capacity(nr);
+            for row in &self.rows {
+                let p = &row.pair;
+                let q = if row.obstacle.is_some() {
+                    p.point
+                } else {
+                    let mut q = [0.0; 3];
+                    for t in 0..3 {
+                        q = add(q, scale(at(sims, p.other, p.triangle[t]), p.weights[t]));
+                    }
+                    q
+                };
+                gaps.push(dot(p.normal, sub(at(sims, p.body, p.vertex), q)));
+            }
+            gaps
+        };
+        let delassus = self.delassus();
+        // The active set starts from the last iteration's (rows then pushing) and the rows now negative.
+        let mut active: Vec<bool> = (0..nr)
+            .map(|r| gaps[r] < 0.0 || self.rows[r].force > 0.0)
+            .collect();
+        let mut mu = vec![0.0; nr];
+        // Active-set rounds: solve the active rows, drop pulling ones, add those that would end negative.
+        for _ in 0..ACTIVE_SET_ROUNDS {
+            let set: Vec<usize> = (0..nr).filter(|&r| active[r]).collect();
+            mu.iter_mut().for_each(|m| *m = 0.0);
+            if !set.is_empty() {
+                let na = set.len();
+                let mut c = vec![0.0; na * na];
+                for (a, &r) in set.iter().enumerate() {
+                    for (b, &s) in set.iter().enumerate() {
+                        c[a * na + b] = delassus[r * nr + s];
+                    }
+                    c[a * na + a] += 1.0 / self.stiffness(r);
+                }
+                let rhs: Vec<f64> = set.iter().map(|&r| -gaps[r]).collect();
+                let sol = solve_positive_definite(&c, na, &rhs);
+                for (a, &r) in set.iter().enumerate() {
+                    mu[r] = sol[a];
+                }
+            }
+            let pushing: Vec<usize> = (0..nr).filter(|&s| mu[s] > 0.0).collect();
+            let mut changed = false;
+            for r in 0..nr {
+                if active[r] && mu[r] < 0.0 {
+                    active[r] = false;
+                    changed = true;
+                } else if !active[r] {
+                    let moved: f64 = pushing.iter().map(|&s| delassus[r * nr + s] * mu[s]).sum();
+                    if gaps[r] + moved < 0.0 {
+                        active[r] = true;
+                        changed = true;
+                    }
+                }
+            }
+            if !changed {
+                break;
+            }
+        }
+        for r in 0..nr {
+            self.rows[r].force = if active[r] { mu[r].max(0.0) } else { 0.0 };
+        }
+        // x = y + sum_r mu_r (A^{-1} a_r) n_r, body by body, column by column.
+        for (k, sim) in sims.iter_mut().enumerate() {
+            if done[k] {
+                continue;
+            }
+            let out = coupled(sim).solution_mut();
+            for r in 0..nr {
+                let row = &self.rows[r];
+                if row.force == 0.0 {
+                    continue;
+                }
+                for (b, v, coef) in self.entries(r) {
+                    if b != k {
+                        continue;
+                    }
+                    let d = scale(row.pair.normal, row.force * coef);
+                    let col = self.columns[k][v].as_ref().expect("solved");
+                    for (o, &z) in out.iter_mut().zip(col.iter()) {
+                        *o = add(*o, scale(d, z));
+                    }
+                }
+            }
+        }
+    }
+
+    /// A vertex's mean velocity over the part, `(v_start + v_end) / 2` (m/s): an impulse `J` changing a mass's
+    /// velocity does the work `J . (v_start + v_end) / 2` on it.
+    fn mean_velocity(&self, sims: &[&mut Simulation], k: usize, v: usize) -> Vec3 {
+        scale(add(self.v_start[k][v], sims[k].state.v[v]), 0.5)
+    }
+
+    /// What the rows exchanged over the step `h`, per body, from their forces of the last iteration, at the
+    /// bodies' end-of-step states: the impulse `h mu n` on the vertex and `-h mu w_j n` on the corners (the
+    /// part on free corners), both moments taken at the point `sum_j w_j x_j` so that they cancel; each side's
+    /// work `J . (v_start + v_end) / 2` at its point; for an impact (a pair of bodies
+    /// whose rows approached faster than the resting speed), the share `e^2` of what the pair lost is given
+    /// back in proportion to the bodies' inverse masses (the bounce is the projections', as for obstacles).
+    pub(super) fn exchanges(
+        &self,
+        sims: &[&mut Simulation],
+        coefficients: &[BodyCoefficients],
+    ) -> Vec<BodyExchange> {
+        let nb = sims.len();
+        let h = self.h;
+        let mut out = vec![BodyExchange::default(); nb];
+        let mut work = vec![vec![0.0; nb]; nb];
+        let mut approach = vec![vec![0.0f64; nb]; nb];
+        for row in &self.rows {
+            let p = &row.pair;
+            if let Some(o) = row.obstacle {
+                // An obstacle's row: an external impulse at the surface point; an impact's loss is booked with
+                // the share e^2 given back (the projections' bounce, as for the obstacles' own contacts).
+                if row.force == 0.0 {
+                    continue;
+                }
+                let sim = &sims[p.body];
+                let j = scale(p.normal, h * row.force);
+                let mut w = dot(j, self.mean_velocity(sims, p.body, p.vertex));
+                let g = norm(sim.model.gravity);
+                if -row.approach_speed > RESTING_SPEED_STEPS * g * h && w < 0.0 {
+                    let e = sim.world.obstacles[o].restitution;
+                    w *= 1.0 - e * e;
+                }
+                let e = &mut out[p.body];
+                e.contacts += 1;
+                e.impulse = add(e.impulse, j);
+                e.moment = add(e.moment, cross(p.point, j));
+                e.vertices.push(p.vertex as u32);
+                e.work += w;
+                continue;
+            }
+            let (a, b) = (p.body, p.other);
+            approach[a][b] = approach[a][b].max(-row.approach_speed);
+            approach[b][a] = approach[a][b];
+            if row.force == 0.0 {
+                continue;
+            }
+            let j = scale(p.normal, h * row.force);
+            let xb = &sims[b].state.x;
+            let point = (0..3).fold([0.0; 3], |s, t| {
+                add(s, scale(xb[p.triangle[t]], p.weights[t]))
+            });
+            let free_share: f64 = (0..3)
+                .filter(|&t| !sims[b].model.pinned[p.triangle[t]])
+                .map(|t| p.weights[t])
+                .sum();
+            let jb = scale(j, -free_share);
+            work[a][b] += dot(j, self.mean_velocity(sims, a, p.vertex));
+            work[b][a] -= (0..3)
+                .filter(|&t| !sims[b].model.pinned[p.triangle[t]])
+                .map(|t| p.weights[t] * dot(j, self.mean_velocity(sims, b, p.triangle[t])))
+                .sum::<f64>();
+            for (k, got, verts) in [(a, j, &[p.vertex][..]), (b, jb, &p.triangle[..])] {
+                let e = &mut out[k];
+                e.contacts += 1;
+                e.impulse = add(e.impulse, got);
+                e.moment = add(e.moment, cross(point, got));
+                e.vertices.extend(verts.iter().map(|&v| v as u32));
+            }
+        }
+        for a in 0..nb {
+            for b in a + 1..nb {
+                let (mut wa, mut wb) = (work[a][b], work[b][a]);
+                let loss = wa + wb;
+                let g = norm(sims[a].model.gravity);
+                if approach[a][b] > RESTING_SPEED_STEPS * g * h && loss < 0.0 {
+                    let e = coefficients[a].restitution.min(coefficients[b].restitution);
+                    let (ia, ib) = (
+                        1.0 / sims[a].model.total_mass,
+                        1.0 / sims[b].model.total_mass,
+                    );
+                    let back = -e * e * loss;
+                    wa += back * ia / (ia + ib);
+                    wb += back * ib / (ia + ib);
+                }
+                out[a].work += wa;
+                out[b].work += wb;
+            }
+        }
+        for e in &mut out {
+            e.vertices.sort_unstable();
+            e.vertices.dedup();
+            e.held = e.contacts > 0;
+        }
+        out
+    }
+}
+
+/// Rounds of the active-set solve per iteration (each a dense factorisation of the active rows).
+const ACTIVE_SET_ROUNDS: usize = 8;
+
+/// Rows a vertex may have against one other body (the faces of a crease it sits in).
+const ROWS_PER_VERTEX: usize = 3;
+
+/// A row's stiffness over its pair's effective mass per step squared: its force `mu` leaves the gap at
+/// `-mu h^2 K / ROW_STIFFNESS_RATIO` (micrometres in the pile). Stiffer than the obstacles' constraints
+/// ([`crate::world::STIFFNESS_RATIO`], in the matrix, where it slows the iterations): a row is solved exactly, and only
+/// keeps the active rows' system positive definite.
+const ROW_STIFFNESS_RATIO: f64 = 1e5;
+
+/// Solve the dense symmetric positive definite system `c x = rhs` (`c` row-major, `n` x `n`): faer's blocked
+/// Cholesky factorisation, sequential (the same bits for any thread count); the least-squares fallback of
+/// [`crate::math::solve_symmetric_psd`] should rounding make it indefinite.
+fn solve_positive_definite(c: &[f64], n: usize, rhs: &[f64]) -> Vec<f64> {
+    use faer::dyn_stack::{MemBuffer, MemStack};
+    use faer::linalg::cholesky::llt::factor::{cholesky_in_place, cholesky_in_place_scratch};
+    use faer::linalg::triangular_solve::{
+        solve_lower_triangular_in_place, solve_upper_triangular_in_place,
+    };
+    use faer::{Mat, Par};
+    let mut l = Mat::<f64>::from_fn(n, n, |i, j| c[i * n + j]);
+    let mut mem = MemBuffer::new(cholesky_in_place_scratch::<f64>(
+        n,
+        Par::Seq,
+        Default::default(),
+    ));
+    let factored = cholesky_in_place(
+        l.as_mut(),
+        Default::default(),
+        Par::Seq,
+        MemStack::new(&mut mem),
+        Default::default(),
+    );
+    if factored.is_err() {
+        return crate::math::solve_symmetric_psd(c, rhs, n, 0.0).0;
+    }
+    let mut x = Mat::<f64>::from_fn(n, 1, |i, _| rhs[i]);
+    solve_lower_triangular_in_place(l.as_ref(), x.as_mut(), Par::Seq);
+    solve_upper_triangular_in_place(l.as_ref().transpose(), x.as_mut(), Par::Seq);
+    (0..n).map(|i| x[(i, 0)]).collect()
+}
+
+/// Vertices inside an obstacle by less than this share of the impact limit are left to the obstacle's own
+/// constraint in the body's matrix (resting on the floor, they sink that much under the pile's weight).
+const SHALLOW: f64 = 0.1;
