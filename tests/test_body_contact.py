@@ -131,6 +131,7 @@ def test_the_pile_settles_with_contact_inside_the_solve():
 
     scene = load_scene(Path(__file__).resolve().parents[1] / "examples" / "pile.toml")
     pile = scene.build_multibody()
+    height0 = pile.masses @ pile.positions[:, 2]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         pile.step(150)
@@ -145,7 +146,8 @@ def test_the_pile_settles_with_contact_inside_the_solve():
         assert h["inverted"][-1] == 0
         assert np.max(np.abs(h["total"] - h["total"][0] - h["budget_total"])) <= 1e-8 * abs(h["total"][0])
     m, v = pile.masses, pile.velocities
-    assert 0.5 * (m * (v**2).sum(1)).sum() < 1.0, "settled (the drop gave it about 200 J)"
+    released = 9.81 * (height0 - m @ pile.positions[:, 2])
+    assert 0.5 * (m * (v**2).sum(1)).sum() < 0.05 * released, "settling"
 
 
 def test_an_inelastic_collision_books_its_loss():

@@ -361,13 +361,7 @@ fn advance_together(
     let mut advances = Vec::with_capacity(nb);
     for (k, (start, report)) in starts.into_iter().zip(reports).enumerate() {
         match sims[k].part_after_base(h, start, report) {
-            Ok(mut a) => {
-                // Forces held inside the solve move the centre of mass with them (as an obstacle's held
-                // contacts do): the projection keeps the step's centre of mass (the exchange's moment then
-                // follows it, `Simulation::finish_step`).
-                a.report.impulsive |= exchanges[k].held;
-                advances.push(a)
-            }
+            Ok(a) => advances.push(a),
             Err(e) => {
                 for (j, sim) in sims.iter_mut().enumerate() {
                     if j != k {

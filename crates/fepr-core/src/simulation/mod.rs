@@ -768,6 +768,8 @@ impl Simulation {
             force_impulse,
             ..
         } = adv;
+        // Impulses known only approximately (obstacle impacts): the projection may use its slack.
+        let uncertain = report.impulsive;
         if exchange.contacts > 0 {
             contacts += exchange.contacts;
             work.contact += exchange.work;
@@ -808,7 +810,12 @@ impl Simulation {
         }
         report.energy_budget = work.total();
         let step = self.num_steps() + 1;
+        // Forces held inside the solve between bodies move the centre of mass with them (as an obstacle's held
+        // contacts do): the projection keeps the step's centre of mass (the exchange's moment above follows
+        // it). Their impulses are exact (equal and opposite), so they do not loosen the targets.
+        report.impulsive |= exchange.held;
         let mut targets = self.targets(&report);
+        targets.uncertain_impulses = uncertain;
         if has_forces && !report.impulsive {
             // The work of the forces' resultant belongs to the centre of mass's path, which the projection
             // puts on the exact target (uniform fields: exactly F . (C_target - C_n)), not on the base
