@@ -613,6 +613,7 @@ impl BodyConstraints {
                 .sum::<f64>();
             for (k, got, verts) in [(a, j, &[p.vertex][..]), (b, jb, &p.triangle[..])] {
                 let e = &mut out[k];
+                e.max_approach = e.max_approach.max(-row.approach_speed);
                 e.contacts += 1;
                 e.impulse = add(e.impulse, got);
                 e.moment = add(e.moment, cross(point, got));
