@@ -107,9 +107,12 @@ class MultiBody:
 
     Each body is projected separately, onto targets that include what contact with the other bodies did to it
     (its impulse, the moment of that impulse, its share of the kinetic energy): the impulses are equal and
-    opposite at one point, so the bodies' targets add up to the scene's conserved totals. An impact deeper than a
-    tenth of the finer body's mean edge is redone in up to 16 parts (history column ``base_substeps``). Bodies
-    that start inside each other deeper than that are a :class:`SimulationError` naming both.
+    opposite at one point, so the bodies' targets add up to the scene's conserved totals. When every body uses
+    Projective Dynamics, the bodies take their iterations together and contact between them is held inside their
+    joint solve (constraints with equal and opposite forces); otherwise it is answered after the base step, and an
+    impact deeper than a tenth of the finer body's mean edge is redone in up to 16 parts (history column
+    ``base_substeps``). Bodies that start inside each other deeper than that are a :class:`SimulationError`
+    naming both.
 
     Raises
     ------
