@@ -22,8 +22,7 @@
 //! body's solve carries the support to the whole body within the step, so an impact needs no parts and a
 //! resting pile no push-out (which strains the surface layer and, in a pile, pumps it). Why not hold each
 //! body against the other's frozen surface (Jacobi): the two solves then disagree about the force (a heavy
-//! body is stopped, a light one receives all of it), the momenta drift (24% of a pair's momentum in one
-//! collision, measured) and energy is created.
+//! body is stopped, a light one receives all of it), the momenta drift and energy is created.
 //! A hand-written solve: no maintained crate offers a Woodbury update over several sparse factorisations.
 
 use crate::integrators::CoupledSolve;
@@ -340,9 +339,10 @@ impl BodyConstraints {
             needed.sort_unstable();
             needed.dedup();
             needed.retain(|&v| self.columns[k][v].is_none());
-            let n = solve.free_vertices().len();
+            let n = solve.solution_mut().len();
+            let mut cols = vec![[0.0; 3]; n];
             for chunk in needed.chunks(3) {
-                let mut cols = vec![[0.0; 3]; n];
+                cols.iter_mut().for_each(|c| *c = [0.0; 3]);
                 for (c, &v) in chunk.iter().enumerate() {
                     cols[row_of[v] as usize][c] = 1.0;
                 }
@@ -444,35 +444,31 @@ impl BodyConstraints {
         }
         self.solve_columns(sims);
         // The rows' gaps in the unconstrained solutions (pinned vertices and frozen bodies stay put).
-        let gaps: Vec<f64> = {
-            let solutions: Vec<Option<Vec<Vec3>>> = sims
-                .iter_mut()
-                .zip(done)
-                .map(|(s, &d)| (!d).then(|| coupled(s).solution_mut().to_vec()))
-                .collect();
-            let at = |sims: &mut [&mut Simulation], k: usize, v: usize| {
-                let q = self.row_of[k][v];
-                match &solutions[k] {
-                    Some(sol) if q != u32::MAX => sol[q as usize],
-                    _ => coupled(sims[k]).positions()[v],
-                }
-            };
-            let mut gaps = Vec::with_capacity(nr);
-            for row in &self.rows {
+        // Read in place: a pinned vertex or a body done iterating stays at its iterate.
+        let row_of = &self.row_of;
+        let at = |sims: &mut [&mut Simulation], k: usize, v: usize| {
+            let q = row_of[k][v];
+            if q == u32::MAX || done[k] {
+                coupled(sims[k]).positions()[v]
+            } else {
+                coupled(sims[k]).solution_mut()[q as usize]
+            }
+        };
+        let gaps: Vec<f64> = self
+            .rows
+            .iter()
+            .map(|row| {
                 let p = &row.pair;
                 let q = if row.obstacle.is_some() {
                     p.point
                 } else {
-                    let mut q = [0.0; 3];
-                    for t in 0..3 {
-                        q = add(q, scale(at(sims, p.other, p.triangle[t]), p.weights[t]));
-                    }
-                    q
+                    (0..3).fold([0.0; 3], |q, t| {
+                        add(q, scale(at(sims, p.other, p.triangle[t]), p.weights[t]))
+                    })
                 };
-                gaps.push(dot(p.normal, sub(at(sims, p.body, p.vertex), q)));
-            }
-            gaps
-        };
+                dot(p.normal, sub(at(sims, p.body, p.vertex), q))
+            })
+            .collect();
         let delassus = self.delassus();
         // The active set starts from the last iteration's (rows then pushing) and the rows now negative.
         let mut active: Vec<bool> = (0..nr)
