@@ -177,6 +177,7 @@ def test_bodies_parse_with_default_names_and_per_body_pins():
         "kinematic_pins",
         "restitution",
         "friction",
+        "self_contact",
     }
 
 

@@ -291,6 +291,10 @@ class Simulation:
         [a (3), b (3), radius], "mesh" [vertices flattened (n * 3)] with ``triangles`` flattened (k * 3; empty for
         the other kinds); lengths in m. Replaces the previous list. Raises ValueError for a bad obstacle."""
 
+    def set_self_contact(self, coefficients: Optional[Tuple[float, float]]) -> None:
+        """Contact of the body with itself: ``(restitution, friction)``, or None for off. Raises ValueError for
+        coefficients out of range."""
+
     def set_kinematic_pins(self, groups: Sequence[Tuple[Sequence[int], str, Sequence[float], Sequence[float]]]) -> None:
         """Kinematic pin groups ``(vertices, kind, params, times)``: "sinusoid" params [amplitude (3) m,
         frequency Hz, phase rad] (``times`` ignored); "keyframes" params = offsets flattened (k * 3) m with

@@ -10,7 +10,7 @@ import csv
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, FrozenSet, Iterator, List, NamedTuple, Optional, Sequence, Union
+from typing import Dict, FrozenSet, Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -388,6 +388,10 @@ class Simulation:
         projection does not move the positions of vertices in contact.
     kinematic_pins : sequence of KinematicPins, optional
         Groups of vertices that follow a prescribed path (they are pinned too); their work enters the budget.
+    self_contact : bool or (restitution, friction), optional
+        Contact of the body with its own surface (a fold, a limb pressed against the torso): ``True`` for
+        restitution 1 and no friction, or the two coefficients; off by default. The impulses are internal
+        (momenta unchanged); the kinetic energy they remove enters the budget (``work_contact``).
     air_damping : float
         Mass-proportional damping rate ``a`` in 1/s (``dv/dt = -a v``, applied exactly per step).
     rayleigh_damping : float
@@ -421,6 +425,7 @@ class Simulation:
         air_damping: float = 0.0,
         rayleigh_damping: float = 0.0,
         external_forces=None,
+        self_contact: Union[bool, Tuple[float, float]] = False,
     ):
         if not isinstance(mesh, TetMesh):
             raise ConfigError(f"mesh must be a fepr.TetMesh, got {type(mesh).__name__}")
@@ -508,8 +513,10 @@ class Simulation:
             self._sim.set_obstacles([ob._core() for ob in obstacles])
             self._sim.set_kinematic_pins([(g, *kp.motion._core()) for g, kp in zip(groups, kinematic)])
             self._sim.set_damping(float(air_damping), float(rayleigh_damping))
+            self._sim.set_self_contact(_self_contact(self_contact))
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        self.self_contact = _self_contact(self_contact)
         self.obstacles: tuple = tuple(obstacles)
         self.kinematic_pins: tuple = tuple(kinematic)
         self.air_damping = float(air_damping)
@@ -799,3 +806,17 @@ class Simulation:
             f"Simulation({self.mesh.num_vertices} vertices, {self.mesh.num_tets} tets, {self.integrator}, "
             f"dt={self.dt}, {proj}, t={self.time:.4g} s)"
         )
+
+
+def _self_contact(value) -> Optional[Tuple[float, float]]:
+    """``self_contact`` as ``(restitution, friction)`` or None (off)."""
+    if value is False or value is None:
+        return None
+    if value is True:
+        return (1.0, 0.0)
+    if isinstance(value, (tuple, list)) and len(value) == 2:
+        try:
+            return (float(value[0]), float(value[1]))
+        except (TypeError, ValueError):
+            pass
+    raise ConfigError(f"self_contact must be True, False or (restitution, friction), got {value!r}")

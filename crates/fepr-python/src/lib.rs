@@ -700,6 +700,16 @@ impl Simulation {
         Ok(())
     }
 
+    /// Contact of the body with itself: `(restitution, friction)`, or None for off.
+    fn set_self_contact(&mut self, coefficients: Option<(f64, f64)>) -> PyResult<()> {
+        let c = coefficients
+            .map(|(e, mu)| BodyCoefficients::new(e, mu))
+            .transpose()
+            .map_err(|e| PyValueError::new_err(format!("self_contact: {e}")))?;
+        self.inner.set_self_contact(c);
+        Ok(())
+    }
+
     /// Kinematic pin groups `(vertices, kind, params, times)`: `"sinusoid"` params [amplitude (3), frequency
     /// Hz, phase rad]; `"keyframes"` params = offsets flattened (k * 3, m) with `times` (k, s).
     fn set_kinematic_pins(&mut self, groups: Vec<PinGroupArgs>) -> PyResult<()> {

@@ -355,6 +355,8 @@ def _build_body(scene: Scene, body: BodySettings, projection, obstacles: list) -
         kwargs["air_damping"] = world.air_damping
     if world.rayleigh_damping:
         kwargs["rayleigh_damping"] = world.rayleigh_damping
+    if body.self_contact is not None:
+        kwargs["self_contact"] = body.self_contact
     try:
         sim = fepr.Simulation(
             mesh,

@@ -31,6 +31,7 @@ from .schema import (
     OBSTACLE_KEYS,
     PROJECTION_ROWS,
     SCENE_KEYS,
+    SELF_CONTACT_KEYS,
     SLACK_MODES,
     TERRAIN_KEYS,
     BodySettings,
@@ -511,7 +512,7 @@ def _parse_kinematic_pins(
     return tuple(out)
 
 
-_BODY_PIN_KEYS = ("pinned", "pin_below", "kinematic_pins")
+_BODY_PIN_KEYS = ("pinned", "pin_below", "kinematic_pins", "self_contact")
 
 
 def _parse_world(t: _Table, base_dir: Path, multibody: bool = False) -> WorldSettings:
@@ -536,7 +537,25 @@ def _parse_world(t: _Table, base_dir: Path, multibody: bool = False) -> WorldSet
         w.kinematic_pins = _parse_kinematic_pins(
             t.data["kinematic_pins"], t.where, "[world]", "[[world.kinematic_pins]]", "world.kinematic_pins"
         )
+    w.self_contact = _parse_self_contact(t)
     return w
+
+
+def _parse_self_contact(t: _Table) -> Optional[Tuple[float, float]]:
+    """``self_contact``: ``true`` (restitution 1, no friction), ``false``, or a table of ``restitution`` in [0, 1]
+    and ``friction`` >= 0; ``(restitution, friction)`` or None."""
+    if not t.has("self_contact"):
+        return None
+    raw = t.data["self_contact"]
+    if isinstance(raw, bool):
+        return (1.0, 0.0) if raw else None
+    if not isinstance(raw, Mapping):
+        raise t.error(f"self_contact must be true, false or a table {{ restitution = ..., friction = ... }}, got {raw!r}")
+    c = _Table(raw, "self_contact", t.where, known=SELF_CONTACT_KEYS, label=f"{t.label} self_contact:")
+    restitution = c.number("restitution", 1.0)
+    if not 0.0 <= restitution <= 1.0:
+        raise c.error(f"restitution must be in [0, 1], got {restitution!r}")
+    return (restitution, c.number("friction", 0.0, nonnegative=True))
 
 
 def _parse_export(t: _Table) -> ExportSettings:
@@ -603,6 +622,7 @@ def _parse_bodies(raw: Any, where: str, base: Path) -> Tuple[BodySettings, ...]:
             body.kinematic_pins = _parse_kinematic_pins(
                 item["kinematic_pins"], where, f"{label}:", f"{label} [[kinematic_pins]]", "bodies.kinematic_pins"
             )
+        body.self_contact = _parse_self_contact(bt)
         out.append(body)
     return tuple(out)
 

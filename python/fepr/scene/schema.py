@@ -65,6 +65,7 @@ SCENE_KEYS: Dict[str, Tuple[str, ...]] = {
         "force",
         "obstacles",
         "kinematic_pins",
+        "self_contact",
     ),
     "run": ("steps", "threads"),
     "export": ("formats", "every"),
@@ -83,7 +84,10 @@ BODY_KEYS: Tuple[str, ...] = (
     "kinematic_pins",
     "restitution",
     "friction",
+    "self_contact",
 )
+#: Keys of a ``self_contact`` table (``[world]`` of a one-body scene, or a ``[[bodies]]`` table).
+SELF_CONTACT_KEYS: Tuple[str, ...] = ("restitution", "friction")
 #: Obstacle types of ``[[world.obstacles]]`` and the geometry keys of each (``box`` takes one of
 #: ``half_extents`` and ``size``; ``rotate`` is optional).
 OBSTACLE_KEYS: Dict[str, Tuple[str, ...]] = {
@@ -286,6 +290,8 @@ class ObstacleSettings:
     geometry: Dict[str, Any]
     restitution: float = 1.0
     friction: float = 0.0
+    #: Contact of the body with its own surface: ``(restitution, friction)``, or None (off).
+    self_contact: Optional[Tuple[float, float]] = None
     label: str = ""
 
     def make(self):
@@ -336,8 +342,8 @@ class WorldSettings:
     mass-proportional damping ``dv/dt = -a v``; ``rayleigh_damping`` (s) the stiffness-proportional damping
     force ``-b K v``. ``force`` (N) is the total constant force on the scene, spread over the free vertices of
     all bodies in proportion to their masses (a uniform acceleration ``force / m_free``). ``pinned``,
-    ``pin_below`` and ``kinematic_pins`` belong to the single body of a one-body scene (a multi-body scene gives
-    them per body).
+    ``pin_below``, ``kinematic_pins`` and ``self_contact`` belong to the single body of a one-body scene (a
+    multi-body scene gives them per body).
     """
 
     gravity: Vec3 = (0.0, 0.0, 0.0)
@@ -349,6 +355,7 @@ class WorldSettings:
     force: Optional[Vec3] = None
     obstacles: Tuple[ObstacleSettings, ...] = ()
     kinematic_pins: Tuple[KinematicPinSettings, ...] = ()
+    self_contact: Optional[Tuple[float, float]] = None
 
     def make_obstacles(self) -> list:
         """The obstacle objects of :mod:`fepr.world`, in file order."""
@@ -377,6 +384,8 @@ class BodySettings:
     #: restitution and the geometric mean of the frictions).
     restitution: float = 1.0
     friction: float = 0.0
+    #: Contact of the body with its own surface: ``(restitution, friction)``, or None (off).
+    self_contact: Optional[Tuple[float, float]] = None
     label: str = ""
 
     def section(self, name: str) -> str:
@@ -454,6 +463,7 @@ class Scene:
                 pinned=self.world.pinned,
                 pin_below=self.world.pin_below,
                 kinematic_pins=self.world.kinematic_pins,
+                self_contact=self.world.self_contact,
             )
         ]
 

@@ -23,7 +23,7 @@ use crate::math::{add, cross, dot, scale, sub, Vec3};
 use crate::model::{Model, State};
 use crate::projection::{ProjectionReport, Projector, SystemMetric, Targets};
 use crate::world::{max_penetration, near_obstacles, resolve_contacts, Obstacle};
-use crate::world::{BodyExchange, BodySurface, Drag, KinematicPins, Work, World};
+use crate::world::{BodyExchange, BodySurface, Drag, KinematicPins, SelfContact, Work, World};
 
 /// Contact push-outs deeper than this fraction of the mean rest edge length make the step redo itself in
 /// substeps (see [`Simulation::step`]).
@@ -208,10 +208,13 @@ pub struct Simulation {
     /// Energy the last step's projection left off its target, J (state minus target; 0 after a step that
     /// reached it): booked as `Work::deferred` until a later step places it.
     deferred: f64,
-    /// The body's surface as other bodies collide with it (built at the first step among bodies).
+    /// The body's surface as other bodies collide with it (built at the first step among bodies or with self
+    /// contact).
     surface: Option<BodySurface>,
     /// The state at the start of a later part of a step among bodies (what its impact substeps start again
     /// from; the first part starts again from `previous`).
+    /// Contact of the body with itself: `(restitution, friction)`, or off.
+    self_contact: Option<SelfContact>,
     part_start: State,
 }
 
@@ -288,6 +291,7 @@ impl Simulation {
             resting_steps: 0,
             deferred: 0.0,
             surface: None,
+            self_contact: None,
             part_start: State {
                 x: Vec::new(),
                 v: Vec::new(),
@@ -371,6 +375,39 @@ impl Simulation {
         self.integrator.set_obstacles(&obstacles);
         self.world.obstacles = obstacles;
     }
+    /// Contact of the body with its own surface (a fold, a limb swung into the torso), with these coefficients,
+    /// or none (`None`, the default), after the base step ([`crate::world::SelfContact`]).
+    pub fn set_self_contact(&mut self, coefficients: Option<BodyCoefficients>) {
+        self.self_contact = coefficients.map(|c| SelfContact::new(c.restitution, c.friction));
+    }
+
+    /// The self-contact coefficients, if self contact is on.
+    pub fn self_contact(&self) -> Option<BodyCoefficients> {
+        self.self_contact.as_ref().map(|c| BodyCoefficients {
+            restitution: c.restitution,
+            friction: c.friction,
+        })
+    }
+
+    /// Contact of the body with its own surface after the base step, over the step (or its part) from the
+    /// positions `x_begin`.
+    fn resolve_self_contact(&mut self) -> Result<BodyExchange> {
+        let Some(contact) = self.self_contact.as_mut() else {
+            return Ok(BodyExchange::default());
+        };
+        if self.surface.is_none() {
+            self.surface = Some(BodySurface::new(&self.model)?);
+        }
+        let surface = self.surface.as_mut().expect("built above");
+        Ok(contact.resolve(
+            &self.model,
+            &mut self.state,
+            surface,
+            &self.x_begin,
+            self.mean_edge,
+        ))
+    }
+
     pub fn obstacles(&self) -> &[Obstacle] {
         self.world.obstacles()
     }
@@ -533,8 +570,9 @@ impl Simulation {
             let (x, v) = (&mut self.state.x, &mut self.state.v);
             self.world.place_pins(x, v, t_next);
         }
-        // The start positions, for the contacts' crossing test (a vertex that passed through a thin obstacle).
-        if !self.world.obstacles.is_empty() {
+        // The start positions, for the contacts' crossing tests (a vertex that passed through a thin obstacle or
+        // through a part of its own surface).
+        if !self.world.obstacles.is_empty() || self.self_contact.is_some() {
             copy_rows(&self.state.x, &mut self.x_begin);
         }
         // External forces: a kick h f / m before the base step (their work needs the start positions).
@@ -627,6 +665,16 @@ impl Simulation {
                 report.impulse = add(report.impulse, c.impulse);
                 report.angular_impulse = add(report.angular_impulse, c.angular_impulse);
                 report.impulsive = true;
+            }
+            if self.self_contact.is_some() {
+                // Internal impulses: no change of momentum or angular momentum, only of kinetic energy.
+                let e = self.resolve_self_contact()?;
+                if e.contacts > 0 {
+                    contacts += e.contacts;
+                    max_depth = f64::max(max_depth, e.max_depth);
+                    work.contact += e.work;
+                    self.contact_vertices.extend_from_slice(&e.vertices);
+                }
             }
         }
         report.energy_budget = work.total();

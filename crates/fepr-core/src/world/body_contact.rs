@@ -22,8 +22,8 @@
 //! impulse and its moment about the world origin (taken at the contact point for both sides, so the bodies'
 //! moments cancel). The position corrections are not physical work: each body's projection restores the energy
 //! they change, as for obstacles. Vertex-triangle proximity only: an edge of one body can still cross an edge of
-//! the other without a vertex entering (fine meshes against each other make this rare); self contact (a body
-//! against its own surface) is not detected.
+//! the other without a vertex entering (fine meshes against each other make this rare). A body against its own
+//! surface: [`super::self_contact`].
 
 use crate::error::Result;
 use crate::math::{add, cross, dot, norm, scale, sub, Vec3};
@@ -48,6 +48,11 @@ impl BodySurface {
         vertices.sort_unstable();
         vertices.dedup();
         Ok(Self { collider, vertices })
+    }
+
+    /// The surface as a collider (at the positions of the last [`BodySurface::follow`]).
+    pub fn collider(&self) -> &MeshCollider {
+        &self.collider
     }
 
     /// The vertices on the surface, increasing.
@@ -133,7 +138,34 @@ fn pair_coefficients(a: &BodyInContact, b: &BodyInContact) -> (f64, f64) {
     )
 }
 
-fn inverse_mass(model: &Model, i: usize) -> f64 {
+/// The impulse (kg m/s, on the vertex; its opposite on the face) of a vertex-face contact whose relative velocity
+/// is `rel` (m/s, the vertex's less the face point's), normal `n` (unit, out of the face) and effective inverse
+/// mass `k_eff` (1/kg): for an approaching `u = n . rel < 0`, `J_n = -(1 + e) u / K` along `n` and Coulomb
+/// friction against the sliding (it stops the sliding when the bound `mu J_n` allows, else takes `mu J_n` off
+/// it); zero for a separating one.
+pub(crate) fn contact_impulse(
+    rel: Vec3,
+    n: Vec3,
+    k_eff: f64,
+    restitution: f64,
+    friction: f64,
+) -> Vec3 {
+    let u = dot(rel, n);
+    if u >= 0.0 {
+        return [0.0; 3];
+    }
+    let jn = -(1.0 + restitution) * u / k_eff;
+    let impulse = scale(n, jn);
+    let vt = sub(rel, scale(n, u));
+    let vt_len = norm(vt);
+    if vt_len > 0.0 && friction > 0.0 {
+        let jt = (friction * jn).min(vt_len / k_eff);
+        return sub(impulse, scale(vt, jt / vt_len));
+    }
+    impulse
+}
+
+pub(crate) fn inverse_mass(model: &Model, i: usize) -> f64 {
     if model.pinned[i] {
         0.0
     } else {
@@ -190,18 +222,7 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
                 let v_p = (0..3).fold([0.0; 3], |s, c| add(s, scale(bb.state.v[idx[c]], w[c])));
                 let rel = sub(ba.state.v[i], v_p);
                 let u = dot(rel, n);
-                let mut impulse = [0.0; 3];
-                if u < 0.0 {
-                    let jn = -(1.0 + restitution) * u / k_eff;
-                    impulse = scale(n, jn);
-                    let vt = sub(rel, scale(n, u));
-                    let vt_len = norm(vt);
-                    if vt_len > 0.0 && friction > 0.0 {
-                        // Stops the sliding when the friction bound allows, else takes `mu J_n` off it.
-                        let jt = (friction * jn).min(vt_len / k_eff);
-                        impulse = sub(impulse, scale(vt, jt / vt_len));
-                    }
-                }
+                let impulse = contact_impulse(rel, n, k_eff, restitution, friction);
                 ba.state.v[i] = add(ba.state.v[i], scale(impulse, inv_i));
                 for c in 0..3 {
                     let j = idx[c];

@@ -12,7 +12,7 @@
 //!   well-defined "below".
 
 use parry3d_f64::math::Vector;
-use parry3d_f64::query::{PointQueryWithLocation, Ray, RayCast};
+use parry3d_f64::query::{PointQuery, PointQueryWithLocation, Ray, RayCast};
 use parry3d_f64::shape::{TriMesh, TriMeshFlags, TrianglePointLocation};
 
 use crate::error::{FeprError, Result};
@@ -230,6 +230,16 @@ impl MeshCollider {
             TrianglePointLocation::OnSolid => [1.0 / 3.0; 3],
         };
         (if inside { -d } else { d }, n, tri as usize, bary)
+    }
+
+    /// The triangles within `radius` (m) of `x` (exact point-triangle distances after the BVH's boxes), in the
+    /// BVH's order (the same for the same mesh and positions).
+    pub fn triangles_near(&self, x: Vec3, radius: f64) -> impl Iterator<Item = u32> + '_ {
+        let p = to_parry(x);
+        self.mesh
+            .bvh()
+            .leaves(move |node| node.aabb().distance_to_local_point(p, true) <= radius)
+            .filter(move |&t| self.mesh.triangle(t).distance_to_local_point(p, true) <= radius)
     }
 
     /// Move the vertices (m; same count) and refit the BVH and the pseudo-normals: a deforming body's surface.

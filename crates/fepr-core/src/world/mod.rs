@@ -20,12 +20,14 @@ mod body_contact;
 mod contact_potential;
 mod mesh_collider;
 mod obstacles;
+mod self_contact;
 
 pub use body_contact::*;
 pub use contact_potential::*;
 
 pub use mesh_collider::MeshCollider;
 pub use obstacles::*;
+pub use self_contact::SelfContact;
 
 use crate::elasticity::deformation_gradient;
 use crate::elasticity::{element_hessian, HessianAssembler};
