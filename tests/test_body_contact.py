@@ -227,4 +227,5 @@ def test_the_bench_contact_scenes_run_and_report():
     c = contact_suite(quick=True)
     assert c["pile"]["bodies"] == 8 and c["pile"]["ms_per_step"] > 0 and 0 < c["pile"]["detection_share"]
     assert c["terrain"]["terrain_books"] <= 1e-8 and len(c["detection"]["seconds"]) == 4
+    assert c["fold"]["self_books"] <= 1e-8 and c["fold"]["ratio"] > 0
     assert "grows as n^" in format_contact(c)

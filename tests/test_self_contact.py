@@ -216,3 +216,13 @@ def test_scene_bodies_take_self_contact_and_the_world_table_names_where_it_belon
         fepr.scene.scene_from_dict(
             {"bodies": [body], "world": {"self_contact": True}, "integrator": {"name": "implicit_euler", "dt": 0.01}}
         )
+
+
+def test_the_fold_example_is_the_bench_fold():
+    from fepr.cli.bench_contact import fold_scene
+
+    f = fepr.scene.load_scene(EXAMPLES / "fold.toml")
+    s = fepr.scene.scene_from_dict(fold_scene(), ".")
+    for part in ("mesh", "material", "mass", "world", "run"):
+        assert getattr(f, part) == getattr(s, part), part
+    assert f.integrator.name == s.integrator.name and f.integrator.dt == s.integrator.dt

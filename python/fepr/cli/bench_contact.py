@@ -1,5 +1,5 @@
-"""``fepr bench``'s contact scenes: the pile of bodies, a body on a triangle-mesh terrain, and how the cost of
-detecting contact between bodies grows with their number.
+"""``fepr bench``'s contact scenes: the pile of bodies, a body on a triangle-mesh terrain, a body folding onto
+itself, and how the cost of detecting contact between bodies grows with their number.
 
 - ``pile``: ``examples/pile.toml`` (:func:`pile_scene`: eight bodies of 2-3k tets dropped into a bin,
   Projective Dynamics at dt = 1/60 with FEPR): milliseconds per step and steps per second, and the share of a
@@ -7,6 +7,9 @@ detecting contact between bodies grows with their number.
   mean step);
 - ``terrain``: a 384-tet box dropped onto the built-in terrain (6,720 triangles) with backward Euler at dt = 1/60
   and FEPR, against the same drop onto a plane (the ratio is the terrain's cost);
+- ``fold``: ``examples/fold.toml`` (:func:`fold_scene`: a 960-tet bar folded over a rod, its halves swinging into each other,
+  Projective Dynamics at dt = 1/60 with FEPR) with self contact and without (the ratio is self contact's cost,
+  impact substeps included);
 - ``detection``: 1 to 64 boxes (384 tets each) in a touching grid; seconds per detection pass, and the growth
   exponent between the first and the last count (1 is linear).
 
@@ -22,7 +25,7 @@ from typing import Any, Dict, List
 
 import numpy as np
 
-__all__ = ["contact_suite", "format_contact", "pile_scene"]
+__all__ = ["contact_suite", "fold_scene", "format_contact", "pile_scene"]
 
 
 def pile_scene() -> Dict[str, Any]:
@@ -130,6 +133,51 @@ def _terrain(steps: int) -> Dict[str, Any]:
     return out
 
 
+def fold_scene(self_contact: bool = True) -> Dict[str, Any]:
+    """The scene of ``examples/fold.toml`` as a dict (a test holds the two equal): a 1.6 m bar (8 cm square,
+    960 tets, Stable Neo-Hookean 1e5 / 0.4, 1000 kg/m^3) dropped across a rod at 1 m, over a floor, Projective
+    Dynamics at 1/60, FEPR; with self contact (restitution 0.2, friction 0.5) or without."""
+    grip = {"restitution": 0.2, "friction": 0.8}
+    world: Dict[str, Any] = {
+        "gravity": [0.0, 0.0, -9.81],
+        "obstacles": [
+            {"type": "capsule", "a": [0.0, -0.5, 1.0], "b": [0.0, 0.5, 1.0], "radius": 0.03, **grip},
+            {"type": "plane", **grip},
+        ],
+    }
+    if self_contact:
+        world["self_contact"] = {"restitution": 0.2, "friction": 0.5}
+    return {
+        "scene": {"name": "fold", "description": "a long bar folds over a rod and its halves swing into each other"},
+        "mesh": {"builtin": "box", "size": [1.6, 0.08, 0.08], "resolution": [40, 2, 2], "center": [0.0, 0.0, 1.1]},
+        "material": {"model": "stable_neo_hookean", "youngs_modulus": 1e5, "poisson_ratio": 0.4},
+        "mass": {"density": 1000.0},
+        "integrator": {"name": "projective_dynamics", "dt": 1 / 60},
+        "world": world,
+        "run": {"steps": 120},
+    }
+
+
+def _fold(steps: int) -> Dict[str, Any]:
+    from ..scene import scene_from_dict
+
+    out: Dict[str, Any] = {}
+    for name, self_contact in (("self", True), ("none", False)):
+        sim = scene_from_dict(fold_scene(self_contact), ".").build()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            t0 = time.perf_counter()
+            sim.step(steps)
+            out[f"{name}_ms_per_step"] = 1e3 * (time.perf_counter() - t0) / steps
+        h = sim.history
+        out[f"{name}_books"] = float(
+            np.max(np.abs(h["total"] - h["total"][0] - h["budget_total"])) / abs(h["total"][0])
+        )
+        out[f"{name}_max_parts"] = int(h["base_substeps"].max())
+    out["ratio"] = out["self_ms_per_step"] / out["none_ms_per_step"]
+    return out
+
+
 def _detection(counts: List[int]) -> Dict[str, Any]:
     import fepr
 
@@ -161,6 +209,7 @@ def contact_suite(quick: bool = False) -> Dict[str, Any]:
     return {
         "pile": _pile(2 if quick else 30),
         "terrain": _terrain(5 if quick else 60),
+        "fold": _fold(40 if quick else 120),
         "detection": _detection([1, 2, 4, 8] if quick else [1, 2, 4, 8, 16, 32, 64]),
     }
 
@@ -179,6 +228,12 @@ def format_contact(c: Dict[str, Any]) -> str:
     lines.append(
         f"  terrain (384-tet box, BE 1/60 + FEPR): {t['terrain_ms_per_step']:.2f} ms/step on the terrain, "
         f"{t['plane_ms_per_step']:.2f} on a plane ({t['ratio']:.2f}x); books {t['terrain_books']:.1e}"
+    )
+    f = c["fold"]
+    lines.append(
+        f"  fold (960-tet bar, PD 1/60 + FEPR): {f['self_ms_per_step']:.2f} ms/step with self contact, "
+        f"{f['none_ms_per_step']:.2f} without ({f['ratio']:.2f}x; impact parts up to {f['self_max_parts']}); "
+        f"books {f['self_books']:.1e}"
     )
     d = c["detection"]
     pairs = ", ".join(f"{n}: {1e3 * s:.2f} ms" for n, s in zip(d["bodies"], d["seconds"]))
