@@ -120,6 +120,52 @@ def test_projective_dynamics_holds_contact_between_bodies_inside_its_solve():
     assert box.velocities[:, 0].mean() < ball.velocities[:, 0].mean(), "they separate"
 
 
+def _slab_and_block(friction, projection=False):
+    """A 1 m slab on the floor and a 0.2 m block on it (Projective Dynamics at 1/60), settled for 10 steps."""
+    mat = fepr.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.4)
+    floor = fepr.Plane(restitution=0.0, friction=0.5)
+    common = dict(material=mat, density=1000.0, dt=1 / 60, integrator="projective_dynamics", projection=projection,
+                  gravity=(0.0, 0.0, -9.81), obstacles=[floor])
+    slab = fepr.Simulation(fepr.meshes.box(size=(1.0, 0.3, 0.3), resolution=(6, 2, 2), center=(0, 0, 0.15)), **common)
+    block = fepr.Simulation(fepr.meshes.box(size=0.2, resolution=2, center=(-0.3, 0, 0.4005)), **common)
+    system = MultiBody([slab, block], names=["slab", "block"], restitution=0.0, friction=friction)
+    system.step(10)
+    return slab, block, system
+
+
+def test_projective_dynamics_holds_coulomb_friction_between_bodies_in_its_solve():
+    """A block set sliding at 1 m/s on a slab decelerates at about friction * g (Coulomb, 4.9 m/s^2 here) and
+    stops; without friction it keeps sliding. The friction is a force of the joint solve, equal and opposite on
+    both bodies."""
+    speeds = {}
+    for friction in (0.0, 0.5):
+        slab, block, system = _slab_and_block(friction)
+        v = block.velocities
+        v[:, 0] += 1.0
+        block.velocities = v
+        history = []
+        for _ in range(30):
+            system.step(1)
+            history.append(float(block.velocities[:, 0].mean()))
+        speeds[friction] = history
+    assert min(speeds[0.0]) > 0.95
+    # From 0.92 m/s after the first step to 0.21 m/s nine steps (0.15 s) later: 4.8 m/s^2.
+    deceleration = (speeds[0.5][0] - speeds[0.5][9]) / (9 / 60)
+    assert 0.8 * 0.5 * 9.81 < deceleration < 1.2 * 0.5 * 9.81, deceleration
+    assert abs(speeds[0.5][-1]) < 0.1
+
+
+def test_a_block_resting_on_a_slab_stays_put_with_friction():
+    """A block set on a slab, 30 cm off its centre, stays where it is with friction between them:
+    the rows' friction holds it (without it, it slides as the slab sags under it)."""
+    slab, block, system = _slab_and_block(0.5)
+    system.step(50)
+    c0 = block.positions.mean(0)
+    system.step(300)
+    creep = np.linalg.norm(block.positions.mean(0) - c0)
+    assert creep < 0.5e-3, creep
+
+
 def test_the_pile_settles_with_contact_inside_the_solve():
     """The pile example (eight bodies into a bin, Projective Dynamics at 1/60 with FEPR) lands and settles:
     no vertex of a body ends inside another (exact queries here), no tet inverted at the end, the books of

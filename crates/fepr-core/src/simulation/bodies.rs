@@ -284,7 +284,7 @@ fn advance_together(
         .iter_mut()
         .map(|s| s.integrator.coupled().expect("coupled").iterations())
         .collect();
-    let mut constraints = BodyConstraints::new(sims, h, margin);
+    let mut constraints = BodyConstraints::new(sims, h, margin, coefficients);
     let mut done: Vec<bool> = iterations.iter().map(|&n| n == 0).collect();
     for it in 0..iterations.iter().copied().max().unwrap_or(0) {
         if done.iter().all(|&d| d) {

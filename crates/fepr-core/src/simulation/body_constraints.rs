@@ -42,6 +42,8 @@ struct Row {
     approach_speed: f64,
     /// Its force in the last iteration (N; 0 when not in the active set).
     force: f64,
+    /// Its friction force in the last iteration (N, perpendicular to the normal then).
+    friction: Vec3,
 }
 
 /// The constraint rows of a step among bodies and the bodies' solve layouts.
@@ -60,6 +62,8 @@ pub(super) struct BodyConstraints {
     limit: f64,
     /// Per body, the velocities at the start of the part (m/s), for the rows' work.
     v_start: Vec<Vec<Vec3>>,
+    /// Per body, its Coulomb friction coefficient against other bodies (a pair takes the geometric mean).
+    friction: Vec<f64>,
 }
 
 fn coupled(sim: &mut Simulation) -> &mut dyn CoupledSolve {
@@ -93,8 +97,14 @@ fn iterates<'a>(sims: &'a mut [&mut Simulation], start: bool) -> Vec<BodyIterate
 }
 
 impl BodyConstraints {
-    /// No rows yet; the bodies' steps are begun. `limit`: the impact limit (m).
-    pub(super) fn new(sims: &mut [&mut Simulation], h: f64, limit: f64) -> Self {
+    /// No rows yet; the bodies' steps are begun. `limit`: the impact limit (m); `coefficients`: the bodies'
+    /// contact coefficients (their frictions against each other).
+    pub(super) fn new(
+        sims: &mut [&mut Simulation],
+        h: f64,
+        limit: f64,
+        coefficients: &[BodyCoefficients],
+    ) -> Self {
         let mut row_of = Vec::with_capacity(sims.len());
         let mut versions = Vec::with_capacity(sims.len());
         let mut columns = Vec::with_capacity(sims.len());
@@ -118,6 +128,7 @@ impl BodyConstraints {
             versions,
             h,
             limit,
+            friction: coefficients.iter().map(|c| c.friction).collect(),
         }
     }
 
@@ -160,6 +171,7 @@ impl BodyConstraints {
                         .expect("rows");
                     self.rows[weakest].pair = pair;
                     self.rows[weakest].force = 0.0;
+                    self.rows[weakest].friction = [0.0; 3];
                 }
             }
         }
@@ -183,6 +195,7 @@ impl BodyConstraints {
                 obstacle: None,
                 approach_speed,
                 force: 0.0,
+                friction: [0.0; 3],
             });
         }
         deepest.max(self.detect_obstacles(sims))
@@ -266,6 +279,7 @@ impl BodyConstraints {
                     obstacle: Some(o),
                     approach_speed: dot(vel, n),
                     force: 0.0,
+                    friction: [0.0; 3],
                 });
             }
         }
@@ -366,10 +380,11 @@ impl BodyConstraints {
         )
     }
 
-    /// The rows' Delassus matrix `D_rc = (n_r . n_c) a_r . A^{-1} a_c` (row-major, rows x rows): how row `c`'s
-    /// unit force moves row `r`'s gap. Gathered per body from the columns at the rows' own vertices (a frozen
-    /// body's side does not move: no entries).
-    fn delassus(&self) -> Vec<f64> {
+    /// The rows' scalar coupling `G_rc = a_r . A^{-1} a_c` (row-major, rows x rows): a unit force along `d` on
+    /// row `c` moves row `r`'s point along `d'` by `(d . d') G_rc` (the matrix is the same for x, y and z).
+    /// Gathered per body from the columns at the rows' own vertices (a frozen body's side does not move: no
+    /// entries).
+    fn coupling(&self) -> Vec<f64> {
         let nr = self.rows.len();
         let nb = self.row_of.len();
         // Per body, the rows' vertices on it (local indices) and the columns' values among them.
@@ -410,7 +425,6 @@ impl BodyConstraints {
         let mut d = vec![0.0; nr * nr];
         for r in 0..nr {
             for c in 0..=r {
-                let along = dot(self.rows[r].pair.normal, self.rows[c].pair.normal);
                 let mut sum = 0.0;
                 for &(k, a, ca) in &entries[r] {
                     let n = local[k].len();
@@ -420,8 +434,8 @@ impl BodyConstraints {
                         }
                     }
                 }
-                d[r * nr + c] = along * sum;
-                d[c * nr + r] = along * sum;
+                d[r * nr + c] = sum;
+                d[c * nr + r] = sum;
             }
         }
         d
@@ -454,22 +468,60 @@ impl BodyConstraints {
                 coupled(sims[k]).solution_mut()[q as usize]
             }
         };
-        let gaps: Vec<f64> = self
+        // Each row's vertex relative to its point on the other side, in the unconstrained solutions and at the
+        // start of the step (an obstacle's point does not move).
+        let relative: Vec<(Vec3, Vec3)> = self
             .rows
             .iter()
             .map(|row| {
                 let p = &row.pair;
-                let q = if row.obstacle.is_some() {
-                    p.point
+                let (q, q0) = if row.obstacle.is_some() {
+                    (p.point, p.point)
                 } else {
-                    (0..3).fold([0.0; 3], |q, t| {
-                        add(q, scale(at(sims, p.other, p.triangle[t]), p.weights[t]))
+                    (0..3).fold(([0.0; 3], [0.0; 3]), |(q, q0), t| {
+                        let start = sims[p.other].state.x[p.triangle[t]];
+                        (
+                            add(q, scale(at(sims, p.other, p.triangle[t]), p.weights[t])),
+                            add(q0, scale(start, p.weights[t])),
+                        )
                     })
                 };
-                dot(p.normal, sub(at(sims, p.body, p.vertex), q))
+                (
+                    sub(at(sims, p.body, p.vertex), q),
+                    sub(sims[p.body].state.x[p.vertex], q0),
+                )
             })
             .collect();
-        let delassus = self.delassus();
+        let coupling = self.coupling();
+        // The gaps with the friction of the last iteration applied (its forces, in each row's current tangent
+        // plane, are where the friction solve below starts: the normal forces are solved with them in place).
+        let friction: Vec<Vec3> = self
+            .rows
+            .iter()
+            .map(|row| {
+                let n = row.pair.normal;
+                sub(row.friction, scale(n, dot(n, row.friction)))
+            })
+            .collect();
+        for (row, f) in self.rows.iter_mut().zip(&friction) {
+            row.friction = *f;
+        }
+        let gaps: Vec<f64> = (0..nr)
+            .map(|r| {
+                let n = self.rows[r].pair.normal;
+                let from_friction: f64 = (0..nr)
+                    .filter(|&c| friction[c] != [0.0; 3])
+                    .map(|c| dot(n, friction[c]) * coupling[r * nr + c])
+                    .sum();
+                dot(n, relative[r].0) + from_friction
+            })
+            .collect();
+        let delassus: Vec<f64> = (0..nr * nr)
+            .map(|rc| {
+                let (r, c) = (rc / nr, rc % nr);
+                dot(self.rows[r].pair.normal, self.rows[c].pair.normal) * coupling[rc]
+            })
+            .collect();
         // The active set starts from the last iteration's (rows then pushing) and the rows now negative.
         let mut active: Vec<bool> = (0..nr)
             .map(|r| gaps[r] < 0.0 || self.rows[r].force > 0.0)
@@ -515,6 +567,11 @@ impl BodyConstraints {
         for r in 0..nr {
             self.rows[r].force = if active[r] { mu[r].max(0.0) } else { 0.0 };
         }
+        let slips: Vec<Vec3> = relative
+            .iter()
+            .map(|&(now, start)| sub(now, start))
+            .collect();
+        self.add_friction(sims, &coupling, &slips);
         // x = y + sum_r mu_r (A^{-1} a_r) n_r, body by body, column by column.
         for (k, sim) in sims.iter_mut().enumerate() {
             if done[k] {
@@ -522,19 +579,94 @@ impl BodyConstraints {
             }
             let out = coupled(sim).solution_mut();
             for r in 0..nr {
-                let row = &self.rows[r];
-                if row.force == 0.0 {
+                if self.rows[r].force == 0.0 {
                     continue;
                 }
+                let force = self.row_force(r);
                 for (b, v, coef) in self.entries(r) {
                     if b != k {
                         continue;
                     }
-                    let d = scale(row.pair.normal, row.force * coef);
+                    let d = scale(force, coef);
                     let col = self.columns[k][v].as_ref().expect("solved");
                     for (o, &z) in out.iter_mut().zip(col.iter()) {
                         *o = add(*o, scale(d, z));
                     }
+                }
+            }
+        }
+    }
+
+    /// Row `r`'s force vector (N): its normal force along the normal plus its friction.
+    fn row_force(&self, r: usize) -> Vec3 {
+        let row = &self.rows[r];
+        add(scale(row.pair.normal, row.force), row.friction)
+    }
+
+    /// Row `r`'s Coulomb friction coefficient: the obstacle's, or the geometric mean of the two bodies'.
+    fn friction_of(&self, sims: &[&mut Simulation], r: usize) -> f64 {
+        let p = &self.rows[r].pair;
+        match self.rows[r].obstacle {
+            Some(o) => sims[p.body].world.obstacles[o].friction,
+            None => (self.friction[p.body] * self.friction[p.other]).sqrt(),
+        }
+    }
+
+    /// Coulomb friction on the rows that push (`force > 0`, set by the normal solve): each row's friction force
+    /// `f` (in the tangent plane of its normal) aims at no sliding over the step (the vertex's displacement
+    /// relative to its point on the other side, `slips` in the unconstrained solutions, plus what every row's
+    /// force adds through `coupling`, has no tangential part), within the cone `|f| <= mu f_n`. Solved by
+    /// projected Gauss-Seidel sweeps over the rows in order, starting from the last iteration's forces (the
+    /// iterations of the step continue it): a joint dense solve of two tangents per row is too costly for a
+    /// pile's hundreds of rows. Equal and opposite on both sides, like the normal force.
+    fn add_friction(&mut self, sims: &[&mut Simulation], coupling: &[f64], slips: &[Vec3]) {
+        let nr = self.rows.len();
+        let mu: Vec<f64> = (0..nr).map(|r| self.friction_of(sims, r)).collect();
+        let rows: Vec<usize> = (0..nr)
+            .filter(|&r| self.rows[r].force > 0.0 && mu[r] > 0.0)
+            .collect();
+        for r in 0..nr {
+            if !rows.contains(&r) {
+                self.rows[r].friction = [0.0; 3];
+            }
+        }
+        if rows.is_empty() {
+            return;
+        }
+        let tangential = |n: Vec3, v: Vec3| sub(v, scale(n, dot(n, v)));
+        // The start: last iteration's friction, in the current tangent plane and cone.
+        for &r in &rows {
+            let row = &self.rows[r];
+            let f = tangential(row.pair.normal, row.friction);
+            self.rows[r].friction = clamp_length(f, mu[r] * row.force);
+        }
+        // Every row's displacement relative to its point, with all the rows' forces.
+        let force: Vec<Vec3> = (0..nr).map(|r| self.row_force(r)).collect();
+        let mut moved: Vec<Vec3> = (0..nr)
+            .map(|r| {
+                (0..nr).fold(slips[r], |s, c| {
+                    add(s, scale(force[c], coupling[r * nr + c]))
+                })
+            })
+            .collect();
+        for _ in 0..FRICTION_SWEEPS {
+            for &r in &rows {
+                let row = &self.rows[r];
+                let n = row.pair.normal;
+                let slip = tangential(n, moved[r]);
+                let f_old = row.friction;
+                let step = scale(
+                    slip,
+                    -1.0 / (coupling[r * nr + r] + 1.0 / self.stiffness(r)),
+                );
+                let f_new = clamp_length(add(f_old, step), mu[r] * row.force);
+                let change = sub(f_new, f_old);
+                if change == [0.0; 3] {
+                    continue;
+                }
+                self.rows[r].friction = f_new;
+                for (c, m) in moved.iter_mut().enumerate() {
+                    *m = add(*m, scale(change, coupling[c * nr + r]));
                 }
             }
         }
@@ -562,7 +694,8 @@ impl BodyConstraints {
         let mut out = vec![BodyExchange::default(); nb];
         let mut work = vec![vec![0.0; nb]; nb];
         let mut approach = vec![vec![0.0f64; nb]; nb];
-        for row in &self.rows {
+        let mut normal_loss = vec![vec![0.0; nb]; nb];
+        for (r, row) in self.rows.iter().enumerate() {
             let p = &row.pair;
             if let Some(o) = row.obstacle {
                 // An obstacle's row: an external impulse at the surface point; an impact's loss is booked with
@@ -571,12 +704,19 @@ impl BodyConstraints {
                     continue;
                 }
                 let sim = &sims[p.body];
-                let j = scale(p.normal, h * row.force);
-                let mut w = dot(j, self.mean_velocity(sims, p.body, p.vertex));
+                let j = scale(self.row_force(r), h);
+                let v = self.mean_velocity(sims, p.body, p.vertex);
+                let wn = h * row.force * dot(p.normal, v);
+                // Friction's work over the step's displacement (see the rows between bodies below).
+                let mut w = wn
+                    + dot(
+                        sub(j, scale(p.normal, h * row.force)),
+                        sim.state.v[p.vertex],
+                    );
                 let g = norm(sim.model.gravity);
-                if -row.approach_speed > RESTING_SPEED_STEPS * g * h && w < 0.0 {
+                if -row.approach_speed > RESTING_SPEED_STEPS * g * h && wn < 0.0 {
                     let e = sim.world.obstacles[o].restitution;
-                    w *= 1.0 - e * e;
+                    w -= e * e * wn;
                 }
                 let e = &mut out[p.body];
                 e.contacts += 1;
@@ -592,7 +732,8 @@ impl BodyConstraints {
             if row.force == 0.0 {
                 continue;
             }
-            let j = scale(p.normal, h * row.force);
+            let j = scale(self.row_force(r), h);
+            let jn = scale(p.normal, h * row.force);
             let xb = &sims[b].state.x;
             let point = (0..3).fold([0.0; 3], |s, t| {
                 add(s, scale(xb[p.triangle[t]], p.weights[t]))
@@ -602,11 +743,29 @@ impl BodyConstraints {
                 .map(|t| p.weights[t])
                 .sum();
             let jb = scale(j, -free_share);
-            work[a][b] += dot(j, self.mean_velocity(sims, a, p.vertex));
-            work[b][a] -= (0..3)
-                .filter(|&t| !sims[b].model.pinned[p.triangle[t]])
-                .map(|t| p.weights[t] * dot(j, self.mean_velocity(sims, b, p.triangle[t])))
-                .sum::<f64>();
+            // Each side's work: the normal impulse's at the mean velocity over the step (the kinetic energy an
+            // impulse changes); friction's as the force's work over the displacement of the step, `J_t . v_end`
+            // (positional steps: `v_end = dx / h`), so that the pair's is `-f . slip`, never positive (sticking:
+            // zero). The normal part's sum is what an impact's restitution gives a share of back.
+            let jt = sub(j, jn);
+            let on_b = |f: Vec3, end: bool| -> f64 {
+                (0..3)
+                    .filter(|&t| !sims[b].model.pinned[p.triangle[t]])
+                    .map(|t| {
+                        let v = if end {
+                            sims[b].state.v[p.triangle[t]]
+                        } else {
+                            self.mean_velocity(sims, b, p.triangle[t])
+                        };
+                        p.weights[t] * dot(f, v)
+                    })
+                    .sum::<f64>()
+            };
+            let va = self.mean_velocity(sims, a, p.vertex);
+            let normal = (dot(jn, va), -on_b(jn, false));
+            work[a][b] += normal.0 + dot(jt, sims[a].state.v[p.vertex]);
+            work[b][a] += normal.1 - on_b(jt, true);
+            normal_loss[a][b] += normal.0 + normal.1;
             for (k, got, verts) in [(a, j, &[p.vertex][..]), (b, jb, &p.triangle[..])] {
                 let e = &mut out[k];
                 e.max_approach = e.max_approach.max(-row.approach_speed);
@@ -619,7 +778,7 @@ impl BodyConstraints {
         for a in 0..nb {
             for b in a + 1..nb {
                 let (mut wa, mut wb) = (work[a][b], work[b][a]);
-                let loss = wa + wb;
+                let loss = normal_loss[a][b] + normal_loss[b][a];
                 let g = norm(sims[a].model.gravity);
                 if approach[a][b] > RESTING_SPEED_STEPS * g * h && loss < 0.0 {
                     let e = coefficients[a].restitution.min(coefficients[b].restitution);
@@ -646,6 +805,19 @@ impl BodyConstraints {
 
 /// Rounds of the active-set solve per iteration (each a dense factorisation of the active rows).
 const ACTIVE_SET_ROUNDS: usize = 8;
+
+/// Projected Gauss-Seidel sweeps of the friction per iteration (continued by the next iteration).
+const FRICTION_SWEEPS: usize = 3;
+
+/// `v` shortened to at most `bound` long.
+fn clamp_length(v: Vec3, bound: f64) -> Vec3 {
+    let len = norm(v);
+    if len > bound {
+        scale(v, bound.max(0.0) / len)
+    } else {
+        v
+    }
+}
 
 /// Rows a vertex may have against one other body (the faces of a crease it sits in).
 const ROWS_PER_VERTEX: usize = 3;

@@ -1120,18 +1120,14 @@ impl Simulation {
             report.energy_budget += booked;
             targets.energy += booked;
         }
-        // What a failed contact step leaves off its target is deferred, not lost from the books: the state's
-        // energy differs from the target by `pending`, which the budget carries (the references do not: the next
+        // What a failed step leaves off its target is deferred, not lost from the books: the state's energy
+        // differs from the target by `pending`, which the budget carries (the references do not: the next
         // projection still aims at the target and, when it reaches it, the deferral is reversed). So
-        // `total - (H0 + budget_total)` stays closed through steps the projection could not converge.
-        // (A failed step right after a contact step, or after a deferring one, defers too: a body bouncing off
-        // another leaves the contact with velocities the next projections may still be working off; the
-        // deferral is reversed only by a step that reaches its target.)
-        let after_contact = self.history.last().is_some_and(|d| d.contacts > 0);
+        // `total - (H0 + budget_total)` stays closed through steps the projection could not converge (a body
+        // that left a contact still vibrating can fail a projection in flight a few steps later), and the
+        // history says which steps they were (`proj_converged`, `work_deferred`).
         let pending = match projection {
-            Some(p) if !p.converged && (contacts > 0 || after_contact || self.deferred != 0.0) => {
-                inv.total - targets.energy
-            }
+            Some(p) if !p.converged => inv.total - targets.energy,
             _ => 0.0,
         };
         work.deferred = pending - self.deferred;

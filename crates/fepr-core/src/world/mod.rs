@@ -193,7 +193,7 @@ pub struct Work {
     /// [`crate::projection::ProjectionReport::unresolved`]): what the time step could not carry within the
     /// projection's quality guard.
     pub unresolved: f64,
-    /// Change of the energy a failed contact-step projection left off its target (the state's energy minus
+    /// Change of the energy a failed projection left off its target (the state's energy minus
     /// the target; positive: the state has more). Booked so that the books close while the projection is off
     /// target, reversed by the step that reaches it; the targets never include it.
     pub deferred: f64,
