@@ -226,3 +226,30 @@ def test_the_fold_example_is_the_bench_fold():
     for part in ("mesh", "material", "mass", "world", "run"):
         assert getattr(f, part) == getattr(s, part), part
     assert f.integrator.name == s.integrator.name and f.integrator.dt == s.integrator.dt
+
+
+def test_a_body_among_others_keeps_its_self_contact():
+    """Self contact of a body in a scene of several bodies (Projective Dynamics: the bodies' solves taken
+    together): the folding bar of the space test, with a ball beside it that it does not touch, does not pass
+    through itself, and the scene keeps its momentum."""
+    bar = _spinning_halves("projective_dynamics", 1.0)
+    ball = fepr.Simulation(
+        fepr.meshes.sphere(radius=0.1, resolution=3, center=(0.0, 1.0, 0.0)),
+        material=fepr.StableNeoHookean(youngs_modulus=2e4, poisson_ratio=0.4),
+        density=1000.0,
+        dt=1 / 60,
+        integrator="projective_dynamics",
+    )
+    from fepr.multibody import MultiBody
+
+    scene = MultiBody([bar, ball], names=["bar", "ball"])
+    rest = bar.positions.copy()
+    p0 = (scene.masses[:, None] * scene.velocities).sum(0)
+    apart = []
+    for _ in range(60):
+        scene.step(1)
+        apart.append(float(bar.positions[rest[:, 0] > 0.49, 0].mean() - bar.positions[rest[:, 0] < -0.49, 0].mean()))
+    p1 = (scene.masses[:, None] * scene.velocities).sum(0)
+    assert bar.history["contacts"].max() > 0 and ball.history["contacts"].max() == 0
+    assert min(apart) > 0.0
+    assert np.abs(p1 - p0).max() <= 1e-10 * np.linalg.norm(p0)

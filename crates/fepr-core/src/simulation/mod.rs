@@ -25,6 +25,10 @@ use crate::projection::{ProjectionReport, Projector, SystemMetric, Targets};
 use crate::world::{max_penetration, near_obstacles, resolve_contacts, Obstacle};
 use crate::world::{BodyExchange, BodySurface, Drag, KinematicPins, SelfContact, Work, World};
 
+/// The strain whose elastic energy over the body is the least energy scale of a step (a body at rest without
+/// gravity has no other; its runaway test and its projection's tolerance need one).
+pub const STRAIN_SCALE: f64 = 1e-4;
+
 /// Contact push-outs deeper than this fraction of the mean rest edge length make the step redo itself in
 /// substeps (see [`Simulation::step`]).
 const IMPACT_DEPTH_FRACTION: f64 = 0.1;
@@ -185,6 +189,9 @@ pub struct Simulation {
     references: References,
     /// Energy scale of the initial state, `K + |E_el|` (J; see [`Simulation::step_energy_scale`]).
     energy_scale: f64,
+    /// The elastic energy of a uniform strain of [`STRAIN_SCALE`] over the body, `m_tot c^2 eps^2 / 2` (J, `c`
+    /// the pressure wave speed): the least energy scale, so that a body at rest without gravity has one.
+    strain_energy: f64,
     /// Gravitational energy of the initial state, J: energies are measured from this potential.
     initial_potential: f64,
     history: Vec<StepDiagnostics>,
@@ -277,6 +284,7 @@ impl Simulation {
                 center_of_mass: [0.0; 3],
             },
             energy_scale: 0.0,
+            strain_energy: 0.0,
             initial_potential: 0.0,
             history: Vec::new(),
             previous,
@@ -299,6 +307,8 @@ impl Simulation {
             },
         };
         sim.mean_edge = mean_edge_length(&sim.model);
+        let c = sim.model.pressure_wave_speed();
+        sim.strain_energy = 0.5 * sim.model.total_mass * c * c * STRAIN_SCALE * STRAIN_SCALE;
         sim.reset_references();
         let inv = measure(&sim.model, &sim.state);
         sim.history.push(StepDiagnostics {
@@ -325,7 +335,9 @@ impl Simulation {
     pub fn reset_references(&mut self) {
         let inv = measure(&self.model, &self.state);
         self.references = References::measured(&inv);
-        self.energy_scale = (inv.kinetic + inv.elastic.abs()).max(f64::MIN_POSITIVE);
+        self.energy_scale = (inv.kinetic + inv.elastic.abs())
+            .max(self.strain_energy)
+            .max(f64::MIN_POSITIVE);
         self.initial_potential = inv.gravitational;
         // Before the first step, row 0 must describe the state the run starts from.
         if let [only] = self.history.as_mut_slice() {
@@ -485,7 +497,8 @@ impl Simulation {
     /// - the initial state's `K + |E_el|`;
     /// - the start-of-step state's internal energy `K - |P|^2 / (2 m_tot) + |E_el|` (the kinetic energy in the
     ///   centre-of-mass frame: a falling body's growing `K` and `|E_grav|` do not count);
-    /// - `m_tot |g| r`, the energy of lifting the body by its size (a body starting at rest has a scale);
+    /// - `m_tot |g| r`, the energy of lifting the body by its size (a body starting at rest has a scale), and
+    ///   the elastic energy of a uniform strain of [`STRAIN_SCALE`] (one starting at rest without gravity too);
     /// - the rounding of the start-of-step energies, `8 sqrt(m/4 + 1) eps (K + |E_el| + |E_grav|) / tolerance`:
     ///   far from the origin H itself is known no better than that.
     ///
@@ -516,6 +529,7 @@ impl Simulation {
             .max(self.energy_scale)
             .max(internal)
             .max(lift)
+            .max(self.strain_energy)
             .max(rounding)
             .max(f64::MIN_POSITIVE)
     }
