@@ -218,10 +218,10 @@ pub struct Simulation {
     /// The body's surface as other bodies collide with it (built at the first step among bodies or with self
     /// contact).
     surface: Option<BodySurface>,
+    /// Contact of the body with its own surface (its coefficients and detection data), or off.
+    self_contact: Option<SelfContact>,
     /// The state at the start of a later part of a step among bodies (what its impact substeps start again
     /// from; the first part starts again from `previous`).
-    /// Contact of the body with itself: `(restitution, friction)`, or off.
-    self_contact: Option<SelfContact>,
     part_start: State,
 }
 
@@ -387,6 +387,7 @@ impl Simulation {
         self.integrator.set_obstacles(&obstacles);
         self.world.obstacles = obstacles;
     }
+
     /// Contact of the body with its own surface (a fold, a limb swung into the torso), with these coefficients,
     /// or none (`None`, the default), after the base step ([`crate::world::SelfContact`]).
     pub fn set_self_contact(&mut self, coefficients: Option<BodyCoefficients>) {
