@@ -15,7 +15,8 @@
 //! the current iterates (the vertex slides over the other's surface), unless the vertex is deeper than the
 //! impact limit (then the face it is nearest to is not the one it came through, and the row keeps the face it
 //! was found against at the start of the step). A vertex squeezed into an obstacle gets a row against it too
-//! (the obstacle's side does not move).
+//! (the obstacle's side does not move). A pushing row also carries Coulomb friction, a force in its tangent plane
+//! that aims at no sliding over the step within the cone `|f_t| <= mu f_n` ([`BodyConstraints::add_friction`]).
 //!
 //! Why: the force is one scalar per row acting on both bodies (`+mu n` on the vertex, `-w_j mu n` on the
 //! triangle's corners), so the bodies' momenta change by equal and opposite amounts in every iteration; each
@@ -626,7 +627,7 @@ impl BodyConstraints {
             .filter(|&r| self.rows[r].force > 0.0 && mu[r] > 0.0)
             .collect();
         for r in 0..nr {
-            if !rows.contains(&r) {
+            if !(self.rows[r].force > 0.0 && mu[r] > 0.0) {
                 self.rows[r].friction = [0.0; 3];
             }
         }
