@@ -26,7 +26,8 @@ pub struct TetMesh {
     tets: Vec<[usize; 4]>,
 }
 
-fn signed_volume6(p: &[Vec3], t: &[usize; 4]) -> f64 {
+/// Six times the signed volume of tet `t` at the positions `p` (negative: inverted).
+pub fn signed_volume6(p: &[Vec3], t: &[usize; 4]) -> f64 {
     det(&edge_matrix(p, t))
 }
 

@@ -33,6 +33,7 @@
 use rayon::prelude::*;
 
 use crate::math::{add, cross, dot, norm, scale, sub, Vec3};
+use crate::mesh::signed_volume6;
 use crate::model::{Model, State};
 
 use super::body_contact::{contact_impulse, inverse_mass};
@@ -130,8 +131,7 @@ impl SelfContact {
         self.crushed.clear();
         self.crushed.resize(x.len(), false);
         for t in model.mesh.tets() {
-            let e = [1, 2, 3].map(|k| sub(x[t[k]], x[t[0]]));
-            if dot(cross(e[0], e[1]), e[2]) <= 0.0 {
+            if signed_volume6(x, t) <= 0.0 {
                 for &v in t {
                     self.crushed[v] = true;
                 }
