@@ -120,11 +120,31 @@ def test_projective_dynamics_holds_contact_between_bodies_inside_its_solve():
     assert box.velocities[:, 0].mean() < ball.velocities[:, 0].mean(), "they separate"
 
 
-def _slab_and_block(friction, projection=False):
-    """A 1 m slab on the floor and a 0.2 m block on it (Projective Dynamics at 1/60), settled for 10 steps."""
+def test_xpbd_answers_contact_between_bodies_after_each_substep():
+    """XPBD bodies meet after each of their substeps (the step taken in as many parts): the impact at
+    dt = 1/60 is not redone in further parts, no vertex ends inside the other, and the momenta and books hold."""
+    box, ball, system = _pair("xpbd", 1 / 60, restitution=0.3)
+    _, p0, l0 = _totals(system)
+    deepest = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for _ in range(30):
+            system.step(1)
+            deepest = max(deepest, _penetration(box.positions, ball), _penetration(ball.positions, box))
+    _, p, ang = _totals(system)
+    assert box.history["contacts"].max() > 0
+    assert box.history["base_substeps"].max() == 0 and ball.history["base_substeps"].max() == 0
+    mv = system.total_mass * 2.0
+    assert np.abs(p - p0).max() <= 1e-10 * mv and np.abs(ang - l0).max() <= 1e-10 * mv * 0.3
+    assert deepest <= 0.01 * _mean_edge(fepr.meshes.sphere(0.15, 3))
+    assert box.velocities[:, 0].mean() < ball.velocities[:, 0].mean(), "they separate"
+
+
+def _slab_and_block(friction, projection=False, integrator="projective_dynamics"):
+    """A 1 m slab on the floor and a 0.2 m block on it (at 1/60), settled for 10 steps."""
     mat = fepr.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.4)
     floor = fepr.Plane(restitution=0.0, friction=0.5)
-    common = dict(material=mat, density=1000.0, dt=1 / 60, integrator="projective_dynamics", projection=projection,
+    common = dict(material=mat, density=1000.0, dt=1 / 60, integrator=integrator, projection=projection,
                   gravity=(0.0, 0.0, -9.81), obstacles=[floor])
     slab = fepr.Simulation(fepr.meshes.box(size=(1.0, 0.3, 0.3), resolution=(6, 2, 2), center=(0, 0, 0.15)), **common)
     block = fepr.Simulation(fepr.meshes.box(size=0.2, resolution=2, center=(-0.3, 0, 0.4005)), **common)
@@ -133,13 +153,14 @@ def _slab_and_block(friction, projection=False):
     return slab, block, system
 
 
-def test_projective_dynamics_holds_coulomb_friction_between_bodies_in_its_solve():
+@pytest.mark.parametrize("integrator", ["projective_dynamics", "xpbd", "implicit_euler"])
+def test_coulomb_friction_between_bodies_stops_a_sliding_block(integrator):
     """A block set sliding at 1 m/s on a slab decelerates at about friction * g (Coulomb, 4.9 m/s^2 here) and
-    stops; without friction it keeps sliding. The friction is a force of the joint solve, equal and opposite on
-    both bodies."""
+    stops; without friction it keeps sliding. Projective Dynamics: a force of the joint solve; XPBD: after each
+    substep; backward Euler: after the step. Equal and opposite on both bodies."""
     speeds = {}
     for friction in (0.0, 0.5):
-        slab, block, system = _slab_and_block(friction)
+        slab, block, system = _slab_and_block(friction, integrator=integrator)
         v = block.velocities
         v[:, 0] += 1.0
         block.velocities = v
@@ -155,15 +176,34 @@ def test_projective_dynamics_holds_coulomb_friction_between_bodies_in_its_solve(
     assert abs(speeds[0.5][-1]) < 0.1
 
 
-def test_a_block_resting_on_a_slab_stays_put_with_friction():
-    """A block set on a slab, 30 cm off its centre, stays where it is with friction between them:
-    the rows' friction holds it (without it, it slides as the slab sags under it)."""
-    slab, block, system = _slab_and_block(0.5)
-    system.step(50)
-    c0 = block.positions.mean(0)
-    system.step(300)
+@pytest.mark.parametrize(
+    "integrator, projection, limit",
+    [
+        ("projective_dynamics", False, 0.5e-3),
+        ("xpbd", False, 0.5e-3),
+        ("xpbd", True, 0.5e-3),
+        # Contact between bodies after the whole step: the block sinks g h^2 (2.7 mm) into the slab each step
+        # and is pushed back; friction on that sliding holds it to about half a millimetre in 5 s.
+        ("implicit_euler", False, 1e-3),
+        ("implicit_euler", True, 1e-3),
+    ],
+)
+def test_a_block_resting_on_a_slab_stays_put_with_friction(integrator, projection, limit):
+    """A block set on a slab, 30 cm off its centre, stays where it is with friction between them (without it,
+    it slides as the slab sags under it), and its books close."""
+    slab, block, system = _slab_and_block(0.5, projection=projection, integrator=integrator)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        system.step(50)
+        c0 = block.positions.mean(0)
+        system.step(300)
     creep = np.linalg.norm(block.positions.mean(0) - c0)
-    assert creep < 0.5e-3, creep
+    assert creep < limit, creep
+    for body in (slab, block):
+        h = body.history
+        assert h["min_j"].min() > 0.5
+        if projection:
+            assert np.max(np.abs(h["total"] - h["total"][0] - h["budget_total"])) <= 1e-8 * abs(h["total"][0])
 
 
 def test_the_pile_settles_with_contact_inside_the_solve():

@@ -152,3 +152,28 @@ fn invalid_settings_are_rejected_with_their_names() {
         assert!(err.to_string().contains(name), "{err}");
     }
 }
+
+/// A step taken in parts (bodies in contact answer it after each substep): `parts` calls of `dt / parts`
+/// run the same substeps as one call of `dt`, so the positions and velocities are the same bits.
+#[test]
+fn a_step_taken_in_parts_runs_the_same_substeps() {
+    let m = model(block(), constraint_nh(), 1.0, [0.0, 0.0, -9.81]);
+    let mut start = State::at_rest(&m);
+    scaled(&mut start, 1.2, [0.15, 0.15, 0.1]);
+    let dt = 1.0 / 60.0;
+    let mut whole = start.clone();
+    let mut xpbd = Xpbd::default();
+    let mut parted = start.clone();
+    let mut in_parts = Xpbd::default();
+    let parts = in_parts.substeps();
+    in_parts.take_in_parts(parts);
+    for _ in 0..3 {
+        xpbd.step(&m, &mut whole, dt, &mut HandOver::new());
+        for _ in 0..parts {
+            in_parts.step(&m, &mut parted, dt / parts as f64, &mut HandOver::new());
+        }
+    }
+    assert_eq!(parts, 20);
+    assert_eq!(whole.x, parted.x);
+    assert_eq!(whole.v, parted.v);
+}

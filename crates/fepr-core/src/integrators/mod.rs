@@ -87,6 +87,15 @@ pub trait Integrator: Send + Sync {
     fn coupled(&mut self) -> Option<&mut dyn CoupledSolve> {
         None
     }
+    /// Substeps of the integrator's own in one step (1: it has none). When every body of a scene has more than
+    /// one, contact between the bodies is answered after each substep ([`crate::simulation::step_bodies`]).
+    fn substeps(&self) -> usize {
+        1
+    }
+    /// The caller takes each step in `parts` calls of [`Integrator::step`] of `dt / parts` seconds (1: whole
+    /// steps, the default): an integrator with its own substeps then takes its substeps divided among the
+    /// parts (at least one a part), so that the substeps keep their length.
+    fn take_in_parts(&mut self, _parts: usize) {}
 }
 
 /// An implicit step whose iterations bodies in contact take together, each a linear solve that the caller

@@ -72,6 +72,8 @@ pub struct Xpbd {
     contact_dv: Vec<Vec3>,
     /// The velocities at the start of the step, m/s (kept only with obstacles).
     v_start: Vec<Vec3>,
+    /// The parts a caller takes each step in ([`Integrator::take_in_parts`]; 0 or 1: whole steps).
+    parts: usize,
 }
 
 impl std::fmt::Debug for Xpbd {
@@ -348,6 +350,14 @@ impl Integrator for Xpbd {
         self.contact = ContactPotential::new(obstacles);
     }
 
+    fn substeps(&self) -> usize {
+        self.settings.substeps
+    }
+
+    fn take_in_parts(&mut self, parts: usize) {
+        self.parts = parts;
+    }
+
     fn check(&self, model: &Model) -> Result<()> {
         match Self::material(model) {
             Some(_) => Ok(()),
@@ -383,7 +393,10 @@ impl Integrator for Xpbd {
         }
         let pre = self.pre.as_ref().expect("prepared");
         let m = model.num_vertices();
-        let hs = h / self.settings.substeps as f64;
+        // A step taken in parts (bodies in contact, answered after each substep): this call's share of the
+        // substeps, each of the step's substep length.
+        let substeps = (self.settings.substeps / self.parts.max(1)).max(1);
+        let hs = h / substeps as f64;
         self.contact_dv.clear();
         if !self.contact.is_empty() {
             self.contact_dv.resize(model.num_vertices(), [0.0; 3]);
@@ -396,7 +409,7 @@ impl Integrator for Xpbd {
         let mut halvings = 0usize;
         let mut x_prev = std::mem::take(&mut self.x_prev);
         x_prev.resize(m, [0.0; 3]);
-        for _ in 0..self.settings.substeps {
+        for _ in 0..substeps {
             x_prev.copy_from_slice(&state.x);
             for i in 0..m {
                 if model.pinned[i] {
@@ -494,7 +507,7 @@ impl Integrator for Xpbd {
         StepReport {
             impulse: add(scale(g, h * model.free_mass()), contact.impulse),
             angular_impulse: contact.angular_impulse,
-            iterations: self.settings.iterations * self.settings.substeps,
+            iterations: self.settings.iterations * substeps,
             line_search_steps: halvings,
             contact,
             ..Default::default()

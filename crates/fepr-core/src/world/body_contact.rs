@@ -127,6 +127,9 @@ pub struct BodyInContact<'a> {
     pub restitution: f64,
     /// Coulomb friction coefficient (>= 0).
     pub friction: f64,
+    /// The positions where the step (or its part) started, m (all vertices), for friction on the sliding
+    /// within it; empty: friction acts on the velocities only.
+    pub start: &'a [Vec3],
 }
 
 /// The coefficients of a pair: the smaller restitution (the softer body decides how much bounce is left) and
@@ -218,6 +221,28 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
                 for c in 0..3 {
                     let j = idx[c];
                     bb.state.x[j] = sub(bb.state.x[j], scale(n, depth * w[c] * inv_j[c] / k_eff));
+                }
+                if friction > 0.0 && !ba.start.is_empty() && !bb.start.is_empty() {
+                    // Coulomb friction on the sliding within the step (the displacement of the vertex relative
+                    // to its point on the face, tangential part), within the cone of the push-out's depth: a
+                    // body resting on another under its weight sinks a little each step and is pushed back; the
+                    // velocity impulse below stops its sliding velocity but not the sliding already done, which
+                    // adds up to millimetres of creep over seconds.
+                    let moved = |st: &State, start: &[Vec3], j: usize| sub(st.x[j], start[j]);
+                    let d_p = (0..3).fold([0.0; 3], |s, c| {
+                        add(s, scale(moved(bb.state, bb.start, idx[c]), w[c]))
+                    });
+                    let rel = sub(moved(ba.state, ba.start, i), d_p);
+                    let slide = sub(rel, scale(n, dot(rel, n)));
+                    let len = norm(slide);
+                    if len > 0.0 {
+                        let undo = scale(slide, (friction * depth / len).min(1.0) / k_eff);
+                        ba.state.x[i] = sub(ba.state.x[i], scale(undo, inv_i));
+                        for c in 0..3 {
+                            let j = idx[c];
+                            bb.state.x[j] = add(bb.state.x[j], scale(undo, w[c] * inv_j[c]));
+                        }
+                    }
                 }
                 let v_p = (0..3).fold([0.0; 3], |s, c| add(s, scale(bb.state.v[idx[c]], w[c])));
                 let rel = sub(ba.state.v[i], v_p);
