@@ -120,10 +120,12 @@ def test_projective_dynamics_holds_contact_between_bodies_inside_its_solve():
     assert box.velocities[:, 0].mean() < ball.velocities[:, 0].mean(), "they separate"
 
 
-def test_xpbd_answers_contact_between_bodies_after_each_substep():
-    """XPBD bodies meet after each of their substeps (the step taken in as many parts): the impact at
-    dt = 1/60 is not redone in further parts, no vertex ends inside the other, and the momenta and books hold."""
-    box, ball, system = _pair("xpbd", 1 / 60, restitution=0.3)
+@pytest.mark.parametrize("integrator", ["xpbd", "implicit_euler"])
+def test_an_impact_between_bodies_needs_no_parts(integrator):
+    """XPBD bodies meet after each of their substeps (the step taken in as many parts); backward Euler bodies
+    minimise their objectives together with the contact between them: either way the impact at dt = 1/60 is
+    not redone in parts, no vertex ends inside the other, and the momenta and books hold."""
+    box, ball, system = _pair(integrator, 1 / 60, restitution=0.3)
     _, p0, l0 = _totals(system)
     deepest = 0.0
     with warnings.catch_warnings():
@@ -182,10 +184,10 @@ def test_coulomb_friction_between_bodies_stops_a_sliding_block(integrator):
         ("projective_dynamics", False, 0.5e-3),
         ("xpbd", False, 0.5e-3),
         ("xpbd", True, 0.5e-3),
-        # Contact between bodies after the whole step: the block sinks g h^2 (2.7 mm) into the slab each step
-        # and is pushed back; friction on that sliding holds it to about half a millimetre in 5 s.
-        ("implicit_euler", False, 1e-3),
-        ("implicit_euler", True, 1e-3),
+        ("implicit_euler", False, 0.1e-3),
+        # With FEPR the bodies keep the energy of their settling sag as vibration (nothing but friction
+        # dissipates it), and the block walks by a millimetre or two in 5 s.
+        ("implicit_euler", True, 5e-3),
     ],
 )
 def test_a_block_resting_on_a_slab_stays_put_with_friction(integrator, projection, limit):

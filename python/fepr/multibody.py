@@ -109,8 +109,10 @@ class MultiBody:
     (its impulse, the moment of that impulse, its share of the kinetic energy): the impulses are equal and
     opposite at one point, so the bodies' targets add up to the scene's conserved totals. When every body uses
     Projective Dynamics, the bodies take their iterations together and contact between them is held inside their
-    joint solve (constraints with equal and opposite forces); otherwise it is answered after the base step, and an
-    impact deeper than a tenth of the finer body's mean edge is redone in up to 16 parts (history column
+    joint solve (constraints with equal and opposite forces); when every body uses backward Euler, they minimise
+    their objectives together with the contact (penalty and friction rows) in one Newton solve; when every body
+    uses XPBD, contact is answered after each substep; otherwise it is answered after the base step. An impact
+    left deeper than a tenth of the finer body's mean edge is redone in up to 16 parts (history column
     ``base_substeps``). Bodies that start inside each other deeper than that are a :class:`SimulationError`
     naming both.
 

@@ -98,6 +98,10 @@ pub struct ImplicitEuler {
     neg_grad: Vec<f64>,
     /// The obstacles as a penalty in `Phi` (empty: none).
     contact: ContactPotential,
+    /// A step taken with other bodies ([`CoupledNewton`]): the iterate, the start positions, the step size.
+    x_iter: Vec<Vec3>,
+    x_n: Vec<Vec3>,
+    h: f64,
 }
 
 impl ImplicitEuler {
@@ -132,6 +136,7 @@ impl ImplicitEuler {
         state: &mut State,
         x_n: &[Vec3],
         h: f64,
+        held: Vec3,
     ) -> ContactReport {
         let (contact, y) = (&self.contact, &self.y);
         let v_start = |i: usize| [0, 1, 2].map(|a| (y[i][a] - x_n[i][a]) / h);
@@ -142,7 +147,8 @@ impl ImplicitEuler {
             // The contact's linear impulse (friction's included) is the step's momentum change less gravity's
             // (elastic forces are internal): exact even where Newton stopped short of the optimum, where the
             // penalty's force is not the momentum change it caused. Its moment is taken from the penalty's forces.
-            let mut measured = scale(model.gravity, -h * model.free_mass());
+            // `held`: what contact with other bodies in the same solve gave the body.
+            let mut measured = sub(scale(model.gravity, -h * model.free_mass()), held);
             for i in (0..model.num_vertices()).filter(|&i| !model.pinned[i]) {
                 measured = add(
                     measured,
@@ -152,6 +158,76 @@ impl ImplicitEuler {
             report.impulse = measured;
         }
         report
+    }
+
+    /// Prepare a step of `h` from `state`: the pattern and symbolic analysis (when the structure changed), the
+    /// inertial prediction `y`; returns the first iterate.
+    fn start(&mut self, model: &Model, state: &State, h: f64) -> Vec<Vec3> {
+        let m = model.num_vertices();
+        // The pattern and the symbolic analysis depend on the mesh and the pin set only (masses and material
+        // are read at every assembly): rebuild them when either changed since they were built.
+        let structure = model.structure_key();
+        if self.assembler.is_none() || self.structure != Some(structure) {
+            self.structure = Some(structure);
+            let asm = HessianAssembler::new(model);
+            match SparseCholesky::analyse(&asm.pattern, 1) {
+                Ok(c) => self.cholesky = Some(c),
+                Err(_) => self.cholesky = None,
+            }
+            self.symbolic_analyses += 1;
+            self.assembler = Some(asm);
+        }
+        self.grad.resize(m, [0.0; 3]);
+        self.y.clear();
+        for i in 0..m {
+            let v = if model.pinned[i] {
+                [0.0; 3]
+            } else {
+                state.v[i]
+            };
+            self.y.push([
+                state.x[i][0] + h * v[0],
+                state.x[i][1] + h * v[1],
+                state.x[i][2] + h * v[2],
+            ]);
+        }
+        // Start Newton from the better of the inertial prediction y and x_n. Phi(x_n) = K_n + U(x_n) (the
+        // start-of-step energy, less gravity's share), so with a monotone line search the step can never end
+        // with more energy than it started with, even when y inverts slivers and Newton cannot recover within
+        // its iterations; starting from y alone would then hand a wildly energetic state to the next step.
+        if Self::objective(model, &self.contact, &state.x, &self.y, h)
+            < Self::objective(model, &self.contact, &self.y, &self.y, h)
+        {
+            state.x.clone()
+        } else {
+            self.y.clone()
+        }
+    }
+
+    /// At `x`: `Phi`, its magnitude and gradient (see [`ImplicitEuler::objective_gradient`]), and the Hessian
+    /// factorised (exact first; element Hessians projected to positive semi-definite when that fails and
+    /// `project_psd`). `None` when no factorisation succeeded.
+    fn linearise_at(&mut self, model: &Model, x: &[Vec3], h: f64) -> Option<(f64, f64)> {
+        let (phi, phi_magnitude) = self.objective_gradient(model, x, h);
+        let asm = self.assembler.as_mut().expect("prepared by start");
+        let chol = self.cholesky.as_mut()?;
+        // The exact Hessian first: when the mass term keeps it positive definite, Newton converges
+        // quadratically; only when its factorisation fails are the element Hessians projected.
+        asm.assemble(model, x, 1.0 / (h * h), false, &mut self.values);
+        let values = &mut self.values;
+        self.contact
+            .hessian_blocks(model, x, h, |i, b| asm.add_vertex_block(values, i, &b));
+        if chol.factorize(&self.values).is_err() {
+            if !self.settings.project_psd {
+                return None; // not positive definite: keep the current iterate
+            }
+            asm.assemble(model, x, 1.0 / (h * h), true, &mut self.values);
+            let values = &mut self.values;
+            self.contact
+                .hessian_blocks(model, x, h, |i, b| asm.add_vertex_block(values, i, &b));
+            chol.factorize(&self.values).ok()?;
+        }
+        Some((phi, phi_magnitude))
     }
 
     /// Evaluate `Phi` and its gradient (into `self.grad`). Also returns the magnitude scale of `Phi`
@@ -183,6 +259,103 @@ impl ImplicitEuler {
     }
 }
 
+impl crate::integrators::CoupledNewton for ImplicitEuler {
+    fn begin(&mut self, model: &Model, state: &State, h: f64) {
+        self.h = h;
+        self.x_n.clone_from(&state.x);
+        self.x_iter = self.start(model, state, h);
+    }
+
+    fn limits(&self) -> (usize, f64) {
+        (self.settings.max_iterations, self.settings.tolerance)
+    }
+
+    fn positions(&self) -> &[Vec3] {
+        &self.x_iter
+    }
+
+    fn set_positions(&mut self, x: &[Vec3]) {
+        self.x_iter.copy_from_slice(x);
+    }
+
+    fn linearise(&mut self, model: &Model) -> Option<(f64, f64)> {
+        let x = std::mem::take(&mut self.x_iter);
+        let out = self.linearise_at(model, &x, self.h);
+        self.x_iter = x;
+        if out.is_some() {
+            for (i, g) in self.grad.iter_mut().enumerate() {
+                if model.pinned[i] {
+                    *g = [0.0; 3];
+                }
+            }
+        }
+        out
+    }
+
+    fn gradient(&self) -> &[Vec3] {
+        &self.grad
+    }
+
+    fn solve(&mut self, rhs: &mut [Vec3], ncols: usize) {
+        let asm = self.assembler.as_ref().expect("prepared by begin");
+        let chol = self.cholesky.as_mut().expect("factorised by linearise");
+        let (n, m) = (asm.ndof(), asm.free_index.len());
+        self.rhs.clear();
+        self.rhs.resize(n * ncols, 0.0);
+        for c in 0..ncols {
+            for (i, &fi) in asm.free_index.iter().enumerate() {
+                if fi != usize::MAX {
+                    self.rhs[c * n + 3 * fi..c * n + 3 * fi + 3].copy_from_slice(&rhs[c * m + i]);
+                }
+            }
+        }
+        chol.solve_many_in_place(&mut self.rhs, ncols);
+        for c in 0..ncols {
+            for (i, &fi) in asm.free_index.iter().enumerate() {
+                rhs[c * m + i] = if fi != usize::MAX {
+                    let k = c * n + 3 * fi;
+                    [self.rhs[k], self.rhs[k + 1], self.rhs[k + 2]]
+                } else {
+                    [0.0; 3]
+                };
+            }
+        }
+    }
+
+    fn objective(&self, model: &Model, x: &[Vec3]) -> f64 {
+        Self::objective(model, &self.contact, x, &self.y, self.h)
+    }
+
+    fn finish(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        iterations: usize,
+        residual: f64,
+        held_impulse: Vec3,
+    ) -> StepReport {
+        let h = self.h;
+        let (x, x_n) = (
+            std::mem::take(&mut self.x_iter),
+            std::mem::take(&mut self.x_n),
+        );
+        finish_positional_step(model, state, &x, &x_n, h);
+        let mut report = StepReport {
+            impulse: scale(model.gravity, h * model.free_mass()),
+            iterations,
+            residual,
+            ..Default::default()
+        };
+        if !self.contact.is_empty() {
+            report.contact = self.book_contacts(model, state, &x_n, h, held_impulse);
+        }
+        report.impulse = add(report.impulse, report.contact.impulse);
+        report.angular_impulse = add(report.angular_impulse, report.contact.angular_impulse);
+        (self.x_iter, self.x_n) = (x, x_n);
+        report
+    }
+}
+
 impl Integrator for ImplicitEuler {
     fn name(&self) -> &'static str {
         "implicit_euler"
@@ -196,6 +369,10 @@ impl Integrator for ImplicitEuler {
         self.contact = ContactPotential::new(obstacles);
     }
 
+    fn coupled_newton(&mut self) -> Option<&mut dyn crate::integrators::CoupledNewton> {
+        Some(self)
+    }
+
     // Long (about 170 lines): one Newton solve of backward Euler, read top to bottom (prepare the pattern, iterate:
     // gradient, Hessian, factorisation with the PSD fallback, Armijo line search; hand the last gradient over).
     fn step(
@@ -205,46 +382,8 @@ impl Integrator for ImplicitEuler {
         h: f64,
         hand_over: &mut HandOver,
     ) -> StepReport {
-        let m = model.num_vertices();
-        // The pattern and the symbolic analysis depend on the mesh and the pin set only (masses and material
-        // are read at every assembly): rebuild them when either changed since they were built.
-        let structure = model.structure_key();
-        if self.assembler.is_none() || self.structure != Some(structure) {
-            self.structure = Some(structure);
-            let asm = HessianAssembler::new(model);
-            match SparseCholesky::analyse(&asm.pattern, 1) {
-                Ok(c) => self.cholesky = Some(c),
-                Err(_) => self.cholesky = None,
-            }
-            self.symbolic_analyses += 1;
-            self.assembler = Some(asm);
-        }
-        self.grad.resize(m, [0.0; 3]);
-        self.y.clear();
-        for i in 0..m {
-            let v = if model.pinned[i] {
-                [0.0; 3]
-            } else {
-                state.v[i]
-            };
-            self.y.push([
-                state.x[i][0] + h * v[0],
-                state.x[i][1] + h * v[1],
-                state.x[i][2] + h * v[2],
-            ]);
-        }
         let x_n = state.x.clone();
-        // Start Newton from the better of the inertial prediction y and x_n. Phi(x_n) = K_n + U(x_n) (the
-        // start-of-step energy, less gravity's share), so with a monotone line search the step can never end
-        // with more energy than it started with, even when y inverts slivers and Newton cannot recover within
-        // its iterations; starting from y alone would then hand a wildly energetic state to the next step.
-        let mut x = if Self::objective(model, &self.contact, &x_n, &self.y, h)
-            < Self::objective(model, &self.contact, &self.y, &self.y, h)
-        {
-            x_n.clone()
-        } else {
-            self.y.clone()
-        };
+        let mut x = self.start(model, state, h);
         let mut report = StepReport {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()
@@ -254,30 +393,13 @@ impl Integrator for ImplicitEuler {
         // `elastic_grad` was evaluated at `x` (then handed over to the projection).
         let mut elastic_at_x = false;
         for it in 0..self.settings.max_iterations {
-            let (phi, phi_magnitude) = self.objective_gradient(model, &x, h);
+            let linearised = self.linearise_at(model, &x, h);
             elastic_at_x = true;
-            let asm = self.assembler.as_mut().expect("initialised above");
-            let Some(chol) = self.cholesky.as_mut() else {
+            let Some((phi, phi_magnitude)) = linearised else {
                 break;
             };
-            // The exact Hessian first: when the mass term keeps it positive definite, Newton converges
-            // quadratically; only when its factorisation fails are the element Hessians projected.
-            asm.assemble(model, &x, 1.0 / (h * h), false, &mut self.values);
-            let values = &mut self.values;
-            self.contact
-                .hessian_blocks(model, &x, h, |i, b| asm.add_vertex_block(values, i, &b));
-            if chol.factorize(&self.values).is_err() {
-                if !self.settings.project_psd {
-                    break; // not positive definite: keep the current iterate
-                }
-                asm.assemble(model, &x, 1.0 / (h * h), true, &mut self.values);
-                let values = &mut self.values;
-                self.contact
-                    .hessian_blocks(model, &x, h, |i, b| asm.add_vertex_block(values, i, &b));
-                if chol.factorize(&self.values).is_err() {
-                    break;
-                }
-            }
+            let asm = self.assembler.as_ref().expect("prepared by start");
+            let chol = self.cholesky.as_mut().expect("factorised by linearise_at");
             let n = asm.ndof();
             self.rhs.clear();
             self.rhs.resize(n, 0.0);
@@ -358,7 +480,7 @@ impl Integrator for ImplicitEuler {
         }
         finish_positional_step(model, state, &x, &x_n, h);
         if !self.contact.is_empty() {
-            report.contact = self.book_contacts(model, state, &x_n, h);
+            report.contact = self.book_contacts(model, state, &x_n, h, [0.0; 3]);
         }
         report.impulse = add(report.impulse, report.contact.impulse);
         report.angular_impulse = add(report.angular_impulse, report.contact.angular_impulse);

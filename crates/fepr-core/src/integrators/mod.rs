@@ -87,6 +87,11 @@ pub trait Integrator: Send + Sync {
     fn coupled(&mut self) -> Option<&mut dyn CoupledSolve> {
         None
     }
+    /// The step as a Newton minimisation that several bodies take together ([`CoupledNewton`]), for an
+    /// integrator whose step minimises an objective (backward Euler); `None` (the default): it is not one.
+    fn coupled_newton(&mut self) -> Option<&mut dyn CoupledNewton> {
+        None
+    }
     /// Substeps of the integrator's own in one step (1: it has none). When every body of a scene has more than
     /// one, contact between the bodies is answered after each substep ([`crate::simulation::step_bodies`]).
     fn substeps(&self) -> usize {
@@ -128,6 +133,45 @@ pub trait CoupledSolve {
     /// End the step: the state at its end and the report (without contact between bodies, which the caller
     /// books).
     fn finish(&mut self, model: &Model, state: &mut State, h: f64) -> StepReport;
+}
+
+/// A step that minimises an objective `Phi(x)` by Newton's method, which bodies in contact take together:
+/// their objectives plus the contact between them are one minimisation whose Hessian is the bodies' own, block
+/// diagonal, plus a low-rank coupling ([`crate::simulation::step_bodies`]). `begin`, then per iteration
+/// `linearise` (the objective's gradient and factorised Hessian at the iterate), `solve` for the direction,
+/// `objective` along it for the line search, `set_positions` for the accepted iterate; then `finish`.
+pub trait CoupledNewton {
+    /// Start a step of `h` seconds from `state`: the first iterate (as [`Integrator::step`] starts).
+    fn begin(&mut self, model: &Model, state: &State, h: f64);
+    /// Newton iterations the step takes at most, and its relative decrement tolerance.
+    fn limits(&self) -> (usize, f64);
+    /// The current iterate, m (all vertices).
+    fn positions(&self) -> &[Vec3];
+    /// Make `x` the iterate (m, all vertices; pinned ones as they are).
+    fn set_positions(&mut self, x: &[Vec3]);
+    /// At the iterate: the objective (J), its magnitude (the sum of its terms' absolute values, which bounds
+    /// its round-off), the gradient ([`CoupledNewton::gradient`]) and the factorised Hessian. `None`: the
+    /// Hessian could not be factorised, the step stops at the iterate.
+    fn linearise(&mut self, model: &Model) -> Option<(f64, f64)>;
+    /// The gradient of the objective at the last linearised iterate, N (all vertices; zero on pinned ones).
+    fn gradient(&self) -> &[Vec3];
+    /// Solve the last factorised Hessian in place for `ncols` right-hand sides: `rhs` is `ncols` blocks of
+    /// one vector per vertex (pinned ones left zero).
+    fn solve(&mut self, rhs: &mut [Vec3], ncols: usize);
+    /// The objective at `x` (J), for the line search.
+    fn objective(&self, model: &Model, x: &[Vec3]) -> f64;
+    /// End the step on the iterate after `iterations` (relative decrement `residual`): the state and the
+    /// report (without contact between bodies, which the caller books; `held_impulse`, N s, is what that
+    /// contact gave the body, so that the obstacles' impulse, measured as the step's momentum change less
+    /// gravity's, leaves it out).
+    fn finish(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        iterations: usize,
+        residual: f64,
+        held_impulse: Vec3,
+    ) -> StepReport;
 }
 
 /// End a step of a position-based integrator (backward Euler, Projective Dynamics): the new positions

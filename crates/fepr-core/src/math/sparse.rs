@@ -86,6 +86,8 @@ pub struct SparseCholesky {
     l_values: Vec<f64>,
     factor_mem: MemBuffer,
     solve_mem: MemBuffer,
+    /// The right-hand sides `solve_mem` is sized for.
+    solve_columns: usize,
     factorized: bool,
     /// Numeric factorisations done with this symbolic analysis.
     pub numeric_count: usize,
@@ -196,6 +198,7 @@ impl SparseCholesky {
             l_values,
             factor_mem,
             solve_mem,
+            solve_columns: rhs_columns.max(1),
             factorized: false,
             numeric_count: 0,
             ordering: used,
@@ -264,6 +267,19 @@ impl SparseCholesky {
             Par::Seq,
             stack,
         );
+    }
+
+    /// [`SparseCholesky::solve_in_place`] for any number of right-hand sides (the solve's scratch grows to
+    /// the largest number asked for).
+    pub fn solve_many_in_place(&mut self, rhs: &mut [f64], ncols: usize) {
+        if ncols > self.solve_columns {
+            self.solve_mem = MemBuffer::new(
+                self.symbolic
+                    .solve_in_place_scratch::<f64>(ncols, parallelism()),
+            );
+            self.solve_columns = ncols;
+        }
+        self.solve_in_place(rhs, ncols);
     }
 
     /// Solve `A X = B` in place for 3 right-hand sides stored interleaved (`rhs[i]` = row i of B, shape

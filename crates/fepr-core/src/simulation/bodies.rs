@@ -15,6 +15,7 @@
 use std::time::Instant;
 
 use super::body_constraints::BodyConstraints;
+use super::body_newton::advance_newton_together;
 use super::{Advance, BegunStep, Simulation, IMPACT_DEPTH_FRACTION, MAX_IMPACT_SUBSTEPS};
 use crate::error::{FeprError, Result};
 use crate::world::{
@@ -97,6 +98,13 @@ fn step_in_parts(
     let dt = sims[0].dt;
     let nb = sims.len();
     let together = sims.iter_mut().all(|s| s.integrator.coupled().is_some());
+    // Bodies that all minimise an objective by Newton's method (backward Euler) minimise theirs together, with
+    // the contact between them in the joint objective.
+    let newton_together = !together
+        && nb > 1
+        && sims
+            .iter_mut()
+            .all(|s| s.integrator.coupled_newton().is_some());
     // Bodies whose integrators take substeps of their own (XPBD) meet after each substep, as their obstacles do
     // inside it: the step is taken in as many parts as the finest body has substeps, contact between the
     // bodies answered after each. A substep's approach is a small fraction of the step's, so the push-out is
@@ -130,9 +138,13 @@ fn step_in_parts(
         let mut deepest_obstacle: f64 = 0.0;
         for part in 0..parts {
             let h = dt / parts as f64;
-            if together {
+            if together || newton_together {
                 let t0 = Instant::now();
-                let (advs, held) = advance_together(sims, coefficients, h, part == 0, limit)?;
+                let (advs, held) = if together {
+                    advance_together(sims, coefficients, h, part == 0, limit)?
+                } else {
+                    advance_newton_together(sims, coefficients, h, part == 0, limit)?
+                };
                 let ms = t0.elapsed().as_secs_f64() * 1e3 / nb as f64;
                 for (k, a) in advs.into_iter().enumerate() {
                     let substeps = advances[k].report.substeps.max(a.report.substeps);
@@ -169,7 +181,7 @@ fn step_in_parts(
                 // Friction on the sliding within the part only where the pass is the contact's answer: after a
                 // joint solve, whose rows carry their own friction, it is a repair, and friction on the repair's
                 // displacements costs the pile convergence (84 against 71 unconverged projections of 960).
-                let start = (!together).then_some(part == 0);
+                let start = (!(together || newton_together)).then_some(part == 0);
                 let mut bodies = in_contact(sims, coefficients, start);
                 resolve_body_contacts(&mut bodies)
             };

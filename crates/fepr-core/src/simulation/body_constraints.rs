@@ -97,7 +97,47 @@ fn iterates<'a>(sims: &'a mut [&mut Simulation], start: bool) -> Vec<BodyIterate
         .collect()
 }
 
+/// A contact between two bodies that another solve held (backward Euler's joint Newton,
+/// [`super::body_newton`]), as the books take it: its pair's geometry, the approach speed at the start of the
+/// step (m/s, negative: approach), its normal force (N) and friction force (N, on the vertex) at the end.
+pub(super) struct HeldRow {
+    pub pair: BodyPair,
+    pub approach_speed: f64,
+    pub force: f64,
+    pub friction: Vec3,
+}
+
 impl BodyConstraints {
+    /// The books of rows held by another solve over the step `h` ([`BodyConstraints::exchanges`] then gives
+    /// what they exchanged); `v_start`: each body's velocities at the start of the step.
+    pub(super) fn booking(
+        rows: Vec<HeldRow>,
+        h: f64,
+        v_start: Vec<Vec<Vec3>>,
+        coefficients: &[BodyCoefficients],
+    ) -> Self {
+        Self {
+            rows: rows
+                .into_iter()
+                .map(|r| Row {
+                    pair: r.pair,
+                    obstacle: None,
+                    approach_speed: r.approach_speed,
+                    force: r.force,
+                    friction: r.friction,
+                })
+                .collect(),
+            row_of: Vec::new(),
+            columns: Vec::new(),
+            versions: Vec::new(),
+            frozen: Vec::new(),
+            h,
+            limit: 0.0,
+            v_start,
+            friction: coefficients.iter().map(|c| c.friction).collect(),
+        }
+    }
+
     /// No rows yet; the bodies' steps are begun. `limit`: the impact limit (m); `coefficients`: the bodies'
     /// contact coefficients (their frictions against each other).
     pub(super) fn new(
@@ -832,7 +872,7 @@ const ROW_STIFFNESS_RATIO: f64 = 1e5;
 /// Solve the dense symmetric positive definite system `c x = rhs` (`c` row-major, `n` x `n`): faer's blocked
 /// Cholesky factorisation, sequential (the same bits for any thread count); the least-squares fallback of
 /// [`crate::math::solve_symmetric_psd`] should rounding make it indefinite.
-fn solve_positive_definite(c: &[f64], n: usize, rhs: &[f64]) -> Vec<f64> {
+pub(super) fn solve_positive_definite(c: &[f64], n: usize, rhs: &[f64]) -> Vec<f64> {
     use faer::dyn_stack::{MemBuffer, MemStack};
     use faer::linalg::cholesky::llt::factor::{cholesky_in_place, cholesky_in_place_scratch};
     use faer::linalg::triangular_solve::{

@@ -7,6 +7,7 @@
 
 mod bodies;
 mod body_constraints;
+mod body_newton;
 mod history;
 mod policy;
 pub use bodies::*;
@@ -223,6 +224,10 @@ pub struct Simulation {
     /// The state at the start of a later part of a step among bodies (what its impact substeps start again
     /// from; the first part starts again from `previous`).
     part_start: State,
+    /// Contact with other bodies held in a joint Newton solve ([`body_newton`]): the normal force (N) each of
+    /// this body's vertices pressed on each other body with at the end of the last step, `(vertex, other)`
+    /// sorted: the next step's friction bound.
+    held_normal_forces: Vec<((usize, usize), f64)>,
 }
 
 impl Simulation {
@@ -305,6 +310,7 @@ impl Simulation {
                 v: Vec::new(),
                 time: 0.0,
             },
+            held_normal_forces: Vec::new(),
         };
         sim.mean_edge = mean_edge_length(&sim.model);
         let c = sim.model.pressure_wave_speed();
