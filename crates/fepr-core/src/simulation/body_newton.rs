@@ -666,7 +666,7 @@ pub(super) fn advance_newton_together(
     }
     for sim in sims.iter_mut() {
         let forces = &mut sim.held_normal_forces;
-        forces.sort_by(|a, b| a.0.cmp(&b.0));
+        forces.sort_by_key(|f| f.0);
         // A vertex with rows for several faces of one body (a crease): their forces together.
         forces.dedup_by(|later, kept| {
             later.0 == kept.0 && {
