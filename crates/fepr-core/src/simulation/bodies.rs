@@ -16,8 +16,11 @@ use std::time::Instant;
 
 use super::body_constraints::BodyConstraints;
 use super::body_newton::advance_newton_together;
-use super::{Advance, BegunStep, Simulation, IMPACT_DEPTH_FRACTION, MAX_IMPACT_SUBSTEPS};
+use super::{
+    Advance, BaseStart, BegunStep, Simulation, IMPACT_DEPTH_FRACTION, MAX_IMPACT_SUBSTEPS,
+};
 use crate::error::{FeprError, Result};
+use crate::integrators::StepReport;
 use crate::world::{
     check_contact_coefficients, deepest_between_bodies, resolve_body_contacts, BodyExchange,
     BodyInContact, BodySurface,
@@ -419,7 +422,19 @@ fn advance_together(
         );
     }
     let exchanges = constraints.exchanges(sims, coefficients);
-    let mut advances = Vec::with_capacity(nb);
+    Ok((parts_after_base(sims, h, starts, reports)?, exchanges))
+}
+
+/// The rest of a part whose base step the bodies took together: each body's processes after its base step
+/// (`reports`), from what came before it (`starts`). On an error the failing body's index comes with it, and
+/// the other bodies are put back.
+pub(super) fn parts_after_base(
+    sims: &mut [&mut Simulation],
+    h: f64,
+    starts: Vec<BaseStart>,
+    reports: Vec<StepReport>,
+) -> std::result::Result<Vec<Advance>, (usize, FeprError)> {
+    let mut advances = Vec::with_capacity(sims.len());
     for (k, (start, report)) in starts.into_iter().zip(reports).enumerate() {
         match sims[k].part_after_base(h, start, report) {
             Ok(a) => advances.push(a),
@@ -433,7 +448,7 @@ fn advance_together(
             }
         }
     }
-    Ok((advances, exchanges))
+    Ok(advances)
 }
 
 /// Iterations of a joint step that look for new contact rows (the first ones; each a detection pass).

@@ -28,6 +28,7 @@
 //! A hand-written solve for the reason [`super::body_constraints`] gives: no maintained crate offers a Woodbury
 //! update over several sparse factorisations.
 
+use super::bodies::parts_after_base;
 use super::body_constraints::{solve_positive_definite, BodyConstraints, HeldRow};
 use super::{Advance, BodyCoefficients, Simulation};
 use crate::error::FeprError;
@@ -692,21 +693,7 @@ pub(super) fn advance_newton_together(
     }
     let exchanges =
         BodyConstraints::booking(booked, h, v_start, coefficients).exchanges(sims, coefficients);
-    let mut advances = Vec::with_capacity(nb);
-    for (k, (start, report)) in starts.into_iter().zip(reports).enumerate() {
-        match sims[k].part_after_base(h, start, report) {
-            Ok(a) => advances.push(a),
-            Err(e) => {
-                for (j, sim) in sims.iter_mut().enumerate() {
-                    if j != k {
-                        sim.abandon_step();
-                    }
-                }
-                return Err((k, e));
-            }
-        }
-    }
-    Ok((advances, exchanges))
+    Ok((parts_after_base(sims, h, starts, reports)?, exchanges))
 }
 
 #[cfg(test)]
