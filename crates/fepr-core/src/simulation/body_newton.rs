@@ -458,11 +458,89 @@ fn direction(
     u
 }
 
+/// The box (m) a body sweeps over a step of `h` from `state` at its current velocities, grown by `margin`.
+fn swept_box(sim: &Simulation, h: f64, margin: f64) -> (Vec3, Vec3) {
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for (x, v) in sim.state.x.iter().zip(&sim.state.v) {
+        for p in [*x, add(*x, scale(*v, h))] {
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a] - margin);
+                hi[a] = hi[a].max(p[a] + margin);
+            }
+        }
+    }
+    (lo, hi)
+}
+
 /// One part (`h` seconds) of a step of bodies whose integrators minimise an objective by Newton's method
 /// ([`CoupledNewton`], backward Euler), with contact between them inside the joint minimisation (see the
-/// module comment): rows for the surface vertices within `margin` (m) of another body. Returns each body's
-/// advance and what the contact exchanged with it.
+/// module comment): rows for the surface vertices within `margin` (m) of another body. A body whose swept box
+/// meets no other's takes its own step, exactly as alone (and the others' Newton iterations do not wait for
+/// it). Returns each body's advance and what the contact exchanged with it.
 pub(super) fn advance_newton_together(
+    sims: &mut [&mut Simulation],
+    coefficients: &[BodyCoefficients],
+    h: f64,
+    first: bool,
+    margin: f64,
+) -> std::result::Result<(Vec<Advance>, Vec<BodyExchange>), (usize, FeprError)> {
+    let nb = sims.len();
+    let boxes: Vec<(Vec3, Vec3)> = sims.iter().map(|s| swept_box(s, h, margin)).collect();
+    let meets = |a: usize, b: usize| {
+        (0..3).all(|c| boxes[a].0[c] <= boxes[b].1[c] && boxes[b].0[c] <= boxes[a].1[c])
+    };
+    let joint: Vec<bool> = (0..nb)
+        .map(|a| (0..nb).any(|b| b != a && meets(a, b)))
+        .collect();
+    let mut advances = vec![Advance::default(); nb];
+    let mut exchanges = vec![BodyExchange::default(); nb];
+    for k in (0..nb).filter(|&k| !joint[k]) {
+        match sims[k].advance_part(h, first) {
+            Ok(a) => advances[k] = a,
+            Err(e) => {
+                for (j, sim) in sims.iter_mut().enumerate() {
+                    if j != k {
+                        sim.abandon_step();
+                    }
+                }
+                return Err((k, e));
+            }
+        }
+    }
+    let members: Vec<usize> = (0..nb).filter(|&k| joint[k]).collect();
+    if members.is_empty() {
+        return Ok((advances, exchanges));
+    }
+    let mut group: Vec<&mut Simulation> = sims
+        .iter_mut()
+        .enumerate()
+        .filter(|(k, _)| joint[*k])
+        .map(|(_, s)| &mut **s)
+        .collect();
+    let group_coefficients: Vec<BodyCoefficients> =
+        members.iter().map(|&k| coefficients[k]).collect();
+    match minimise_together(&mut group, &group_coefficients, h, first, margin) {
+        Ok((advs, held)) => {
+            for ((k, a), e) in members.iter().zip(advs).zip(held) {
+                advances[*k] = a;
+                exchanges[*k] = e;
+            }
+            Ok((advances, exchanges))
+        }
+        Err((g, e)) => {
+            drop(group);
+            for (k, sim) in sims.iter_mut().enumerate() {
+                if !joint[k] {
+                    sim.abandon_step();
+                }
+            }
+            Err((members[g], e))
+        }
+    }
+}
+
+/// [`advance_newton_together`] for bodies that may touch: one joint Newton minimisation.
+fn minimise_together(
     sims: &mut [&mut Simulation],
     coefficients: &[BodyCoefficients],
     h: f64,
