@@ -299,3 +299,33 @@ def test_the_bench_contact_scenes_run_and_report():
     assert c["terrain"]["terrain_books"] <= 1e-8 and len(c["detection"]["seconds"]) == 4
     assert c["fold"]["self_books"] <= 1e-8 and c["fold"]["ratio"] > 0
     assert "grows as n^" in format_contact(c)
+
+
+@pytest.mark.parametrize("projection", [False, True])
+def test_an_xpbd_body_apart_from_the_others_keeps_its_own_trajectory(projection):
+    """XPBD bodies meet after each substep (the scene's step taken in parts): a body that touches no other still
+    runs exactly the substeps it runs alone, so its trajectory and clock are the same bits; with FEPR, its
+    targets add up the parts' impulses (gravity's, in the last bits), so the projected states agree to
+    round-off."""
+    box, ball, _ = _pair("xpbd", 1 / 60)
+
+    def far():
+        return fepr.Simulation(
+            fepr.meshes.box(size=0.3, resolution=3, center=(3.0, 0.0, 0.0)),
+            material=MAT, density=1000.0, dt=1 / 60, integrator="xpbd", gravity=(0.0, 0.0, -9.81),
+            projection=projection,
+        )
+
+    apart, alone = far(), far()
+    system = MultiBody([box, ball, apart], names=["box", "ball", "apart"], restitution=1.0, friction=0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        system.step(20)
+        alone.step(20)
+    assert box.history["contacts"].max() > 0
+    assert apart.time == alone.time
+    if projection:
+        assert np.abs(apart.positions - alone.positions).max() < 1e-12
+    else:
+        assert np.array_equal(apart.positions, alone.positions)
+        assert np.array_equal(apart.velocities, alone.velocities)

@@ -829,6 +829,9 @@ impl Simulation {
     fn finish_step(&mut self, begun: BegunStep, exchange: &BodyExchange) -> Result<()> {
         let BegunStep { adv, base_ms } = begun;
         let h = self.dt;
+        // The step's end time exactly: a step taken in parts (impact substeps, bodies meeting after each
+        // substep) added its parts' lengths, which differ from `dt` in the last bits.
+        self.state.time = self.previous.time + h;
         let Advance {
             mut report,
             mut work,
