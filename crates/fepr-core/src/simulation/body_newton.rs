@@ -615,7 +615,7 @@ fn minimise_together(
             let e = row.energy(&xs, &start, eps);
             phi += e;
             magnitude += e;
-            let (normal, c, friction) = row.forces(&xs, &start, eps);
+            let (normal, rubs, friction) = row.forces(&xs, &start, eps);
             // The row's gradient is minus its forces: on the vertex, and the opposite on the corners.
             let force = add(scale(row.pair.normal, normal), friction);
             let p = &row.pair;
@@ -631,7 +631,7 @@ fn minimise_together(
                     stiffness: row.stiffness,
                 });
             }
-            if c > 0.0 {
+            if rubs > 0.0 {
                 for (dir, stiffness) in row.friction_hessian(&xs, &start, eps) {
                     terms.push(Term {
                         row: r,
