@@ -327,10 +327,7 @@ fn advance_together(
     margin: f64,
 ) -> std::result::Result<(Vec<Advance>, Vec<BodyExchange>), (usize, FeprError)> {
     let nb = sims.len();
-    let mut starts = Vec::with_capacity(nb);
-    for sim in sims.iter_mut() {
-        starts.push(sim.part_before_base(h, first));
-    }
+    let starts = parts_before_base(sims, h, first);
     for sim in sims.iter_mut() {
         let Simulation {
             integrator,
@@ -423,6 +420,18 @@ fn advance_together(
     }
     let exchanges = constraints.exchanges(sims, coefficients);
     Ok((parts_after_base(sims, h, starts, reports)?, exchanges))
+}
+
+/// What comes before the base step of a part the bodies take together, for each body (`first`: the part starts
+/// at the step's start).
+pub(super) fn parts_before_base(
+    sims: &mut [&mut Simulation],
+    h: f64,
+    first: bool,
+) -> Vec<BaseStart> {
+    sims.iter_mut()
+        .map(|sim| sim.part_before_base(h, first))
+        .collect()
 }
 
 /// The rest of a part whose base step the bodies took together: each body's processes after its base step

@@ -28,7 +28,7 @@
 //! A hand-written solve for the reason [`super::body_constraints`] gives: no maintained crate offers a Woodbury
 //! update over several sparse factorisations.
 
-use super::bodies::parts_after_base;
+use super::bodies::{parts_after_base, parts_before_base};
 use super::body_constraints::{solve_positive_definite, BodyConstraints, HeldRow};
 use super::{Advance, BodyCoefficients, Simulation};
 use crate::error::FeprError;
@@ -44,12 +44,9 @@ use crate::world::{
 const FRICTION_SLIP_SPEED: f64 = 1e-5;
 
 /// A row's penalty stiffness over its pair's effective mass per step squared: a vertex carrying a force `f`
-/// rests `f h^2 K / ROW_STIFFNESS_RATIO` inside the kept gap. A hundred times the obstacles' penalty
-/// ([`crate::world::STIFFNESS_RATIO`]): two scanned bodies meeting at 4 m/s carry the impact on a few dozen
-/// vertices, which the obstacles' stiffness let sink 4 mm into each other (more than the impact limit, so the
-/// step was redone in parts). The rows are solved exactly (Woodbury), so the stiffness costs no conditioning
-/// of the bodies' own solves.
-const ROW_STIFFNESS_RATIO: f64 = 1e3;
+/// rests `f h^2 K / ROW_STIFFNESS_RATIO` inside the kept gap. The obstacles' ([`crate::world::STIFFNESS_RATIO`]):
+/// a hundred times stiffer, a block set sliding on a slab with FEPR was thrown off it.
+const ROW_STIFFNESS_RATIO: f64 = crate::world::STIFFNESS_RATIO;
 
 /// Iterations that look for new rows and take the rows' geometry again (each a detection pass).
 const GEOMETRY_ITERATIONS: usize = 4;
@@ -147,8 +144,8 @@ impl Row {
     /// tangent plane: `mu lambda f0(|u|)` has the Hessian `mu lambda (f1(y) / y (I - u^ u^T) + f1'(y) u^ u^T)`
     /// (`y = |u|`, `u^ = u / y`), positive semi-definite since `f1' >= 0`: across the sliding `f1 / y`, along
     /// it `f1'` (`2 / eps - 2 y / eps^2` in the static zone, 0 beyond, where friction is a constant force).
-    /// An isotropic `f1 / y` (what a lagged-friction solve often takes) overstates the stiffness along the
-    /// sliding by `1 / y` there and held Newton to a crawl.
+    /// (An isotropic `f1 / y` would overstate the stiffness along the sliding by `1 / y` beyond the static
+    /// zone.)
     fn friction_hessian(
         &self,
         xs: &[Vec<Vec3>],
@@ -548,10 +545,7 @@ fn minimise_together(
     margin: f64,
 ) -> std::result::Result<(Vec<Advance>, Vec<BodyExchange>), (usize, FeprError)> {
     let nb = sims.len();
-    let mut starts = Vec::with_capacity(nb);
-    for sim in sims.iter_mut() {
-        starts.push(sim.part_before_base(h, first));
-    }
+    let starts = parts_before_base(sims, h, first);
     for sim in sims.iter_mut() {
         let Simulation {
             integrator,
@@ -579,13 +573,14 @@ fn minimise_together(
         .iter()
         .map(|s| s.model.length_scale)
         .fold(f64::INFINITY, f64::min);
+    // The line search's trial positions (every entry written before it is read).
+    let mut trial = xs.clone();
     let mut rows: Vec<Row> = Vec::new();
     let (mut iterations, mut residual, mut dec0) = (0, 0.0, 0.0);
     for it in 0..max_iterations {
         // Rows for the vertices the iterate brings near another body, the others' faces followed, in the
-        // first iterations; then the rows stay as they are, so that Newton minimises one objective (a vertex
-        // at another body's edge, followed every iteration, flips between the edge's faces and Newton chases
-        // the change to its cap).
+        // first iterations; then the rows stay as they are, so that the later iterations minimise one fixed
+        // objective.
         if it < GEOMETRY_ITERATIONS {
             detect(sims, &xs, &start, &mut rows, margin, h, coefficients);
             follow(sims, &xs, &mut rows);
@@ -678,7 +673,6 @@ fn minimise_together(
         }
         // Backtracking line search on the joint objective (Armijo, c = 1e-4), as backward Euler's own.
         let mut alpha = 1.0;
-        let mut trial = xs.clone();
         let accepted = loop {
             for k in 0..nb {
                 for (i, t) in trial[k].iter_mut().enumerate() {
@@ -703,7 +697,7 @@ fn minimise_together(
         if !accepted {
             break;
         }
-        xs = trial;
+        std::mem::swap(&mut xs, &mut trial);
         for (k, sim) in sims.iter_mut().enumerate() {
             newton(sim).set_positions(&xs[k]);
         }
@@ -732,8 +726,7 @@ fn minimise_together(
         });
     }
     // Each vertex's normal force on each body it pressed on: the next step's friction bound (friction lags
-    // the normal force by a step, so that within a step it is a fixed potential Newton can minimise; taking it
-    // from the iterate made contact sticky and Newton run to its cap).
+    // the normal force by a step, so that within a step it is a fixed potential Newton can minimise).
     for sim in sims.iter_mut() {
         sim.held_normal_forces.clear();
     }
