@@ -368,45 +368,58 @@ impl BodyConstraints {
         }
     }
 
-    /// Solve the columns the rows need on every body (all again on a body whose matrix changed).
+    /// Solve the columns the rows need on every body (all again on a body whose matrix changed), the bodies at
+    /// once (each reads only its own factorisation: the same bits in any order).
     fn solve_columns(&mut self, sims: &mut [&mut Simulation]) {
-        for (k, sim) in sims.iter_mut().enumerate() {
-            if self.frozen[k] {
-                continue;
-            }
-            let solve = coupled(sim);
-            let version = solve.matrix_version();
-            if version != self.versions[k] {
-                self.columns[k].iter_mut().for_each(|c| *c = None);
-                self.versions[k] = version;
-            }
-            let row_of = &self.row_of[k];
-            let mut needed: Vec<usize> = Vec::new();
-            for r in &self.rows {
-                let p = &r.pair;
-                if p.body == k {
-                    needed.push(p.vertex);
-                }
-                if p.other == k && r.obstacle.is_none() {
-                    needed.extend(p.triangle.iter().filter(|&&j| row_of[j] != u32::MAX));
-                }
-            }
-            needed.sort_unstable();
-            needed.dedup();
-            needed.retain(|&v| self.columns[k][v].is_none());
-            let n = solve.solution_mut().len();
-            let mut cols = vec![[0.0; 3]; n];
-            for chunk in needed.chunks(3) {
-                cols.iter_mut().for_each(|c| *c = [0.0; 3]);
-                for (c, &v) in chunk.iter().enumerate() {
-                    cols[row_of[v] as usize][c] = 1.0;
-                }
-                solve.solve_columns(&mut cols);
-                for (c, &v) in chunk.iter().enumerate() {
-                    self.columns[k][v] = Some(cols.iter().map(|row| row[c]).collect());
-                }
+        let nb = sims.len();
+        let mut needed: Vec<Vec<usize>> = vec![Vec::new(); nb];
+        for r in &self.rows {
+            let p = &r.pair;
+            needed[p.body].push(p.vertex);
+            if r.obstacle.is_none() {
+                needed[p.other].extend(p.triangle.iter());
             }
         }
+        let mut bodies: Vec<_> = sims
+            .iter_mut()
+            .zip(needed)
+            .zip(self.columns.iter_mut())
+            .zip(self.versions.iter_mut())
+            .zip(self.row_of.iter().zip(&self.frozen))
+            .map(|((((sim, needed), columns), version), (row_of, &frozen))| {
+                (&mut **sim, needed, columns, version, row_of, frozen)
+            })
+            .collect();
+        crate::exec::for_each_mut(
+            &mut bodies,
+            |_, (sim, needed, columns, version, row_of, frozen)| {
+                if *frozen {
+                    return;
+                }
+                let solve = coupled(sim);
+                let now = solve.matrix_version();
+                if now != **version {
+                    columns.iter_mut().for_each(|c| *c = None);
+                    **version = now;
+                }
+                needed.retain(|&v| row_of[v] != u32::MAX);
+                needed.sort_unstable();
+                needed.dedup();
+                needed.retain(|&v| columns[v].is_none());
+                let n = solve.solution_mut().len();
+                let mut cols = vec![[0.0; 3]; n];
+                for chunk in needed.chunks(3) {
+                    cols.iter_mut().for_each(|c| *c = [0.0; 3]);
+                    for (c, &v) in chunk.iter().enumerate() {
+                        cols[row_of[v] as usize][c] = 1.0;
+                    }
+                    solve.solve_columns(&mut cols);
+                    for (c, &v) in chunk.iter().enumerate() {
+                        columns[v] = Some(cols.iter().map(|row| row[c]).collect());
+                    }
+                }
+            },
+        );
     }
 
     /// The entries `(body, vertex, coefficient)` of row `r`'s vector `a_r` on free vertices.
@@ -423,60 +436,34 @@ impl BodyConstraints {
 
     /// The rows' scalar coupling `G_rc = a_r . A^{-1} a_c` (row-major, rows x rows): a unit force along `d` on
     /// row `c` moves row `r`'s point along `d'` by `(d . d') G_rc` (the matrix is the same for x, y and z).
-    /// Gathered per body from the columns at the rows' own vertices (a frozen body's side does not move: no
-    /// entries).
+    /// Summed body by body over the pairs of the rows' entries on it (rows that share no body do not couple),
+    /// from the column of `c`'s vertex at `r`'s (a frozen body's side does not move: no entries).
     fn coupling(&self) -> Vec<f64> {
         let nr = self.rows.len();
         let nb = self.row_of.len();
-        // Per body, the rows' vertices on it (local indices) and the columns' values among them.
-        let mut local: Vec<Vec<usize>> = vec![Vec::new(); nb];
+        let mut on: Vec<Vec<(usize, usize, f64)>> = vec![Vec::new(); nb];
         for r in 0..nr {
-            for (k, v, _) in self.entries(r) {
-                local[k].push(v);
+            for (k, v, coef) in self.entries(r) {
+                if !self.frozen[k] {
+                    on[k].push((r, v, coef));
+                }
             }
         }
-        for l in &mut local {
-            l.sort_unstable();
-            l.dedup();
-        }
-        let gram: Vec<Vec<f64>> = (0..nb)
-            .map(|k| {
-                if self.frozen[k] {
-                    return Vec::new();
-                }
-                let l = &local[k];
-                let mut g = vec![0.0; l.len() * l.len()];
-                for (a, &u) in l.iter().enumerate() {
-                    let col = self.columns[k][u].as_ref().expect("solved");
-                    for (b, &v) in l.iter().enumerate() {
-                        g[a * l.len() + b] = col[self.row_of[k][v] as usize];
-                    }
-                }
-                g
-            })
-            .collect();
-        let entries: Vec<Vec<(usize, usize, f64)>> = (0..nr)
-            .map(|r| {
-                self.entries(r)
-                    .filter(|&(k, _, _)| !self.frozen[k])
-                    .map(|(k, v, coef)| (k, local[k].binary_search(&v).expect("listed"), coef))
-                    .collect()
-            })
-            .collect();
         let mut d = vec![0.0; nr * nr];
-        for r in 0..nr {
-            for c in 0..=r {
-                let mut sum = 0.0;
-                for &(k, a, ca) in &entries[r] {
-                    let n = local[k].len();
-                    for &(kc, b, cb) in &entries[c] {
-                        if kc == k {
-                            sum += ca * cb * gram[k][b * n + a];
-                        }
+        for (k, entries) in on.iter().enumerate() {
+            let row_of = &self.row_of[k];
+            for &(c, v, cb) in entries {
+                let col = self.columns[k][v].as_ref().expect("solved");
+                for &(r, u, ca) in entries {
+                    if r >= c {
+                        d[r * nr + c] += ca * cb * col[row_of[u] as usize];
                     }
                 }
-                d[r * nr + c] = sum;
-                d[c * nr + r] = sum;
+            }
+        }
+        for r in 0..nr {
+            for c in 0..r {
+                d[c * nr + r] = d[r * nr + c];
             }
         }
         d
@@ -560,7 +547,11 @@ impl BodyConstraints {
         let delassus: Vec<f64> = (0..nr * nr)
             .map(|rc| {
                 let (r, c) = (rc / nr, rc % nr);
-                dot(self.rows[r].pair.normal, self.rows[c].pair.normal) * coupling[rc]
+                if coupling[rc] == 0.0 {
+                    0.0
+                } else {
+                    dot(self.rows[r].pair.normal, self.rows[c].pair.normal) * coupling[rc]
+                }
             })
             .collect();
         // The active set starts from the last iteration's (rows then pushing) and the rows now negative.
@@ -613,29 +604,30 @@ impl BodyConstraints {
             .map(|&(now, start)| sub(now, start))
             .collect();
         self.add_friction(sims, &coupling, &slips);
-        // x = y + sum_r mu_r (A^{-1} a_r) n_r, body by body, column by column.
-        for (k, sim) in sims.iter_mut().enumerate() {
-            if done[k] {
+        // x = y + sum_r mu_r (A^{-1} a_r) n_r, body by body (at once), column by column.
+        let mut pushes: Vec<Vec<(usize, Vec3)>> = vec![Vec::new(); sims.len()];
+        for r in 0..nr {
+            if self.rows[r].force == 0.0 {
                 continue;
             }
-            let out = coupled(sim).solution_mut();
-            for r in 0..nr {
-                if self.rows[r].force == 0.0 {
-                    continue;
-                }
-                let force = self.row_force(r);
-                for (b, v, coef) in self.entries(r) {
-                    if b != k {
-                        continue;
-                    }
-                    let d = scale(force, coef);
-                    let col = self.columns[k][v].as_ref().expect("solved");
-                    for (o, &z) in out.iter_mut().zip(col.iter()) {
-                        *o = add(*o, scale(d, z));
-                    }
+            let force = self.row_force(r);
+            for (b, v, coef) in self.entries(r) {
+                if !done[b] {
+                    pushes[b].push((v, scale(force, coef)));
                 }
             }
         }
+        let mut bodies: Vec<_> = sims.iter_mut().map(|s| &mut **s).zip(pushes).collect();
+        let columns = &self.columns;
+        crate::exec::for_each_mut(&mut bodies, |k, (sim, pushes)| {
+            let out = coupled(sim).solution_mut();
+            for &(v, d) in pushes.iter() {
+                let col = columns[k][v].as_ref().expect("solved");
+                for (o, &z) in out.iter_mut().zip(col.iter()) {
+                    *o = add(*o, scale(d, z));
+                }
+            }
+        });
     }
 
     /// Row `r`'s force vector (N): its normal force along the normal plus its friction.
@@ -869,7 +861,8 @@ const ROWS_PER_VERTEX: usize = 3;
 /// keeps the active rows' system positive definite.
 const ROW_STIFFNESS_RATIO: f64 = 1e5;
 
-/// Solve the dense symmetric positive definite system `c x = rhs` (`c` row-major, `n` x `n`): faer's blocked
+/// Solve the dense symmetric positive definite system `c x = rhs` (`c` `n` x `n`, exactly symmetric: read as
+/// row-major or column-major alike): faer's blocked
 /// Cholesky factorisation, sequential (the same bits for any thread count); the least-squares fallback of
 /// [`crate::math::solve_symmetric_psd`] should rounding make it indefinite.
 pub(super) fn solve_positive_definite(c: &[f64], n: usize, rhs: &[f64]) -> Vec<f64> {
@@ -879,7 +872,15 @@ pub(super) fn solve_positive_definite(c: &[f64], n: usize, rhs: &[f64]) -> Vec<f
         solve_lower_triangular_in_place, solve_upper_triangular_in_place,
     };
     use faer::{Mat, Par};
-    let mut l = Mat::<f64>::from_fn(n, n, |i, j| c[i * n + j]);
+    // Filled column by column from slices (faer's `from_fn` costs more than the factorisation at n = 400).
+    let mut l = Mat::<f64>::zeros(n, n);
+    for j in 0..n {
+        l.col_mut(j)
+            .try_as_col_major_mut()
+            .expect("a fresh matrix is column-major")
+            .as_slice_mut()
+            .copy_from_slice(&c[j * n..(j + 1) * n]);
+    }
     let mut mem = MemBuffer::new(cholesky_in_place_scratch::<f64>(
         n,
         Par::Seq,
