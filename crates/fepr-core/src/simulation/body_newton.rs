@@ -771,6 +771,34 @@ fn minimise_together(
 mod tests {
     use super::*;
 
+    /// A step abandoned to be redone in parts gives back the friction bounds it held (the normal forces of the
+    /// step before), so that the parts start from the same bounds as the attempt did.
+    #[test]
+    fn an_abandoned_step_restores_the_friction_bounds() {
+        use crate::integrators::{ImplicitEuler, NewtonSettings};
+        use crate::material::{Arap, Material};
+        use crate::mesh::TetMesh;
+        use crate::model::{ModelBuilder, State};
+        let verts = vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+        ];
+        let (mesh, _) = TetMesh::new(verts, &[[0, 1, 2, 3]]).unwrap();
+        let material = Material::Arap(Arap::new(1e5, 0.4).unwrap());
+        let model = ModelBuilder::new(mesh, material).build().unwrap();
+        let state = State::at_rest(&model);
+        let integrator = Box::new(ImplicitEuler::new(NewtonSettings::default()).unwrap());
+        let mut sim = Simulation::new(model, state, integrator, 1.0 / 60.0, None).unwrap();
+        sim.held_normal_forces = vec![((0, 1), 2.5), ((3, 1), 1.0)];
+        sim.open_step().unwrap();
+        // The attempt's joint solve ends with other bounds.
+        sim.held_normal_forces = vec![((2, 1), 7.0)];
+        sim.abandon_step();
+        assert_eq!(sim.held_normal_forces, vec![((0, 1), 2.5), ((3, 1), 1.0)]);
+    }
+
     /// A vertex of body 0 under a triangle of body 1 (normal +z), pressed in by `depth` and slid by `slide`
     /// since the start; the row's stiffness, friction and lagged normal force.
     fn row_and_positions(depth: f64, slide: [f64; 2]) -> (Row, Vec<Vec<Vec3>>, Vec<Vec<Vec3>>) {

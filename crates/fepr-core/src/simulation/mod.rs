@@ -228,6 +228,9 @@ pub struct Simulation {
     /// this body's vertices pressed on each other body with at the end of the last step, `(vertex, other)`
     /// sorted: the next step's friction bound.
     held_normal_forces: Vec<((usize, usize), f64)>,
+    /// `held_normal_forces` at the start of the step: a step redone in parts starts again from them, not from
+    /// what its abandoned attempt held.
+    held_at_step_start: Vec<((usize, usize), f64)>,
 }
 
 impl Simulation {
@@ -311,6 +314,7 @@ impl Simulation {
                 time: 0.0,
             },
             held_normal_forces: Vec::new(),
+            held_at_step_start: Vec::new(),
         };
         sim.mean_edge = mean_edge_length(&sim.model);
         let c = sim.model.pressure_wave_speed();
@@ -755,6 +759,9 @@ impl Simulation {
             self.start_unchecked = false;
         }
         copy_state(&self.state, &mut self.previous);
+        self.held_at_step_start.clear();
+        self.held_at_step_start
+            .extend_from_slice(&self.held_normal_forces);
         Ok(())
     }
 
@@ -814,6 +821,9 @@ impl Simulation {
     /// redone in substeps): the state is the one before it.
     fn abandon_step(&mut self) {
         copy_state(&self.previous, &mut self.state);
+        self.held_normal_forces.clear();
+        self.held_normal_forces
+            .extend_from_slice(&self.held_at_step_start);
     }
 
     /// The second half of a step: what contact with other bodies did to this one (`exchange`: its velocity
