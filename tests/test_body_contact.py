@@ -193,7 +193,8 @@ def test_a_block_resting_on_a_slab_stays_put_with_friction(integrator, projectio
 def test_the_pile_settles_with_contact_inside_the_solve():
     """The pile example (eight bodies into a bin, Projective Dynamics at 1/60 with FEPR) lands and settles:
     no vertex of a body ends inside another (exact queries here), no tet inverted at the end, the books of
-    every body closed, and almost no step redone in parts."""
+    every body closed, almost no step redone in parts, and at rest its projections converge or stand down
+    (before the rule for a body asked to give up more than its kinetic energy, 50 of 320 failed there)."""
     from pathlib import Path
     from types import SimpleNamespace
 
@@ -218,6 +219,16 @@ def test_the_pile_settles_with_contact_inside_the_solve():
     m, v = pile.masses, pile.velocities
     released = 9.81 * (height0 - m @ pile.positions[:, 2])
     assert 0.5 * (m * (v**2).sum(1)).sum() < 0.05 * released, "settling"
+    # At rest, a projection either converges or stands down by the resting rule (docs/world.md): few fail.
+    start = [len(b.history["step"]) for b in bodies]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        pile.step(40)
+    failed = sum(
+        int(((b.history["proj_converged"][n:] == 0) & (b.history["proj_stood_down"][n:] == 0)).sum())
+        for b, n in zip(bodies, start)
+    )
+    assert failed <= 0.12 * 40 * len(bodies), f"{failed} projections failed at rest without standing down"
 
 
 def test_a_body_bounced_off_another_projects_in_flight():
