@@ -116,6 +116,31 @@ fn backward_euler_bodies_in_contact_are_bit_identical_for_any_thread_count() {
     assert!(one == two, "results differ between 1 and 2 threads");
 }
 
+/// Projective Dynamics bodies in contact take their solves, columns and corrections side by side: the same bits
+/// for any thread count (three bodies, friction, the projection on).
+#[test]
+fn projective_dynamics_bodies_in_contact_are_bit_identical_for_any_thread_count() {
+    let run = || {
+        let pd = || Box::new(ProjectiveDynamics::default());
+        let mut a = block_with(-0.16, 2.0, true, pd());
+        let mut b = block_with(0.16, -2.0, true, pd());
+        let mut c = block_with(0.5, -1.0, true, pd());
+        let coefficients = [BodyCoefficients::new(0.5, 0.3).unwrap(); 3];
+        for _ in 0..12 {
+            step_bodies(&mut [&mut a, &mut b, &mut c], &coefficients).unwrap();
+        }
+        assert!(a.history().iter().any(|d| d.contacts > 0));
+        [a, b, c].map(|s| (s.state.x.clone(), s.state.v.clone()))
+    };
+    let one = in_pool(1, run);
+    for threads in [2, 3] {
+        assert!(
+            one == in_pool(threads, run),
+            "results differ between 1 and {threads} threads"
+        );
+    }
+}
+
 /// A backward Euler body whose swept box meets no other body's takes its own step: its trajectory in the scene
 /// is the one it has alone, bit for bit, while the others minimise together.
 #[test]

@@ -1070,7 +1070,8 @@ impl Simulation {
         if stand_down && self.projector.is_some() {
             let inv = measure(&self.model, &self.state);
             let gap = targets.energy - inv.total;
-            if inv.kinetic <= RESTING_CONTACT_RESIDUAL * targets.energy_scale || -gap > inv.kinetic {
+            if inv.kinetic <= RESTING_CONTACT_RESIDUAL * targets.energy_scale || -gap > inv.kinetic
+            {
                 let residual = gap.abs() / targets.energy_scale;
                 let rep = ProjectionReport {
                     stood_down: true,
