@@ -95,11 +95,8 @@ KNOWN_FAST = {
     "armadillo-SE-dt_stable-stretch-min_j": SE,
     "armadillo-XPBD-dt1_60-stretch-min_j": XPBD,
     "armadillo-XPBD-dt1_30-stretch-min_j": XPBD,
-    "armadillo-XPBD-dt1_60-free_fall-momentum": XPBD,
     "armadillo-XPBD-dt1_60-free_fall-converged": XPBD,
-    "armadillo-XPBD-dt1_30-free_fall-momentum": XPBD,
     "armadillo-XPBD-dt1_30-free_fall-converged": XPBD,
-    "armadillo-XPBD-dt1_30-spin-momentum": XPBD,
     "armadillo-XPBD-dt1_30-spin-converged": XPBD,
     "armadillo-SE-dt_stable-drop-converged": CONTACT,
     "armadillo-BE-dt1_30-drop-min_j": NEWTON,
@@ -111,9 +108,7 @@ KNOWN_FAST = {
     "little_elephant-SE-dt_stable-stretch-min_j": SE,
     "little_elephant-SE-dt_stable-stretch-momentum": SE,
     "little_elephant-SE-dt_stable-stretch-converged": SE,
-    "little_elephant-PD-dt1_30-spin-momentum": ELASTIC,
     "little_elephant-PD-dt1_30-spin-converged": ELASTIC,
-    "elephant-XPBD-dt1_60-free_fall-momentum": XPBD,
     "elephant-XPBD-dt1_60-free_fall-converged": XPBD,
 }
 

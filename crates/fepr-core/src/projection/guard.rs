@@ -69,13 +69,7 @@ impl Projector {
     /// deformational rest carries no momenta, so it keeps its energy). 0 where the momentum rows do not hold the
     /// whole body (pins, rows off, slack free) or the body is degenerate.
     fn momentum_energy(&self, model: &Model, x: &[Vec3], v: &[Vec3], targets: &Targets) -> f64 {
-        let rows = self.active_rows(model, targets);
-        let slack = match self.settings.slack {
-            super::Slack::On => true,
-            super::Slack::Off => false,
-            super::Slack::Auto => targets.uncertain_impulses,
-        };
-        if model.num_pinned() > 0 || !rows[1..7].iter().all(|&a| a) || slack {
+        if !self.momenta_hold_the_body(model, targets) {
             return 0.0;
         }
         let rigid = crate::invariants::rigid_motion(&model.masses, x, v);
@@ -93,6 +87,46 @@ impl Projector {
         let k_now = 0.5 * dot(rigid.momentum, rigid.momentum) / m + spin(rigid.angular_momentum);
         let k_next = 0.5 * m * dot(vt, vt) + spin(l_t);
         k_next - k_now
+    }
+
+    /// Whether the momentum rows hold the whole body to their targets (no pins, every row on, no slack).
+    fn momenta_hold_the_body(&self, model: &Model, targets: &Targets) -> bool {
+        let rows = self.active_rows(model, targets);
+        let slack = match self.settings.slack {
+            super::Slack::On => true,
+            super::Slack::Off => false,
+            super::Slack::Auto => targets.uncertain_impulses,
+        };
+        model.num_pinned() == 0 && rows[1..7].iter().all(|&a| a) && !slack
+    }
+
+    /// Put the rigid part of `state`'s velocities on the momentum targets (the change
+    /// [`Projector::momentum_energy`] prices: `V = P_target / m`, `omega = I^-1 L_target` about the centre of mass;
+    /// the deformational rest keeps its velocities), where the momentum rows hold the whole body. A step whose
+    /// projection fell back to an unconverged state keeps the scene's momenta so: they are the targets the
+    /// processes set (impulses exchanged between bodies cancel), while the base step's own drift (Projective
+    /// Dynamics' unconverged iterations, a contact solve) would stay in the state and add up step after step.
+    /// The energy this changes is the simulation's to book (the state is off its energy target either way).
+    fn hold_momenta(&self, model: &Model, state: &mut State, targets: &Targets) {
+        if !self.momenta_hold_the_body(model, targets) {
+            return;
+        }
+        let rigid = crate::invariants::rigid_motion(&model.masses, &state.x, &state.v);
+        let Some(inv) = rigid.inertia_inv else {
+            return;
+        };
+        let m = rigid.mass;
+        let vt = targets.momentum.map(|p| p / m);
+        let offset = cross(sub(rigid.center, targets.center_of_mass), vt);
+        let l_t = [0, 1, 2].map(|a| targets.angular_momentum[a] - m * offset[a]);
+        let omega = |l: Vec3| [0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * l[b]).sum::<f64>());
+        let (w_now, w_t) = (omega(rigid.angular_momentum), omega(l_t));
+        let dv = [0, 1, 2].map(|a| vt[a] - rigid.momentum[a] / m);
+        let dw = sub(w_t, w_now);
+        for (xi, vi) in state.x.iter().zip(state.v.iter_mut()) {
+            let spin = cross(dw, sub(*xi, rigid.center));
+            *vi = [0, 1, 2].map(|a| vi[a] + dv[a] + spin[a]);
+        }
     }
 
     /// The change of gravitational energy that putting the centre of mass of `x` on its target would make, J
@@ -298,6 +332,8 @@ impl Projector {
                 rs.full.restore(state);
                 self.invalidate_hand_over();
                 (rep, inv, excess) = (r, i, e);
+                self.hold_momenta(model, state, targets);
+                inv = crate::invariants::measure(model, state);
             }
             (None, None) => {
                 // Every projection broke the rule or failed: the base step's state, unprojected (the
@@ -305,6 +341,7 @@ impl Projector {
                 let base_residual = rep.initial_residual;
                 rs.base.restore(state);
                 self.invalidate_hand_over();
+                self.hold_momenta(model, state, targets);
                 inv = crate::invariants::measure(model, state);
                 rep.converged = false;
                 rep.fallback = true;
