@@ -588,6 +588,19 @@ fn warm_start_computes_the_elastic_gradient_only_when_an_iteration_needs_it() {
     }
 }
 
+/// The L stretched by 4% about its centre of mass, spinning with a ripple on top (a base step's state whose
+/// projection has work to do).
+fn stretched_spinning_ell() -> (fepr_core::model::Model, State) {
+    let model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0; 3]);
+    let mut base = State::at_rest(&model);
+    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &base.x);
+    scaled(&mut base, 1.04, c);
+    for (x, v) in base.x.iter().zip(base.v.iter_mut()) {
+        *v = [0, 1, 2].map(|a| 0.3 * (x[(a + 1) % 3] - c[(a + 1) % 3]) + 0.02 * (4.0 * x[a]).cos());
+    }
+    (model, base)
+}
+
 #[test]
 fn unconverged_projection_returns_its_best_iterate_with_matching_invariants() {
     // A tolerance no iterate meets: every run ends in the fallback and must return the best iterate it saw
@@ -596,13 +609,7 @@ fn unconverged_projection_returns_its_best_iterate_with_matching_invariants() {
     // path).
     use fepr_core::invariants::measure;
     use fepr_core::projection::{ProjectionSettings, Projector, Targets};
-    let model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0; 3]);
-    let mut base = State::at_rest(&model);
-    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &base.x);
-    scaled(&mut base, 1.04, c);
-    for (x, v) in base.x.iter().zip(base.v.iter_mut()) {
-        *v = [0, 1, 2].map(|a| 0.3 * (x[(a + 1) % 3] - c[(a + 1) % 3]) + 0.02 * (4.0 * x[a]).cos());
-    }
+    let (model, base) = stretched_spinning_ell();
     let inv = measure(&model, &base);
     let targets = Targets {
         energy: 0.97 * inv.total,
@@ -689,13 +696,7 @@ fn a_projection_that_falls_back_still_puts_the_momenta_on_their_targets() {
     // steps its projections fail (two armadillos colliding with Projective Dynamics drifted 12% in L).
     use fepr_core::invariants::measure;
     use fepr_core::projection::{ProjectionSettings, Projector, Targets};
-    let model = model(ell_mesh(), neo_hookean(1e4, 0.3), 5.0, [0.0; 3]);
-    let mut base = State::at_rest(&model);
-    let c = fepr_core::invariants::center_of_mass(&model.masses, model.total_mass, &base.x);
-    scaled(&mut base, 1.04, c);
-    for (x, v) in base.x.iter().zip(base.v.iter_mut()) {
-        *v = [0, 1, 2].map(|a| 0.3 * (x[(a + 1) % 3] - c[(a + 1) % 3]) + 0.02 * (4.0 * x[a]).cos());
-    }
+    let (model, base) = stretched_spinning_ell();
     let inv = measure(&model, &base);
     let kick = [0.4, -0.2, 0.1];
     let twist = [0.05, 0.1, -0.08];

@@ -328,10 +328,11 @@ impl Projector {
                 restored = if gap != 0.0 { 1.0 - left / gap } else { 1.0 };
                 (rep, inv, excess) = (r, i, e);
             }
-            (None, Some((r, i, e))) => {
+            (None, Some((r, _, e))) => {
                 rs.full.restore(state);
                 self.invalidate_hand_over();
-                (rep, inv, excess) = (r, i, e);
+                (rep, excess) = (r, e);
+                // Its invariants are measured again after the momenta are held.
                 self.hold_momenta(model, state, targets);
                 inv = crate::invariants::measure(model, state);
             }
