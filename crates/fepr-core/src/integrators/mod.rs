@@ -121,9 +121,9 @@ pub trait CoupledSolve {
     fn free_vertices(&self) -> Vec<usize>;
     /// The last solve's solution, one row (m) per free vertex, to correct before `accept`.
     fn solution_mut(&mut self) -> &mut [Vec3];
-    /// Solve the step's current matrix (a scalar matrix, the same for x, y and z) for three right-hand sides
-    /// at once, in place: one column per component, one row per free vertex.
-    fn solve_columns(&mut self, columns: &mut [Vec3]);
+    /// Solve the step's current matrix (a scalar matrix, the same for x, y and z) for `count` right-hand sides
+    /// at once, in place: column-major, one value per free vertex in each column.
+    fn solve_columns(&mut self, columns: &mut [f64], count: usize);
     /// Changes whenever the matrix [`CoupledSolve::solve_columns`] solves with changes.
     fn matrix_version(&self) -> usize;
     /// The solution becomes the iterate (iteration `it`). Returns true when the step converged.

@@ -450,12 +450,12 @@ impl CoupledSolve for ProjectiveDynamics {
         &mut self.rhs
     }
 
-    fn solve_columns(&mut self, columns: &mut [Vec3]) {
+    fn solve_columns(&mut self, columns: &mut [f64], count: usize) {
         let mut matrix = self.matrix.lock().unwrap_or_else(|e| e.into_inner());
         let pre = matrix.pre.as_mut().expect("begun");
         match (&mut pre.contact, self.active.is_empty()) {
-            (Some((chol, _)), false) => chol.solve3_in_place(columns),
-            _ => pre.chol.solve3_in_place(columns),
+            (Some((chol, _)), false) => chol.solve_many_in_place(columns, count),
+            _ => pre.chol.solve_many_in_place(columns, count),
         }
     }
 

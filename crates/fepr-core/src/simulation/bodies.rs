@@ -225,22 +225,32 @@ fn step_in_parts(
             }
             continue;
         }
-        for (k, ((mut adv, e), ms)) in advances
-            .into_iter()
+        // Each body's projection and books, the bodies at once: a body's finish reads and writes only its own
+        // state and exchange, so the bits are the same in any order, and a pile's small bodies (2-5k tets) keep
+        // two cores busier side by side than one after another (the pile: 9 of 35 ms per step at rest, serial).
+        let mut finishing: Vec<_> = sims
+            .iter_mut()
+            .zip(advances)
             .zip(&exchanges)
             .zip(base_ms)
-            .enumerate()
-        {
-            adv.report.energy_budget = adv.work.total();
-            if parts > own_substeps {
-                adv.report.substeps = adv.report.substeps.max(parts);
-            }
-            if let Err(err) = sims[k].finish_step(BegunStep { adv, base_ms: ms }, e) {
-                for sim in &mut sims[k + 1..] {
-                    sim.abandon_step();
+            .map(|(((sim, mut adv), e), ms)| {
+                adv.report.energy_budget = adv.work.total();
+                if parts > own_substeps {
+                    adv.report.substeps = adv.report.substeps.max(parts);
                 }
-                return Err((k, err));
-            }
+                (&mut **sim, Some(BegunStep { adv, base_ms: ms }), e, Ok(()))
+            })
+            .collect();
+        crate::exec::for_each_mut(&mut finishing, |_, (sim, begun, e, result)| {
+            *result = sim.finish_step(begun.take().expect("once"), e);
+        });
+        // The first body that failed names the error (each failed body is back at its step's start).
+        if let Some((k, err)) = finishing
+            .into_iter()
+            .enumerate()
+            .find_map(|(k, (.., result))| result.err().map(|e| (k, e)))
+        {
+            return Err((k, err));
         }
         return Ok(());
     }
