@@ -902,6 +902,18 @@ impl BodyConstraints {
                 e.vertices.extend(verts.iter().map(|&v| v as u32));
             }
         }
+        // Each body's centre-of-mass velocity at the start of the step (m/s).
+        let centre_velocity: Vec<Vec3> = sims
+            .iter()
+            .zip(&self.v_start)
+            .map(|(sim, v)| {
+                let p = v
+                    .iter()
+                    .zip(&sim.model.masses)
+                    .fold([0.0; 3], |p, (v, &m)| add(p, scale(*v, m)));
+                scale(p, 1.0 / sim.model.total_mass)
+            })
+            .collect();
         for a in 0..nb {
             for b in a + 1..nb {
                 let (mut wa, mut wb) = (work[a][b], work[b][a]);
@@ -916,6 +928,24 @@ impl BodyConstraints {
                     let back = -e * e * loss;
                     wa += back * ia / (ia + ib);
                     wb += back * ib / (ia + ib);
+                }
+                // A collision's rebound: the rows push while the pair separates, and the sides' normal work sums
+                // to more than zero. That is the compressed bodies' elastic energy coming back, already in their
+                // energy, not work the contact does (a passive constraint never gives the pair energy): booked,
+                // it made two bodies colliding with restitution 1 gain 8% of their energy (Projective Dynamics,
+                // 1/240) and 85% without the quality guard (1/60). So while the bodies move against each other
+                // (their centres of mass faster than the resting speed), the gain is taken out of both sides'
+                // work, in proportion to their inverse masses. Bodies at rest on each other keep their sides'
+                // work over the displacement (taken out there too, the pile's resting bodies failed 1 in 5
+                // projections instead of 1 in 8, and kept 10 times the kinetic energy).
+                let relative = norm(sub(centre_velocity[a], centre_velocity[b]));
+                if loss > 0.0 && relative > RESTING_SPEED_STEPS * g * h {
+                    let (ia, ib) = (
+                        1.0 / sims[a].model.total_mass,
+                        1.0 / sims[b].model.total_mass,
+                    );
+                    wa -= loss * ia / (ia + ib);
+                    wb -= loss * ib / (ia + ib);
                 }
                 out[a].work += wa;
                 out[b].work += wb;
