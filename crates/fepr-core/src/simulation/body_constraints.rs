@@ -865,9 +865,10 @@ impl BodyConstraints {
                 .sum();
             let jb = scale(j, -free_share);
             // Each side's work: the normal impulse's at the mean velocity over the step on an impact (the kinetic
-            // energy an impulse changes), at the end velocity at rest (below); friction's as the force's work over the displacement of the step, `J_t . v_end`
-            // (positional steps: `v_end = dx / h`), so that the pair's is `-f . slip`, never positive (sticking:
-            // zero). The normal part's sum is what an impact's restitution gives a share of back.
+            // energy an impulse changes), at the end velocity at rest (below); friction's as the force's work over
+            // the displacement of the step, `J_t . v_end` (positional steps: `v_end = dx / h`), so that the pair's
+            // is `-f . slip`, never positive (sticking: zero). The normal part's sum is what an impact's
+            // restitution gives a share of back.
             let jt = sub(j, jn);
             let on_b = |f: Vec3, end: bool| -> f64 {
                 (0..3)
@@ -917,17 +918,19 @@ impl BodyConstraints {
         for a in 0..nb {
             for b in a + 1..nb {
                 let (mut wa, mut wb) = (work[a][b], work[b][a]);
+                // Shares of the pair's corrections, in proportion to the bodies' inverse masses.
+                let (ia, ib) = (
+                    1.0 / sims[a].model.total_mass,
+                    1.0 / sims[b].model.total_mass,
+                );
+                let (share_a, share_b) = (ia / (ia + ib), ib / (ia + ib));
                 let loss = normal_loss[a][b] + normal_loss[b][a];
                 let g = norm(sims[a].model.gravity);
                 if approach[a][b] > RESTING_SPEED_STEPS * g * h && loss < 0.0 {
                     let e = coefficients[a].restitution.min(coefficients[b].restitution);
-                    let (ia, ib) = (
-                        1.0 / sims[a].model.total_mass,
-                        1.0 / sims[b].model.total_mass,
-                    );
                     let back = -e * e * loss;
-                    wa += back * ia / (ia + ib);
-                    wb += back * ib / (ia + ib);
+                    wa += back * share_a;
+                    wb += back * share_b;
                 }
                 // A collision's rebound: the rows push while the pair separates, and the sides' normal work sums
                 // to more than zero. That is the compressed bodies' elastic energy coming back, already in their
@@ -940,12 +943,8 @@ impl BodyConstraints {
                 // projections instead of 1 in 8, and kept 10 times the kinetic energy).
                 let relative = norm(sub(centre_velocity[a], centre_velocity[b]));
                 if loss > 0.0 && relative > RESTING_SPEED_STEPS * g * h {
-                    let (ia, ib) = (
-                        1.0 / sims[a].model.total_mass,
-                        1.0 / sims[b].model.total_mass,
-                    );
-                    wa -= loss * ia / (ia + ib);
-                    wb -= loss * ib / (ia + ib);
+                    wa -= loss * share_a;
+                    wb -= loss * share_b;
                 }
                 out[a].work += wa;
                 out[b].work += wb;
