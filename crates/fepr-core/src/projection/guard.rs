@@ -77,9 +77,7 @@ impl Projector {
             return 0.0;
         };
         let m = rigid.mass;
-        let vt = targets.momentum.map(|p| p / m);
-        let offset = cross(sub(rigid.center, targets.center_of_mass), vt);
-        let l_t = [0, 1, 2].map(|a| targets.angular_momentum[a] - m * offset[a]);
+        let (vt, l_t) = targets.rigid_motion_at(m, rigid.center);
         let spin = |l: Vec3| {
             let w = [0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * l[b]).sum::<f64>());
             0.5 * dot(w, l)
@@ -116,9 +114,7 @@ impl Projector {
             return;
         };
         let m = rigid.mass;
-        let vt = targets.momentum.map(|p| p / m);
-        let offset = cross(sub(rigid.center, targets.center_of_mass), vt);
-        let l_t = [0, 1, 2].map(|a| targets.angular_momentum[a] - m * offset[a]);
+        let (vt, l_t) = targets.rigid_motion_at(m, rigid.center);
         let omega = |l: Vec3| [0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * l[b]).sum::<f64>());
         let (w_now, w_t) = (omega(rigid.angular_momentum), omega(l_t));
         let dv = [0, 1, 2].map(|a| vt[a] - rigid.momentum[a] / m);

@@ -1,6 +1,6 @@
 //! What one projection aims at (fepr-spec section 2), and the rounding floor under the rows' tolerances.
 
-use crate::math::Vec3;
+use crate::math::{cross, sub, Vec3};
 
 /// Units in the last place that a row's tolerance is never below (with [`rounding_terms`]): a sum of `m`
 /// float64 terms of size `S` is only known to about `sqrt(m) eps S`, whatever the tolerance asks.
@@ -29,4 +29,18 @@ pub struct Targets {
     pub energy_scale: f64,
     /// The step's impulses are known only approximately (an impulsive event): enables the slack in `Auto`.
     pub uncertain_impulses: bool,
+}
+
+impl Targets {
+    /// The rigid motion the momentum targets give a body of mass `m` (kg) whose centre of mass is at `center`
+    /// (m): its velocity `V = P_target / m` (m/s) and the angular momentum of its spin about `center`,
+    /// `L_target - m (center - C_target) x V` (kg m^2/s: the target's angular momentum less what the translation
+    /// contributes about the target centre). The one rule the guard's pricing of the momenta, its fallback's
+    /// hold on them and the warm start share.
+    pub(crate) fn rigid_motion_at(&self, m: f64, center: Vec3) -> (Vec3, Vec3) {
+        let velocity = self.momentum.map(|p| p / m);
+        let offset = cross(sub(center, self.center_of_mass), velocity);
+        let spin = [0, 1, 2].map(|a| self.angular_momentum[a] - m * offset[a]);
+        (velocity, spin)
+    }
 }

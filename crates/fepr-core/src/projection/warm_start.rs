@@ -96,10 +96,7 @@ pub(super) fn rigid_part_on_target(pb: &Problem, now: &RigidPart) -> Option<Rigi
         return None;
     }
     let inv = now.inertia_inv?;
-    let tg = pb.targets;
-    let velocity = [0, 1, 2].map(|a| tg.momentum[a] / now.mass);
-    let offset = cross(sub(now.center, tg.center_of_mass), velocity);
-    let l_spin = [0, 1, 2].map(|a| tg.angular_momentum[a] - now.mass * offset[a]);
+    let (velocity, l_spin) = pb.targets.rigid_motion_at(now.mass, now.center);
     Some(RigidPart {
         velocity,
         omega: mat_vec(&inv, l_spin),
