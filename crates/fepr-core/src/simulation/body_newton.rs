@@ -474,6 +474,23 @@ fn swept_box(sim: &Simulation, h: f64, margin: f64) -> (Vec3, Vec3) {
 /// module comment): rows for the surface vertices within `margin` (m) of another body. A body whose swept box
 /// meets no other's takes its own step, exactly as alone (and the others' Newton iterations do not wait for
 /// it). Returns each body's advance and what the contact exchanged with it.
+/// The largest fraction `alpha` in [0, 1] of the way from `start` to `xs` at which no row's gap is below its
+/// kept one (each row's gap is linear along the way, its face held): 1 where no row is inside at `xs`, 0 where
+/// a row inside at `xs` was not outside at the start.
+fn start_fraction(rows: &[Row], xs: &[Vec<Vec3>], start: &[Vec<Vec3>]) -> f64 {
+    let mut alpha: f64 = 1.0;
+    for row in rows {
+        let (g1, _) = row.measure(xs, start);
+        let (g0, _) = row.measure(start, start);
+        if g1 < 0.0 && g0 > 0.0 {
+            alpha = alpha.min(g0 / (g0 - g1));
+        } else if g1 < 0.0 {
+            alpha = 0.0;
+        }
+    }
+    alpha
+}
+
 pub(super) fn advance_newton_together(
     sims: &mut [&mut Simulation],
     coefficients: &[BodyCoefficients],
@@ -592,16 +609,7 @@ fn minimise_together(
             // armadillo was thrown back up, 32 J -> 78 J, over the 16 parts of its step, 2-4 J a part). Start
             // instead where no row's gap is below its kept one: the largest fraction of the way from the
             // step's start to that iterate (each row's gap is linear along the way with its face held).
-            let mut alpha: f64 = 1.0;
-            for row in &rows {
-                let (g1, _) = row.measure(&xs, &start);
-                let (g0, _) = row.measure(&start, &start);
-                if g1 < 0.0 && g0 > 0.0 {
-                    alpha = alpha.min(g0 / (g0 - g1));
-                } else if g1 < 0.0 {
-                    alpha = 0.0;
-                }
-            }
+            let alpha = start_fraction(&rows, &xs, &start);
             if alpha < 1.0 {
                 for (k, sim) in sims.iter_mut().enumerate() {
                     for (x, x0) in xs[k].iter_mut().zip(&start[k]) {
@@ -854,6 +862,34 @@ mod tests {
             tangents: tangents(n),
         };
         (row, x, start)
+    }
+
+    /// The joint Newton solve starts where no row is inside: a vertex that the inertial prediction puts `depth`
+    /// inside the other body's face, from `0.001 - offset` outside it at the start, starts at the fraction of the
+    /// way where its gap is the kept one (the row then stores no energy); a row outside at the prediction asks
+    /// for the whole way, and one already inside at the start for none of it.
+    #[test]
+    fn the_joint_solve_starts_where_no_row_is_inside() {
+        let (row, x, start) = row_and_positions(2e-3, [0.0, 0.0]);
+        let alpha = start_fraction(std::slice::from_ref(&row), &x, &start);
+        let (g0, g1) = (0.001 - row.offset, -2e-3 - row.offset);
+        assert!((alpha - g0 / (g0 - g1)).abs() < 1e-12, "{alpha}");
+        let at: Vec<Vec<Vec3>> = x
+            .iter()
+            .zip(&start)
+            .map(|(xk, sk)| {
+                xk.iter()
+                    .zip(sk)
+                    .map(|(a, b)| add(*b, scale(sub(*a, *b), alpha)))
+                    .collect()
+            })
+            .collect();
+        assert!(row.measure(&at, &start).0.abs() < 1e-15);
+        let (outside, x_out, start_out) = row_and_positions(-5e-4, [0.0, 0.0]);
+        assert_eq!(start_fraction(&[outside], &x_out, &start_out), 1.0);
+        let (inside, x_in, mut start_in) = row_and_positions(2e-3, [0.0, 0.0]);
+        start_in[0][0][2] = -1e-3;
+        assert_eq!(start_fraction(&[inside], &x_in, &start_in), 0.0);
     }
 
     /// The row's forces are minus the gradient of its energy (central differences), on the vertex and on the
