@@ -670,7 +670,9 @@ impl Simulation {
         let mut max_depth = 0.0;
         report.impulsive |= contacts > 0;
         if self.state.is_finite() {
-            let (dw, imp, ang) = self.world.damp(&self.model, &mut self.state, h)?;
+            let (dw, imp, ang) =
+                self.world
+                    .damp(&self.model, &mut self.state, h, self.previous.time)?;
             work.damping += dw;
             report.impulse = add(report.impulse, imp);
             report.angular_impulse = add(report.angular_impulse, ang);

@@ -226,6 +226,11 @@ pub struct World {
     /// Pattern and symbolic analysis of the Rayleigh damping solve, with the [`Model::structure_key`] (mesh and
     /// pin set) they were built for.
     rayleigh: Option<(HessianAssembler, SparseCholesky, ModelKey)>,
+    /// The step (its start time's and part length's bits) whose damping matrix is factorised in `rayleigh`: the
+    /// parts of one step (bodies meeting after each XPBD substep, impact parts) share the first part's
+    /// factorisation instead of assembling and factorising the stiffness again in each (20 times per step for
+    /// XPBD bodies in contact: 26 against 1.8 ms per step on two boxes resting on each other).
+    rayleigh_step: Option<(u64, u64)>,
     values: Vec<f64>,
     rhs: Vec<f64>,
     step_forces: Vec<Vec3>,
@@ -452,13 +457,15 @@ impl World {
     }
 
     /// Damp the free velocities of `state`: `v <- exp(-a h) v` (air), then `(M + h b K) v' = M v - h b K_fp
-    /// v_p` (Rayleigh, with the PSD-projected stiffness at the current positions). Returns the kinetic
-    /// energy change (J), the linear and the angular impulse about the centre of mass.
+    /// v_p` (Rayleigh, with the PSD-projected stiffness at the positions of the step's first part: `step_start`,
+    /// s, is the time the step started at). Returns the kinetic energy change (J), the linear and the angular
+    /// impulse about the centre of mass.
     pub(crate) fn damp(
         &mut self,
         model: &Model,
         state: &mut State,
         h: f64,
+        step_start: f64,
     ) -> Result<(f64, Vec3, Vec3)> {
         if self.air_damping == 0.0 && self.rayleigh_damping == 0.0 {
             return Ok((0.0, [0.0; 3], [0.0; 3]));
@@ -475,7 +482,7 @@ impl World {
             }
         }
         if self.rayleigh_damping > 0.0 {
-            self.rayleigh(model, state, h)?;
+            self.rayleigh(model, state, h, step_start)?;
         }
         let c = crate::invariants::center_of_mass(&model.masses, model.total_mass, &state.x);
         let (mut work, mut imp, mut ang) = (0.0, [0.0; 3], [0.0; 3]);
@@ -490,19 +497,31 @@ impl World {
         Ok((work, imp, ang))
     }
 
-    fn rayleigh(&mut self, model: &Model, state: &mut State, h: f64) -> Result<()> {
+    fn rayleigh(
+        &mut self,
+        model: &Model,
+        state: &mut State,
+        h: f64,
+        step_start: f64,
+    ) -> Result<()> {
         // Built again when the pin set changed since (a user of the Rust API may change `Model::pinned`).
         let key = model.structure_key();
         if self.rayleigh.as_ref().is_none_or(|r| r.2 != key) {
             let asm = HessianAssembler::new(model);
             let chol = SparseCholesky::analyse(&asm.pattern, 1)?;
             self.rayleigh = Some((asm, chol, key));
+            self.rayleigh_step = None;
         }
         let (asm, chol, _) = self.rayleigh.as_mut().expect("set above");
         let hb = h * self.rayleigh_damping;
-        // (M / (h b) + K) v' = M v / (h b) - K_fp v_p
-        asm.assemble(model, &state.x, 1.0 / hb, true, &mut self.values);
-        chol.factorize(&self.values)?;
+        // (M / (h b) + K) v' = M v / (h b) - K_fp v_p, factorised once per step (and part length).
+        let step = (step_start.to_bits(), h.to_bits());
+        if self.rayleigh_step != Some(step) {
+            self.rayleigh_step = None;
+            asm.assemble(model, &state.x, 1.0 / hb, true, &mut self.values);
+            chol.factorize(&self.values)?;
+            self.rayleigh_step = Some(step);
+        }
         let n = asm.ndof();
         self.rhs.clear();
         self.rhs.resize(n, 0.0);
@@ -553,6 +572,53 @@ impl World {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The parts of one step share the Rayleigh factorisation of its first part (the stiffness at the positions
+    /// there); the next step factorises again at its own positions.
+    #[test]
+    fn the_parts_of_a_step_share_one_damping_factorisation() {
+        use crate::material::{Material, NeoHookean};
+        use crate::mesh::TetMesh;
+        use crate::model::{ModelBuilder, State};
+        let verts = vec![
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+        ];
+        let (mesh, _) = TetMesh::new(verts, &[[0, 1, 2, 3]]).unwrap();
+        let material = Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap());
+        let model = ModelBuilder::new(mesh, material).build().unwrap();
+        let mut moving = State::at_rest(&model);
+        moving.v = vec![
+            [0.3, -0.1, 0.2],
+            [-0.2, 0.1, 0.0],
+            [0.0, 0.4, -0.1],
+            [0.1, 0.0, 0.3],
+        ];
+        // The same velocities with the body squashed: another stiffness.
+        let mut squashed = moving.clone();
+        squashed.x[3] = [0.0, 0.0, 0.6];
+        let fresh = || {
+            let mut w = World::default();
+            w.set_damping(0.0, 0.05).unwrap();
+            w
+        };
+        let damped = |w: &mut World, s: &State, step_start: f64| {
+            let mut s = s.clone();
+            w.damp(&model, &mut s, 0.01, step_start).unwrap();
+            s.v
+        };
+        let mut world = fresh();
+        let first = damped(&mut world, &moving, 0.0);
+        assert_ne!(first, moving.v);
+        // A later part of the same step: the first part's stiffness, so the same velocities.
+        assert_eq!(damped(&mut world, &squashed, 0.0), first);
+        // The next step: its own stiffness, as a new world's.
+        let next = damped(&mut world, &squashed, 0.01);
+        assert_eq!(next, damped(&mut fresh(), &squashed, 0.01));
+        assert_ne!(next, first);
+    }
 
     #[test]
     fn sinusoid_velocity_is_the_derivative_of_its_displacement() {
