@@ -578,27 +578,19 @@ mod tests {
     #[test]
     fn the_parts_of_a_step_share_one_damping_factorisation() {
         use crate::material::{Material, NeoHookean};
-        use crate::mesh::TetMesh;
+        use crate::mesh::{tests::cube, TetMesh};
         use crate::model::{ModelBuilder, State};
-        let verts = vec![
-            [0.0, 0.0, 0.0],
-            [1.0, 0.0, 0.0],
-            [0.0, 1.0, 0.0],
-            [0.0, 0.0, 1.0],
-        ];
-        let (mesh, _) = TetMesh::new(verts, &[[0, 1, 2, 3]]).unwrap();
+        let (v, t) = cube();
+        let (mesh, _) = TetMesh::new(v, &t).unwrap();
         let material = Material::NeoHookean(NeoHookean::new(1e3, 0.3).unwrap());
         let model = ModelBuilder::new(mesh, material).build().unwrap();
         let mut moving = State::at_rest(&model);
-        moving.v = vec![
-            [0.3, -0.1, 0.2],
-            [-0.2, 0.1, 0.0],
-            [0.0, 0.4, -0.1],
-            [0.1, 0.0, 0.3],
-        ];
+        for (i, v) in moving.v.iter_mut().enumerate() {
+            *v = [0.1 * i as f64, -0.05 * i as f64, 0.3 - 0.04 * i as f64];
+        }
         // The same velocities with the body squashed: another stiffness.
         let mut squashed = moving.clone();
-        squashed.x[3] = [0.0, 0.0, 0.6];
+        squashed.x[0] = [0.2, 0.3, 0.4];
         let fresh = || {
             let mut w = World::default();
             w.set_damping(0.0, 0.05).unwrap();
