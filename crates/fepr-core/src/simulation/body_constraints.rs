@@ -27,6 +27,7 @@
 //! A hand-written solve: no maintained crate offers a Woodbury update over several sparse factorisations.
 
 use crate::integrators::CoupledSolve;
+use crate::invariants::center_of_mass;
 use crate::math::{add, cross, dot, norm, scale, sub, Vec3};
 use crate::world::{
     body_contact_pairs, body_pairs_at, BodyExchange, BodyIterate, BodyPair, RESTING_SPEED_STEPS,
@@ -782,6 +783,11 @@ impl BodyConstraints {
         }
     }
 
+    /// Speeds below this are resting contact (m/s): [`RESTING_SPEED_STEPS`] steps of `sim`'s gravity.
+    fn resting_speed(&self, sim: &Simulation) -> f64 {
+        RESTING_SPEED_STEPS * norm(sim.model.gravity) * self.h
+    }
+
     /// A vertex's mean velocity over the part, `(v_start + v_end) / 2` (m/s): an impulse `J` changing a mass's
     /// velocity does the work `J . (v_start + v_end) / 2` on it.
     fn mean_velocity(&self, sims: &[&mut Simulation], k: usize, v: usize) -> Vec3 {
@@ -791,13 +797,13 @@ impl BodyConstraints {
     /// What the rows exchanged over the step `h`, per body, from their forces of the last iteration, at the
     /// bodies' end-of-step states: the impulse `h mu n` on the vertex and `-h mu w_j n` on the corners (the
     /// part on free corners), both moments taken at the point `sum_j w_j x_j` so that they cancel; each side's
-    /// work at its point: on a row whose pair approached or separated faster than the resting speed at
-    /// the start of the step (an impact, its rebound) the normal impulse's `J . (v_start + v_end) / 2`, the
-    /// kinetic energy it changes; on a resting row
-    /// `J . v_end`, the force's work over the step's displacement (a positional step moves the vertex by
-    /// `h v_end`), as the potentials' change is measured. Why not the mean velocity at rest too: on a block
-    /// rocking on a slab it booked positive work step after step (+4.2 J in 5 s against 0.9 J of damping),
-    /// which FEPR put back as vibration, and the block never came to rest. For an impact (a pair of bodies
+    /// work at its point: on a row whose pair approached or separated faster than the resting speed at the
+    /// start of the step (an impact, its rebound) the normal impulse's `J . (v_start + v_end) / 2`, the kinetic
+    /// energy it changes; on a resting row `J . v_end`, the force's work over the step's displacement (a
+    /// positional step moves the vertex by `h v_end`), as the potentials' change is measured. Why not the mean
+    /// velocity at rest too: on a block rocking on a slab it books positive work step after step (+4.2 J in 5 s
+    /// against 0.9 J of damping), which FEPR would put back as vibration: the block would never come to rest.
+    /// For an impact (a pair of bodies
     /// whose rows approached faster than the resting speed), the share `e^2` of what the pair lost is given
     /// back in proportion to the bodies' inverse masses (the bounce is the projections', as for obstacles).
     pub(super) fn exchanges(
@@ -821,7 +827,7 @@ impl BodyConstraints {
                 }
                 let sim = &sims[p.body];
                 let j = scale(self.row_force(r), h);
-                let resting_speed = RESTING_SPEED_STEPS * norm(sim.model.gravity) * h;
+                let resting_speed = self.resting_speed(sim);
                 let impact = -row.approach_speed > resting_speed;
                 let v = if row.approach_speed.abs() <= resting_speed {
                     sim.state.v[p.vertex]
@@ -883,8 +889,7 @@ impl BodyConstraints {
                     })
                     .sum::<f64>()
             };
-            let resting =
-                row.approach_speed.abs() <= RESTING_SPEED_STEPS * norm(sims[a].model.gravity) * h;
+            let resting = row.approach_speed.abs() <= self.resting_speed(sims[a]);
             let va = if resting {
                 sims[a].state.v[p.vertex]
             } else {
@@ -903,17 +908,12 @@ impl BodyConstraints {
                 e.vertices.extend(verts.iter().map(|&v| v as u32));
             }
         }
-        // Each body's centre-of-mass velocity at the start of the step (m/s).
+        // Each body's centre-of-mass velocity at the start of the step (m/s): the mass-weighted mean of its
+        // velocities, as of its positions.
         let centre_velocity: Vec<Vec3> = sims
             .iter()
             .zip(&self.v_start)
-            .map(|(sim, v)| {
-                let p = v
-                    .iter()
-                    .zip(&sim.model.masses)
-                    .fold([0.0; 3], |p, (v, &m)| add(p, scale(*v, m)));
-                scale(p, 1.0 / sim.model.total_mass)
-            })
+            .map(|(sim, v)| center_of_mass(&sim.model.masses, sim.model.total_mass, v))
             .collect();
         for a in 0..nb {
             for b in a + 1..nb {
@@ -925,8 +925,8 @@ impl BodyConstraints {
                 );
                 let (share_a, share_b) = (ia / (ia + ib), ib / (ia + ib));
                 let loss = normal_loss[a][b] + normal_loss[b][a];
-                let g = norm(sims[a].model.gravity);
-                if approach[a][b] > RESTING_SPEED_STEPS * g * h && loss < 0.0 {
+                let resting_speed = self.resting_speed(sims[a]);
+                if approach[a][b] > resting_speed && loss < 0.0 {
                     let e = coefficients[a].restitution.min(coefficients[b].restitution);
                     let back = -e * e * loss;
                     wa += back * share_a;
@@ -935,14 +935,14 @@ impl BodyConstraints {
                 // A collision's rebound: the rows push while the pair separates, and the sides' normal work sums
                 // to more than zero. That is the compressed bodies' elastic energy coming back, already in their
                 // energy, not work the contact does (a passive constraint never gives the pair energy): booked,
-                // it made two bodies colliding with restitution 1 gain 8% of their energy (Projective Dynamics,
-                // 1/240) and 85% without the quality guard (1/60). So while the bodies move against each other
-                // (their centres of mass faster than the resting speed), the gain is taken out of both sides'
-                // work, in proportion to their inverse masses. Bodies at rest on each other keep their sides'
-                // work over the displacement (taken out there too, the pile's resting bodies failed 1 in 5
-                // projections instead of 1 in 8, and kept 10 times the kinetic energy).
+                // it would make two bodies colliding with restitution 1 gain 8% of their energy (Projective
+                // Dynamics, 1/240), 85% without the quality guard (1/60). So while the bodies move against each
+                // other (their centres of mass faster than the resting speed), the gain is taken out of both
+                // sides' work, in proportion to their inverse masses. Bodies at rest on each other keep their
+                // sides' work over the displacement (taken out there too, the pile's resting bodies fail 1 in 5
+                // projections instead of 1 in 8, and keep 10 times the kinetic energy).
                 let relative = norm(sub(centre_velocity[a], centre_velocity[b]));
-                if loss > 0.0 && relative > RESTING_SPEED_STEPS * g * h {
+                if loss > 0.0 && relative > resting_speed {
                     wa -= loss * share_a;
                     wb -= loss * share_b;
                 }

@@ -469,11 +469,6 @@ fn swept_box(sim: &Simulation, h: f64, margin: f64) -> (Vec3, Vec3) {
     (lo, hi)
 }
 
-/// One part (`h` seconds) of a step of bodies whose integrators minimise an objective by Newton's method
-/// ([`CoupledNewton`], backward Euler), with contact between them inside the joint minimisation (see the
-/// module comment): rows for the surface vertices within `margin` (m) of another body. A body whose swept box
-/// meets no other's takes its own step, exactly as alone (and the others' Newton iterations do not wait for
-/// it). Returns each body's advance and what the contact exchanged with it.
 /// The largest fraction `alpha` in [0, 1] of the way from `start` to `xs` at which no row's gap is below its
 /// kept one (each row's gap is linear along the way, its face held): 1 where no row is inside at `xs`, 0 where
 /// a row inside at `xs` was not outside at the start.
@@ -491,6 +486,11 @@ fn start_fraction(rows: &[Row], xs: &[Vec<Vec3>], start: &[Vec<Vec3>]) -> f64 {
     alpha
 }
 
+/// One part (`h` seconds) of a step of bodies whose integrators minimise an objective by Newton's method
+/// ([`CoupledNewton`], backward Euler), with contact between them inside the joint minimisation (see the
+/// module comment): rows for the surface vertices within `margin` (m) of another body. A body whose swept box
+/// meets no other's takes its own step, exactly as alone (and the others' Newton iterations do not wait for
+/// it). Returns each body's advance and what the contact exchanged with it.
 pub(super) fn advance_newton_together(
     sims: &mut [&mut Simulation],
     coefficients: &[BodyCoefficients],
