@@ -100,7 +100,6 @@ KNOWN_FAST = {
     "armadillo-XPBD-dt1_30-spin-converged": XPBD,
     "armadillo-SE-dt_stable-drop-converged": CONTACT,
     "armadillo-BE-dt1_30-drop-min_j": NEWTON,
-    "armadillo-PD-dt1_30-drop-min_j": CONTACT,
     "armadillo-XPBD-dt1_60-drop-converged": CONTACT,
     "armadillo-XPBD-dt1_30-drop-converged": CONTACT,
     "bunny2-BE-dt1_60-stretch-min_j": KEPT,

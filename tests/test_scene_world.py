@@ -249,7 +249,7 @@ WORLD_ERRORS = [
     ({"obstacles": [_with(PLANE, normal=[0, 1])]}, "[[world.obstacles]] #1: normal must be a list of 3 numbers"),
     (
         {"obstacles": [_with(PLANE, radius=1.0)]},
-        "[[world.obstacles]] #1: unknown key 'radius' (known: type, restitution, friction, point, normal)",
+        "[[world.obstacles]] #1: unknown key 'radius' (known: type, restitution, friction, motion, point, normal)",
     ),
     ({"obstacles": {"type": "plane"}}, "[world] obstacles must be a list of tables ([[world.obstacles]] entries)"),
     ({"air_damping": -1.0}, "[world] air_damping must be >= 0, got -1.0"),

@@ -36,7 +36,7 @@ from .simulation import (
     Xpbd,
 )
 from .viewer import view
-from .world import Box, Capsule, Keyframes, KinematicPins, MeshObstacle, Plane, Sinusoid, Sphere
+from .world import Box, Capsule, Keyframes, KinematicPins, MeshObstacle, ObstacleMotion, Plane, Sinusoid, Sphere
 
 __all__ = [
     "Arap",
@@ -45,6 +45,7 @@ __all__ = [
     "Keyframes",
     "KinematicPins",
     "MeshObstacle",
+    "ObstacleMotion",
     "Plane",
     "Sinusoid",
     "Sphere",

@@ -285,11 +285,25 @@ class Simulation:
         """A time step that resolves the body's fast elastic modes, s (a tenth of a pressure wave's crossing
         time)."""
 
-    def set_obstacles(self, obstacles: Sequence[Tuple[str, Sequence[float], float, float, Sequence[int]]]) -> None:
-        """Obstacles as ``(kind, params, restitution, friction, triangles)``: "plane" [point (3), normal (3)],
-        "sphere" [center (3), radius], "box" [center (3), half extents (3), 9 rotation entries (rows)], "capsule"
-        [a (3), b (3), radius], "mesh" [vertices flattened (n * 3)] with ``triangles`` flattened (k * 3; empty for
-        the other kinds); lengths in m. Replaces the previous list. Raises ValueError for a bad obstacle."""
+    def set_obstacles(
+        self,
+        obstacles: Sequence[
+            Tuple[
+                str,
+                Sequence[float],
+                float,
+                float,
+                Sequence[int],
+                Optional[Tuple[str, Sequence[float], Sequence[float], Sequence[float], Sequence[float]]],
+            ]
+        ],
+    ) -> None:
+        """Obstacles as ``(kind, params, restitution, friction, triangles, motion)``: "plane" [point (3), normal
+        (3)], "sphere" [center (3), radius], "box" [center (3), half extents (3), 9 rotation entries (rows)],
+        "capsule" [a (3), b (3), radius], "mesh" [vertices flattened (n * 3)] with ``triangles`` flattened (k * 3;
+        empty for the other kinds); lengths in m. ``motion``: None (static) or ``(translation kind ("none",
+        "sinusoid", "keyframes"), its parameters, keyframe times (s), angular velocity (3) rad/s, pivot (3) m)``.
+        Replaces the previous list. Raises ValueError for a bad obstacle."""
 
     def set_self_contact(self, coefficients: Optional[Tuple[float, float]]) -> None:
         """Contact of the body with itself: ``(restitution, friction)``, or None for off. Raises ValueError for

@@ -1,7 +1,8 @@
-"""The world around a body: static obstacles and kinematic pins (SI units: metres, seconds, hertz, radians).
+"""The world around a body: obstacles and kinematic pins (SI units: metres, seconds, hertz, radians).
 
 Obstacles are passed to :class:`fepr.Simulation` as ``obstacles=[...]``; the free vertices collide with them
-(vertex contact with restitution and Coulomb friction). Kinematic pins (``kinematic_pins=[...]``) move groups
+(vertex contact with restitution and Coulomb friction). An obstacle is static, or moves along a prescribed
+rigid motion (``motion=fepr.ObstacleMotion(...)``: a platform, a piston, a turning drum). Kinematic pins (``kinematic_pins=[...]``) move groups
 of vertices along a prescribed path. The energy that contacts remove and the work the pins do enter each
 step's energy budget (history columns ``budget``, ``work_contact``, ``work_pins``), so FEPR conserves
 ``H_0 + budget_total`` instead of undoing them. Bodies of a :class:`fepr.MultiBody` also collide with each
@@ -51,15 +52,31 @@ def _coefficients(restitution, friction, what: str) -> Tuple[float, float]:
     return e, mu
 
 
+class _Analytic:
+    """What the analytic obstacles share: the core's tuple of their coefficients, (no) triangles and motion."""
+
+    def _common(self):
+        motion = None if self.motion is None else self.motion._core()
+        return float(self.restitution), float(self.friction), [], motion
+
+
+def _check_motion(motion, what: str) -> None:
+    if motion is not None and not isinstance(motion, ObstacleMotion):
+        raise ConfigError(f"{what} motion must be a fepr.ObstacleMotion or None, got {motion!r}")
+
+
 @dataclass(frozen=True)
-class Plane:
+class Plane(_Analytic):
     """The half-space below the plane through ``point`` (m) with outward ``normal``; the solid is on the side
-    opposite the normal. ``restitution`` in [0, 1] (1: elastic bounce), ``friction``: Coulomb coefficient."""
+    opposite the normal. ``restitution`` in [0, 1] (1: elastic bounce), ``friction``: Coulomb coefficient.
+    Every obstacle takes ``motion`` (:class:`ObstacleMotion`, None: static); its geometry is where it is at
+    ``t = 0``."""
 
     point: Vec3 = (0.0, 0.0, 0.0)
     normal: Vec3 = (0.0, 0.0, 1.0)
     restitution: float = 1.0
     friction: float = 0.0
+    motion: Optional[ObstacleMotion] = None
 
     def __post_init__(self):
         object.__setattr__(self, "point", _vec3(self.point, "Plane point"))
@@ -68,31 +85,34 @@ class Plane:
             raise ConfigError("Plane normal must not be the zero vector")
         object.__setattr__(self, "normal", n)
         _coefficients(self.restitution, self.friction, "Plane")
+        _check_motion(self.motion, "Plane")
 
     def _core(self):
-        return ("plane", [*self.point, *self.normal], float(self.restitution), float(self.friction), [])
+        return ("plane", [*self.point, *self.normal], *self._common())
 
 
 @dataclass(frozen=True)
-class Sphere:
+class Sphere(_Analytic):
     """A solid ball of ``radius`` (m) about ``center`` (m)."""
 
     center: Vec3
     radius: float
     restitution: float = 1.0
     friction: float = 0.0
+    motion: Optional[ObstacleMotion] = None
 
     def __post_init__(self):
         object.__setattr__(self, "center", _vec3(self.center, "Sphere center"))
         object.__setattr__(self, "radius", _length(self.radius, "Sphere radius"))
         _coefficients(self.restitution, self.friction, "Sphere")
+        _check_motion(self.motion, "Sphere")
 
     def _core(self):
-        return ("sphere", [*self.center, self.radius], float(self.restitution), float(self.friction), [])
+        return ("sphere", [*self.center, self.radius], *self._common())
 
 
 @dataclass(frozen=True)
-class Box:
+class Box(_Analytic):
     """A solid box with ``half_extents`` (m) about ``center`` (m); ``rotation`` is a 3x3 rotation matrix whose
     rows are the box's local axes in world coordinates (None: axis-aligned)."""
 
@@ -101,6 +121,7 @@ class Box:
     rotation: Optional[Tuple[Vec3, Vec3, Vec3]] = None
     restitution: float = 1.0
     friction: float = 0.0
+    motion: Optional[ObstacleMotion] = None
 
     def __post_init__(self):
         object.__setattr__(self, "center", _vec3(self.center, "Box center"))
@@ -116,15 +137,16 @@ class Box:
                 raise ConfigError("Box rotation must be a rotation matrix (orthonormal rows, determinant +1)")
             object.__setattr__(self, "rotation", tuple(tuple(float(c) for c in row) for row in r))
         _coefficients(self.restitution, self.friction, "Box")
+        _check_motion(self.motion, "Box")
 
     def _core(self):
         rot = self.rotation if self.rotation is not None else ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
         params = [*self.center, *self.half_extents, *[c for row in rot for c in row]]
-        return ("box", params, float(self.restitution), float(self.friction), [])
+        return ("box", params, *self._common())
 
 
 @dataclass(frozen=True)
-class Capsule:
+class Capsule(_Analytic):
     """The solid within ``radius`` (m) of the segment from ``a`` to ``b`` (m)."""
 
     a: Vec3
@@ -132,19 +154,22 @@ class Capsule:
     radius: float
     restitution: float = 1.0
     friction: float = 0.0
+    motion: Optional[ObstacleMotion] = None
 
     def __post_init__(self):
         object.__setattr__(self, "a", _vec3(self.a, "Capsule a"))
         object.__setattr__(self, "b", _vec3(self.b, "Capsule b"))
         object.__setattr__(self, "radius", _length(self.radius, "Capsule radius"))
         _coefficients(self.restitution, self.friction, "Capsule")
+        _check_motion(self.motion, "Capsule")
 
     def _core(self):
-        return ("capsule", [*self.a, *self.b, self.radius], float(self.restitution), float(self.friction), [])
+        return ("capsule", [*self.a, *self.b, self.radius], *self._common())
 
 
 class MeshObstacle:
-    """A static triangle mesh the free vertices collide with: a scanned floor, a bowl, a terrain.
+    """A triangle mesh the free vertices collide with: a scanned floor, a bowl, a terrain (static, or moving with
+    ``motion``).
 
     Parameters
     ----------
@@ -157,6 +182,8 @@ class MeshObstacle:
         Coulomb coefficient.
     flip_normals : bool
         Reverse every triangle's winding (for an open mesh whose normals point into the solid).
+    motion : ObstacleMotion or None
+        A prescribed rigid motion (None: static); the mesh as given is where it is at ``t = 0``.
 
     The solid is on the side opposite the triangle normals (right-hand rule on the listed corners). A closed
     mesh (every edge shared by two triangles) wound inside-out is turned outward automatically; an open mesh is
@@ -170,7 +197,14 @@ class MeshObstacle:
     no area); the message names the vertex or triangle.
     """
 
-    def __init__(self, source, restitution: float = 1.0, friction: float = 0.0, flip_normals: bool = False):
+    def __init__(
+        self,
+        source,
+        restitution: float = 1.0,
+        friction: float = 0.0,
+        flip_normals: bool = False,
+        motion: Optional[ObstacleMotion] = None,
+    ):
         if isinstance(source, (str, os.PathLike)):
             from .io.surface import read_surface
 
@@ -215,6 +249,8 @@ class MeshObstacle:
         self.triangles.flags.writeable = False
         self.restitution, self.friction = _coefficients(restitution, friction, what)
         self.flip_normals = bool(flip_normals)
+        _check_motion(motion, what)
+        self.motion = motion
         # Validates now (degenerate triangles named by index), not at the first step.
         from ._core import check_mesh_obstacle
 
@@ -234,6 +270,7 @@ class MeshObstacle:
         depth: Optional[float] = None,
         restitution: float = 1.0,
         friction: float = 0.0,
+        motion: Optional[ObstacleMotion] = None,
     ) -> MeshObstacle:
         """A built-in bumpy ground, needing no file: a square slab of edge ``size`` (m) about ``center`` whose top
         is a height field ``z = center_z + height * b(x, y)`` over ``cells`` x ``cells`` squares (two triangles
@@ -271,13 +308,15 @@ class MeshObstacle:
         p, q = ring, np.roll(ring, -1)
         faces += [np.stack([p, p + off, q + off], 1), np.stack([p, q + off, q], 1)]
         triangles = np.concatenate(faces)
-        return cls((vertices, triangles), restitution=restitution, friction=friction)
+        return cls((vertices, triangles), restitution=restitution, friction=friction, motion=motion)
 
     def __repr__(self) -> str:
         src = self.path or "arrays"
         return (
             f"MeshObstacle({src}, vertices={len(self.vertices)}, triangles={len(self.triangles)}, "
-            f"restitution={self.restitution}, friction={self.friction})"
+            f"restitution={self.restitution}, friction={self.friction}"
+            + ("" if self.motion is None else f", motion={self.motion!r}")
+            + ")"
         )
 
     def _core(self):
@@ -287,6 +326,7 @@ class MeshObstacle:
             float(self.restitution),
             float(self.friction),
             self.triangles.ravel().tolist(),
+            None if self.motion is None else self.motion._core(),
         )
 
 
@@ -352,6 +392,56 @@ class Keyframes:
 
 
 Motion = Union[Sinusoid, Keyframes]
+
+
+@dataclass(frozen=True)
+class ObstacleMotion:
+    """A prescribed rigid motion of an obstacle (a moving platform, a piston, a turning drum or paddle).
+
+    At time ``t`` (s) the point ``p`` of the obstacle as given is at
+    ``R(angular_velocity * t) (p - pivot) + pivot + d(t)``: ``translation`` is the displacement ``d``
+    (:class:`Sinusoid`, :class:`Keyframes`, or None: no translation), ``angular_velocity`` (3,) rad/s a constant
+    rotation (its direction the axis, right-hand rule) about ``pivot`` (3,) m, which travels with ``d``.
+
+    The body's contact with a moving obstacle answers its velocity relative to the obstacle's surface
+    (restitution and friction act on the relative velocity), and the work the obstacle does on the body is
+    booked in ``work_contact`` (it can be positive: a platform lifting a body), so FEPR keeps
+    ``H_0 + budget_total`` instead of taking that energy back. Each step places the obstacle where it is at the
+    step's end (XPBD: at each substep's end); a vertex cannot pass through it within a step (the crossing test
+    follows the obstacle from the step's start to its end).
+    """
+
+    translation: Optional[Motion] = None
+    angular_velocity: Vec3 = (0.0, 0.0, 0.0)
+    pivot: Vec3 = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        if self.translation is not None and not isinstance(self.translation, (Sinusoid, Keyframes)):
+            raise ConfigError(
+                f"ObstacleMotion translation must be fepr.Sinusoid, fepr.Keyframes or None, got {self.translation!r}"
+            )
+        object.__setattr__(self, "angular_velocity", _vec3(self.angular_velocity, "ObstacleMotion angular_velocity"))
+        object.__setattr__(self, "pivot", _vec3(self.pivot, "ObstacleMotion pivot"))
+
+    def _core(self):
+        kind, params, times = ("none", [], []) if self.translation is None else self.translation._core()
+        return kind, params, times, list(self.angular_velocity), list(self.pivot)
+
+    def placement(self, t: float) -> Tuple[np.ndarray, np.ndarray]:
+        """Where the obstacle is at time ``t`` (s): ``(R (3, 3), offset (3,) m)`` with ``x = R @ p + offset`` for
+        a point ``p`` of the obstacle as given (for drawing it, or placing a copy of its mesh in an export)."""
+        w = np.asarray(self.angular_velocity) * float(t)
+        angle = float(np.linalg.norm(w))
+        k = np.array(
+            [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]
+        )  # the cross-product matrix of the rotation vector
+        if angle > 0:
+            r = np.eye(3) + math.sin(angle) / angle * k + (1 - math.cos(angle)) / angle**2 * (k @ k)
+        else:
+            r = np.eye(3)
+        d = np.zeros(3) if self.translation is None else self.translation.displacement(float(t))
+        c = np.asarray(self.pivot)
+        return r, c + d - r @ c
 
 
 @dataclass(frozen=True)

@@ -29,15 +29,45 @@ use fepr_core::simulation::{
     PD_WARM_START, XPBD_WARM_START,
 };
 use fepr_core::world::{Drag, KinematicPins, PinMotion};
-use fepr_core::world::{MeshCollider, Obstacle, Shape};
+use fepr_core::world::{MeshCollider, Obstacle, ObstacleMotion, Shape};
 use fepr_core::FeprError;
 
 mod settings;
 
 /// A kinematic pin group from Python: `(vertices, motion kind, motion parameters, keyframe times)`.
 type PinGroupArgs = (Vec<usize>, String, Vec<f64>, Vec<f64>);
-/// `(kind, params, restitution, friction, triangles)` of one obstacle (see `set_obstacles`).
-type ObstacleArgs = (String, Vec<f64>, f64, f64, Vec<u32>);
+/// An obstacle's motion from Python: `(translation kind, its parameters, keyframe times, angular velocity,
+/// pivot)`; the translation as a kinematic pin's (`"none"`: no translation).
+type ObstacleMotionArgs = (String, Vec<f64>, Vec<f64>, [f64; 3], [f64; 3]);
+/// `(kind, params, restitution, friction, triangles, motion)` of one obstacle (see `set_obstacles`).
+type ObstacleArgs = (
+    String,
+    Vec<f64>,
+    f64,
+    f64,
+    Vec<u32>,
+    Option<ObstacleMotionArgs>,
+);
+
+/// A translation path from Python (`kind`, parameters, keyframe times; see [`PinGroupArgs`]), `what` naming its
+/// owner in the error.
+fn pin_motion(kind: &str, p: Vec<f64>, times: Vec<f64>, what: &str) -> PyResult<PinMotion> {
+    match kind {
+        "sinusoid" if p.len() == 5 => Ok(PinMotion::Sinusoid {
+            amplitude: [p[0], p[1], p[2]],
+            frequency: p[3],
+            phase: p[4],
+        }),
+        "keyframes" if p.len() == 3 * times.len() => Ok(PinMotion::Keyframes {
+            offsets: p.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            times,
+        }),
+        _ => Err(PyValueError::new_err(format!(
+            "{what}: bad motion {kind:?} with {} parameters",
+            p.len()
+        ))),
+    }
+}
 
 fn value_error(e: FeprError) -> PyErr {
     PyValueError::new_err(e.to_string())
@@ -634,10 +664,13 @@ impl Simulation {
     /// Obstacles as `(kind, params, restitution, friction, triangles)`: `"plane"` [point, normal], `"sphere"`
     /// [center, radius], `"box"` [center, half_extents, 9 rotation entries (rows)], `"capsule"` [a, b, radius],
     /// `"mesh"` [vertex coordinates, flattened (n * 3)] with `triangles` its vertex indices flattened (k * 3);
-    /// m. `triangles` is empty for the other kinds.
+    /// m. `triangles` is empty for the other kinds. `motion`: None (static) or `(translation kind, parameters,
+    /// times, angular velocity rad/s, pivot m)` ([`ObstacleMotionArgs`]).
     fn set_obstacles(&mut self, obstacles: Vec<ObstacleArgs>) -> PyResult<()> {
         let mut out = Vec::with_capacity(obstacles.len());
-        for (k, (kind, p, restitution, friction, triangles)) in obstacles.into_iter().enumerate() {
+        for (k, (kind, p, restitution, friction, triangles, motion)) in
+            obstacles.into_iter().enumerate()
+        {
             let need = match kind.as_str() {
                 "plane" => 6,
                 "sphere" => 4,
@@ -692,8 +725,26 @@ impl Simulation {
                     radius: p[6],
                 },
             };
-            let ob = Obstacle::new(shape, restitution, friction)
+            let mut ob = Obstacle::new(shape, restitution, friction)
                 .map_err(|e| PyValueError::new_err(format!("obstacle {k} ({kind}): {e}")))?;
+            if let Some((path, q, times, angular_velocity, pivot)) = motion {
+                let what = format!("obstacle {k} ({kind})");
+                let translation = if path == "none" {
+                    PinMotion::Keyframes {
+                        times: vec![0.0],
+                        offsets: vec![[0.0; 3]],
+                    }
+                } else {
+                    pin_motion(&path, q, times, &what)?
+                };
+                ob = ob
+                    .with_motion(ObstacleMotion {
+                        translation,
+                        angular_velocity,
+                        pivot,
+                    })
+                    .map_err(|e| PyValueError::new_err(format!("{what}: {e}")))?;
+            }
             out.push(ob);
         }
         self.inner.set_obstacles(out);
@@ -715,23 +766,7 @@ impl Simulation {
     fn set_kinematic_pins(&mut self, groups: Vec<PinGroupArgs>) -> PyResult<()> {
         let mut pins = Vec::with_capacity(groups.len());
         for (k, (vertices, kind, p, times)) in groups.into_iter().enumerate() {
-            let motion = match kind.as_str() {
-                "sinusoid" if p.len() == 5 => PinMotion::Sinusoid {
-                    amplitude: [p[0], p[1], p[2]],
-                    frequency: p[3],
-                    phase: p[4],
-                },
-                "keyframes" if p.len() == 3 * times.len() => PinMotion::Keyframes {
-                    offsets: p.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
-                    times,
-                },
-                _ => {
-                    return Err(PyValueError::new_err(format!(
-                        "kinematic pin group {k}: bad motion {kind:?} with {} parameters",
-                        p.len()
-                    )))
-                }
-            };
+            let motion = pin_motion(&kind, p, times, &format!("kinematic pin group {k}"))?;
             let vertices = vertices
                 .iter()
                 .map(|&u| self.order.internal_or_same(u))

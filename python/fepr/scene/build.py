@@ -74,22 +74,43 @@ def make_obstacle(o: ObstacleSettings):
     from .. import world
 
     try:
+        motion = None if o.motion is None else make_obstacle_motion(o.motion)
         if o.type == "mesh":
             g = o.geometry
             if "terrain" in g:
-                terrain = world.MeshObstacle.terrain(**g["terrain"], restitution=o.restitution, friction=o.friction)
+                terrain = world.MeshObstacle.terrain(
+                    **g["terrain"], restitution=o.restitution, friction=o.friction, motion=motion
+                )
                 if not g.get("flip_normals"):
                     return terrain
                 return world.MeshObstacle(
-                    (terrain.vertices, terrain.triangles), o.restitution, o.friction, flip_normals=True
+                    (terrain.vertices, terrain.triangles), o.restitution, o.friction, flip_normals=True, motion=motion
                 )
-            return world.MeshObstacle(g["path"], o.restitution, o.friction, flip_normals=g.get("flip_normals", False))
+            return world.MeshObstacle(
+                g["path"], o.restitution, o.friction, flip_normals=g.get("flip_normals", False), motion=motion
+            )
         cls = {"plane": world.Plane, "sphere": world.Sphere, "box": world.Box, "capsule": world.Capsule}[o.type]
-        return cls(**o.geometry, restitution=o.restitution, friction=o.friction)
+        return cls(**o.geometry, restitution=o.restitution, friction=o.friction, motion=motion)
     except MeshError as exc:
         raise MeshError(f"{o.label}: {exc}") from None
     except (ConfigError, ValueError, TypeError) as exc:
         raise ConfigError(f"{o.label}: {exc}") from None
+
+
+def make_obstacle_motion(m: Dict[str, Any]):
+    """The :class:`fepr.ObstacleMotion` of an obstacle's parsed ``motion`` table."""
+    from .. import world
+
+    kind = m.get("translation")
+    if kind == "sinusoidal":
+        path = world.Sinusoid(amplitude=m["amplitude"], frequency=m["frequency"], phase=m["phase"])
+    elif kind == "keyframes":
+        path = world.Keyframes(
+            times=np.asarray(m["times"], dtype=np.float64), offsets=np.asarray(m["offsets"], dtype=np.float64)
+        )
+    else:
+        path = None
+    return world.ObstacleMotion(translation=path, angular_velocity=m["angular_velocity"], pivot=m["pivot"])
 
 
 def kinematic_pin_indices(kp: KinematicPinSettings, rest_vertices: np.ndarray) -> np.ndarray:

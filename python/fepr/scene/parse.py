@@ -27,6 +27,7 @@ from .schema import (
     MATERIAL_MODELS,
     METRICS,
     MOTIONS,
+    OBSTACLE_MOTION_KEYS,
     OBSTACLE_COMMON_KEYS,
     OBSTACLE_KEYS,
     PROJECTION_ROWS,
@@ -449,10 +450,76 @@ def _parse_obstacles(raw: Any, where: str, base_dir: Path) -> Tuple[ObstacleSett
             geometry["a"] = t.vec3("a")
             geometry["b"] = t.vec3("b")
             geometry["radius"] = t.number("radius", positive=True)
+        motion = _parse_obstacle_motion(t.data["motion"], where, label) if t.has("motion") else None
         out.append(
-            ObstacleSettings(type=kind, geometry=geometry, restitution=restitution, friction=friction, label=label)
+            ObstacleSettings(
+                type=kind,
+                geometry=geometry,
+                restitution=restitution,
+                friction=friction,
+                motion=motion,
+                label=label,
+            )
         )
     return tuple(out)
+
+
+def _parse_path(t: _Table, kind: str, kind_key: str) -> Dict[str, Any]:
+    """The keys of a displacement path of ``kind`` (a key of ``MOTIONS``, read from ``kind_key``) in ``t``:
+    ``amplitude``, ``frequency``, ``phase`` for ``"sinusoidal"``; ``times``, ``offsets`` for ``"keyframes"``.
+    A key of the other kind is an error naming it."""
+    for other, keys in MOTIONS.items():
+        if other == kind:
+            continue
+        for key in keys:
+            if t.has(key):
+                raise t.error(f"{key} does not apply to {kind_key} {kind!r} (its keys: {', '.join(MOTIONS[kind])})")
+    if kind == "sinusoidal":
+        return {
+            "amplitude": t.vec3("amplitude"),
+            "frequency": t.number("frequency", positive=True),
+            "phase": t.number("phase", 0.0),
+        }
+    times = t.data.get("times", _MISSING)
+    if times is _MISSING:
+        raise t.error("missing required key 'times'")
+    if not isinstance(times, list) or not times or not all(_is_number(c) for c in times):
+        raise t.error(f"times must be a non-empty list of numbers (s), got {times!r}")
+    if any(b <= a for a, b in zip(times, times[1:])):
+        raise t.error(f"times must be strictly increasing, got {times!r}")
+    offsets = t.data.get("offsets", _MISSING)
+    if offsets is _MISSING:
+        raise t.error("missing required key 'offsets'")
+    if not isinstance(offsets, list):
+        raise t.error(f"offsets must be a list of [x, y, z] vectors (m), got {offsets!r}")
+    if len(offsets) != len(times):
+        raise t.error(f"offsets has {len(offsets)} entries but times has {len(times)}")
+    vecs = []
+    for j, o in enumerate(offsets, 1):
+        bad = t.error(f"offsets #{j} must be a list of 3 numbers (m), got {o!r}")
+        vecs.append(_as_vec3(o, lambda bad=bad: bad))
+    return {"times": tuple(float(c) for c in times), "offsets": tuple(vecs)}
+
+
+def _parse_obstacle_motion(raw: Any, where: str, label: str) -> Dict[str, Any]:
+    """An obstacle's ``motion`` table: ``translation`` (``"sinusoidal"`` or ``"keyframes"``, with that path's
+    keys), ``angular_velocity`` (rad/s) and ``pivot`` (m)."""
+    if not isinstance(raw, dict):
+        raise ConfigError(
+            f"{where}{label} motion must be a table (keys: {', '.join(OBSTACLE_MOTION_KEYS)}), got {raw!r}"
+        )
+    t = _Table(raw, "obstacle_motion", where, known=OBSTACLE_MOTION_KEYS, label=f"{label} motion:")
+    stray = [k for keys in MOTIONS.values() for k in keys if t.has(k)]
+    if stray and not t.has("translation"):
+        raise t.error(f"{stray[0]} needs 'translation' (one of {', '.join(repr(m) for m in MOTIONS)})")
+    if not (t.has("translation") or t.has("angular_velocity")):
+        raise t.error("give 'translation' (with its path's keys) and/or 'angular_velocity' (rad/s)")
+    motion: Dict[str, Any] = {"translation": t.string("translation", None, choices=tuple(MOTIONS))}
+    if motion["translation"] is not None:
+        motion.update(_parse_path(t, motion["translation"], "translation"))
+    motion["angular_velocity"] = t.vec3("angular_velocity", (0.0, 0.0, 0.0))
+    motion["pivot"] = t.vec3("pivot", (0.0, 0.0, 0.0))
+    return motion
 
 
 def _parse_kinematic_pins(
@@ -475,39 +542,8 @@ def _parse_kinematic_pins(
         else:
             kp.below = _parse_pin_below(t, "below")
         kp.motion = t.string("motion", choices=tuple(MOTIONS))
-        for other, keys in MOTIONS.items():
-            if other == kp.motion:
-                continue
-            for key in keys:
-                if t.has(key):
-                    raise t.error(
-                        f"{key} does not apply to motion {kp.motion!r} (its keys: {', '.join(MOTIONS[kp.motion])})"
-                    )
-        if kp.motion == "sinusoidal":
-            kp.amplitude = t.vec3("amplitude")
-            kp.frequency = t.number("frequency", positive=True)
-            kp.phase = t.number("phase", 0.0)
-        else:
-            times = t.data.get("times", _MISSING)
-            if times is _MISSING:
-                raise t.error("missing required key 'times'")
-            if not isinstance(times, list) or not times or not all(_is_number(c) for c in times):
-                raise t.error(f"times must be a non-empty list of numbers (s), got {times!r}")
-            if any(b <= a for a, b in zip(times, times[1:])):
-                raise t.error(f"times must be strictly increasing, got {times!r}")
-            offsets = t.data.get("offsets", _MISSING)
-            if offsets is _MISSING:
-                raise t.error("missing required key 'offsets'")
-            if not isinstance(offsets, list):
-                raise t.error(f"offsets must be a list of [x, y, z] vectors (m), got {offsets!r}")
-            if len(offsets) != len(times):
-                raise t.error(f"offsets has {len(offsets)} entries but times has {len(times)}")
-            kp.times = tuple(float(c) for c in times)
-            vecs = []
-            for j, o in enumerate(offsets, 1):
-                bad = t.error(f"offsets #{j} must be a list of 3 numbers (m), got {o!r}")
-                vecs.append(_as_vec3(o, lambda bad=bad: bad))
-            kp.offsets = tuple(vecs)
+        for key, value in _parse_path(t, kp.motion, "motion").items():
+            setattr(kp, key, value)
         out.append(kp)
     return tuple(out)
 

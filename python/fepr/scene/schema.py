@@ -100,7 +100,7 @@ OBSTACLE_KEYS: Dict[str, Tuple[str, ...]] = {
 #: Keys of the ``terrain`` table of a mesh obstacle (the keyword arguments of :meth:`fepr.MeshObstacle.terrain`).
 TERRAIN_KEYS: Tuple[str, ...] = ("size", "cells", "height", "wavelength", "center", "depth")
 #: Keys every obstacle accepts.
-OBSTACLE_COMMON_KEYS: Tuple[str, ...] = ("type", "restitution", "friction")
+OBSTACLE_COMMON_KEYS: Tuple[str, ...] = ("type", "restitution", "friction", "motion")
 #: Keys of a ``[[world.kinematic_pins]]`` table.
 KINEMATIC_PIN_KEYS: Tuple[str, ...] = (
     "vertices",
@@ -113,6 +113,18 @@ KINEMATIC_PIN_KEYS: Tuple[str, ...] = (
     "offsets",
 )
 MOTIONS = {"sinusoidal": ("amplitude", "frequency", "phase"), "keyframes": ("times", "offsets")}
+#: Keys of an obstacle's ``motion`` table: a translation path (``translation`` names its kind, ``MOTIONS`` its
+#: keys) and a constant spin about a pivot.
+OBSTACLE_MOTION_KEYS: Tuple[str, ...] = (
+    "translation",
+    "amplitude",
+    "frequency",
+    "phase",
+    "times",
+    "offsets",
+    "angular_velocity",
+    "pivot",
+)
 
 #: Name lists, defined once in the core (``fepr._core``) and read here.
 MATERIAL_MODELS: Tuple[str, ...] = tuple(_core.MATERIALS)
@@ -275,21 +287,24 @@ class PinBelow:
 
 @dataclass
 class ObstacleSettings:
-    """One ``[[world.obstacles]]`` entry: a fixed rigid obstacle the bodies' vertices collide with.
+    """One ``[[world.obstacles]]`` entry: a rigid obstacle (static or moving) the bodies' vertices collide with.
 
     ``type`` is ``"plane"``, ``"sphere"``, ``"box"``, ``"capsule"`` or ``"mesh"``; ``geometry`` holds the keyword
     arguments of the matching :mod:`fepr.world` class (``point``/``normal``; ``center``/``radius``;
     ``center``/``half_extents``/``rotation`` (3x3, rows the box's axes in world coordinates, or ``None``);
     ``a``/``b``/``radius``; all in m); a mesh has ``path`` (a surface file, resolved against the scene's folder)
     or ``terrain`` (the keyword arguments of :meth:`fepr.MeshObstacle.terrain`), and ``flip_normals``.
-    ``restitution`` is in [0, 1] (1: elastic), ``friction`` the Coulomb coefficient (>= 0). ``label`` names the
-    entry in messages (``[[world.obstacles]] #2``).
+    ``restitution`` is in [0, 1] (1: elastic), ``friction`` the Coulomb coefficient (>= 0). ``motion`` is None
+    (static) or the keyword arguments of a :class:`fepr.ObstacleMotion` as read from the entry's ``motion`` table
+    (``translation``: ``"sinusoidal"`` or ``"keyframes"`` or None, that path's keys, ``angular_velocity`` rad/s,
+    ``pivot`` m). ``label`` names the entry in messages (``[[world.obstacles]] #2``).
     """
 
     type: str
     geometry: Dict[str, Any]
     restitution: float = 1.0
     friction: float = 0.0
+    motion: Optional[Dict[str, Any]] = None
     #: Contact of the body with its own surface: ``(restitution, friction)``, or None (off).
     self_contact: Optional[Tuple[float, float]] = None
     label: str = ""

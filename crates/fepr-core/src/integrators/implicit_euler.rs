@@ -262,6 +262,7 @@ impl ImplicitEuler {
 impl crate::integrators::CoupledNewton for ImplicitEuler {
     fn begin(&mut self, model: &Model, state: &State, h: f64) {
         self.h = h;
+        self.contact.place(state.time, h);
         self.x_n.clone_from(&state.x);
         self.x_iter = self.start(model, state, h);
     }
@@ -383,6 +384,8 @@ impl Integrator for ImplicitEuler {
         hand_over: &mut HandOver,
     ) -> StepReport {
         let x_n = state.x.clone();
+        // Moving obstacles where they are over this step (the penalty holds the vertices at the step's end).
+        self.contact.place(state.time, h);
         let mut x = self.start(model, state, h);
         let mut report = StepReport {
             impulse: scale(model.gravity, h * model.free_mass()),

@@ -409,8 +409,12 @@ impl Integrator for Xpbd {
         let mut halvings = 0usize;
         let mut x_prev = std::mem::take(&mut self.x_prev);
         x_prev.resize(m, [0.0; 3]);
-        for _ in 0..substeps {
+        let t0 = state.time;
+        for k in 0..substeps {
             x_prev.copy_from_slice(&state.x);
+            // Moving obstacles advance substep by substep (placed once for the whole step, a vertex pushed out
+            // in the first substep would leave with the step's whole displacement of the obstacle as velocity).
+            self.contact.place(t0 + k as f64 * hs, hs);
             for i in 0..m {
                 if model.pinned[i] {
                     state.v[i] = [0.0; 3];
@@ -492,6 +496,8 @@ impl Integrator for Xpbd {
         }
         self.x_prev = x_prev;
         state.time += h;
+        // The impacts are answered against the obstacles' surface velocity over the whole step.
+        self.contact.place(t0, h);
         let dv = &self.contact_dv;
         let v_start = &self.v_start;
         let contact = self.contact.apply_impacts(

@@ -301,19 +301,19 @@ impl BodyConstraints {
                 }
                 let vel = sim.state.v[v];
                 // The face the vertex came from when it started outside (a thin obstacle's far face is nearer
-                // to a vertex that went more than half through it).
+                // to a vertex that went more than half through it), where a moving obstacle has carried it.
                 let start = sim.state.x[v];
-                let (phi0, n0) = sim.world.obstacles[o].signed_distance(start);
-                let x = coupled(sim).positions();
+                let xv = coupled(sim).positions()[v];
+                let ob = &sim.world.obstacles[o];
+                let (phi0, n0) = ob.signed_distance_at_start(start);
                 let (phi, n, point) = if phi0 >= 0.0 {
-                    (
-                        dot(n0, sub(x[v], sub(start, scale(n0, phi0)))),
-                        n0,
-                        sub(start, scale(n0, phi0)),
-                    )
+                    let (point, n0) = ob.carried_over_step(sub(start, scale(n0, phi0)), n0);
+                    (dot(n0, sub(xv, point)), n0, point)
                 } else {
-                    (phi, n, sub(x[v], scale(n, phi)))
+                    (phi, n, sub(xv, scale(n, phi)))
                 };
+                // Approach relative to the obstacle's surface.
+                let vel = sub(vel, ob.velocity_at(point));
                 self.rows.push(Row {
                     pair: BodyPair {
                         body: k,
@@ -556,14 +556,17 @@ impl BodyConstraints {
             }
         };
         // Each row's vertex relative to its point on the other side, in the unconstrained solutions and at the
-        // start of the step (an obstacle's point does not move).
+        // start of the step (an obstacle's point where the obstacle's motion had it then).
         let relative: Vec<(Vec3, Vec3)> = self
             .rows
             .iter()
             .map(|row| {
                 let p = &row.pair;
-                let (q, q0) = if row.obstacle.is_some() {
-                    (p.point, p.point)
+                let (q, q0) = if let Some(o) = row.obstacle {
+                    (
+                        p.point,
+                        sims[p.body].world.obstacles[o].point_at_start(p.point),
+                    )
                 } else {
                     (0..3).fold(([0.0; 3], [0.0; 3]), |(q, q0), t| {
                         let start = sims[p.other].state.x[p.triangle[t]];
@@ -836,15 +839,20 @@ impl BodyConstraints {
                 };
                 let wn = h * row.force * dot(p.normal, v);
                 // Friction's work over the step's displacement (see the rows between bodies below).
-                let mut w = wn
+                let w = wn
                     + dot(
                         sub(j, scale(p.normal, h * row.force)),
                         sim.state.v[p.vertex],
                     );
-                if impact && wn < 0.0 {
-                    let e = sim.world.obstacles[o].restitution;
-                    w -= e * e * wn;
-                }
+                // The share an impact's restitution gives back, of the normal work relative to the obstacle's
+                // surface (a moving obstacle's own work on the vertex stays booked in full).
+                let ob = &sim.world.obstacles[o];
+                let wn_relative = wn - h * row.force * dot(p.normal, ob.velocity_at(p.point));
+                let w = if impact && wn_relative < 0.0 {
+                    w - ob.restitution * ob.restitution * wn_relative
+                } else {
+                    w
+                };
                 let e = &mut out[p.body];
                 e.contacts += 1;
                 e.impulse = add(e.impulse, j);

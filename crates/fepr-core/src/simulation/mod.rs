@@ -391,9 +391,13 @@ impl Simulation {
 
     // --- the world around the body (see [`crate::world`]) ------------------------------------------------
 
-    /// Static obstacles the free vertices collide with.
-    pub fn set_obstacles(&mut self, obstacles: Vec<Obstacle>) {
+    /// The obstacles the free vertices collide with (static, or moving along their prescribed motion: placed
+    /// for the current time now and for each step as it is taken).
+    pub fn set_obstacles(&mut self, mut obstacles: Vec<Obstacle>) {
         self.start_unchecked = true;
+        for ob in obstacles.iter_mut() {
+            ob.place(self.state.time, 0.0);
+        }
         self.integrator.set_obstacles(&obstacles);
         self.world.obstacles = obstacles;
     }
@@ -595,6 +599,12 @@ impl Simulation {
             let (x, v) = (&mut self.state.x, &mut self.state.v);
             self.world.place_pins(x, v, t_next);
         }
+        // Moving obstacles where they are over this step (or part): the contacts after the base step answer for
+        // their end placement and their surface's velocity over it.
+        let t_start = self.state.time;
+        for ob in self.world.obstacles.iter_mut() {
+            ob.place(t_start, h);
+        }
         // The start positions, for the contacts' crossing tests (a vertex that passed through a thin obstacle or
         // through a part of its own surface).
         if !self.world.obstacles.is_empty() || self.self_contact.is_some() {
@@ -757,6 +767,10 @@ impl Simulation {
     /// state the step can be undone to.
     fn open_step(&mut self) -> Result<()> {
         if self.start_unchecked {
+            let t = self.state.time;
+            for ob in self.world.obstacles.iter_mut() {
+                ob.place(t, 0.0);
+            }
             self.check_start_outside_obstacles()?;
             self.start_unchecked = false;
         }
@@ -823,6 +837,10 @@ impl Simulation {
     /// redone in substeps): the state is the one before it.
     fn abandon_step(&mut self) {
         copy_state(&self.previous, &mut self.state);
+        let t = self.state.time;
+        for ob in self.world.obstacles.iter_mut() {
+            ob.place(t, 0.0);
+        }
         self.held_normal_forces.clear();
         self.held_normal_forces
             .extend_from_slice(&self.held_at_step_start);

@@ -99,7 +99,9 @@ impl ContactPotential {
         below: f64,
     ) -> Option<(f64, Vec3)> {
         let ob = &self.obstacles[k];
-        let cached = matches!(&ob.shape, Shape::Mesh(mesh) if mesh.is_closed());
+        // A moving mesh's distances change without the vertex moving: no bound carries over.
+        let cached =
+            ob.motion().is_none() && matches!(&ob.shape, Shape::Mesh(mesh) if mesh.is_closed());
         if cached {
             let (x_ref, phi_ref) = clear[k * m + i];
             if phi_ref - norm(sub(x, x_ref)) >= below {
@@ -112,6 +114,19 @@ impl ContactPotential {
             clear[k * m + i] = (x, near.map_or(below, |(phi, _)| phi));
         }
         near
+    }
+
+    /// Place the moving obstacles for a step (or an XPBD substep) from `t` over `h` seconds
+    /// ([`Obstacle::place`]); the potential is then the one of where they are at its end.
+    pub fn place(&mut self, t: f64, h: f64) {
+        for ob in self.obstacles.iter_mut() {
+            ob.place(t, h);
+        }
+    }
+
+    /// True when an obstacle moves (its placement must follow the steps: [`ContactPotential::place`]).
+    pub fn has_motion(&self) -> bool {
+        self.obstacles.iter().any(|ob| ob.motion().is_some())
     }
 
     /// True when there is no obstacle (the potential is 0 everywhere).
@@ -224,7 +239,7 @@ impl ContactPotential {
     /// - Coulomb friction: the tangential velocity loses at most `friction` times the normal velocity change
     ///   `dv . n` (it stops below that); its kinetic energy change is booked too.
     ///
-    /// Returns the contacts' work (J, <= 0), their impulse `sum m (dv + friction's change)` (kg m/s) and its
+    /// Returns the contacts' work (J, <= 0 against static obstacles), their impulse `sum m (dv + friction's change)` (kg m/s) and its
     /// moment about the centre of mass (kg m^2/s).
     pub fn apply_impacts(
         &self,
@@ -247,23 +262,26 @@ impl ContactPotential {
             let Some(dv_i) = dv(i, state.x[i]) else {
                 continue;
             };
-            let (ob, n) = self
+            let (ob, n, surface) = self
                 .obstacles
                 .iter()
                 .map(|ob| {
                     let (phi, n) = ob.signed_distance(state.x[i]);
-                    (phi, ob, n)
+                    (phi, ob, n, sub(state.x[i], scale(n, phi)))
                 })
                 .min_by(|a, b| a.0.total_cmp(&b.0))
-                .map(|(_, ob, n)| (ob, n))
+                .map(|(_, ob, n, surface)| (ob, n, surface))
                 .expect("an obstacle");
             let m = model.masses[i];
-            let u = dot(add(v_start(i), scale(model.gravity, h)), n);
+            // Velocities relative to the obstacle's surface: a moving obstacle's contact is a static one's in its
+            // frame, plus the obstacle's work on the vertex (its impulse times the surface's velocity).
+            let v_surface = ob.velocity_at(surface);
+            let u = dot(sub(add(v_start(i), scale(model.gravity, h)), v_surface), n);
             let impact = -u > resting_speed;
             if impact {
                 report.work -= 0.5 * m * (1.0 - ob.restitution * ob.restitution) * u * u;
             }
-            let v = state.v[i];
+            let v = sub(state.v[i], v_surface);
             let vn = dot(v, n);
             let vt = sub(v, scale(n, vn));
             let vt_len = norm(vt);
@@ -276,13 +294,13 @@ impl ContactPotential {
             let v_out = add(scale(n, vn), vt_out);
             let d = add(dv_i, sub(v_out, v));
             report.contacts += 1;
-            report.work += 0.5 * m * (dot(vt_out, vt_out) - dot(vt, vt));
+            report.work += 0.5 * m * (dot(vt_out, vt_out) - dot(vt, vt)) + m * dot(d, v_surface);
             report.impulse = add(report.impulse, scale(d, m));
             report.angular_impulse = add(
                 report.angular_impulse,
                 scale(cross(sub(state.x[i], c), d), m),
             );
-            state.v[i] = v_out;
+            state.v[i] = add(v_surface, v_out);
         }
         report
     }
@@ -304,6 +322,43 @@ impl ContactPotential {
             }
         }
         x
+    }
+
+    /// The target of a projective contact constraint for a vertex at `x` (m) that the unconstrained equations
+    /// would move by `step` (m; one Jacobi step): `x + step` moved out of the obstacles
+    /// ([`ContactPotential::nearest_outside`]), with Coulomb friction on the move along the surface. The normal
+    /// correction `c` is what the obstacle's force undoes of the step, so the move along the surface `s_t` is
+    /// held (static friction) while `|s_t| <= mu |c|` and shortened by `mu |c|` otherwise (both measured with the
+    /// same diagonal of the system, which cancels), `mu` the friction of the obstacle the vertex lies deepest in.
+    /// A vertex whose step keeps it out of every obstacle moves freely.
+    pub fn friction_target(&self, model: &Model, x: Vec3, step: Vec3) -> Vec3 {
+        let margin = Self::margin(model);
+        let free = add(x, step);
+        let mut p = free;
+        let (mut deepest, mut mu) = (0.0f64, 0.0);
+        for ob in &self.obstacles {
+            if let Some((phi, n)) = ob.signed_distance_below(p, margin) {
+                let depth = margin - phi;
+                if depth > deepest {
+                    (deepest, mu) = (depth, ob.friction);
+                }
+                p = sub(p, scale(n, phi - margin));
+            }
+        }
+        let correction = sub(p, free);
+        let c = norm(correction);
+        if c == 0.0 || mu == 0.0 {
+            return p;
+        }
+        let n = scale(correction, 1.0 / c);
+        let along = sub(step, scale(n, dot(step, n)));
+        let slide = norm(along);
+        let kept = if slide <= mu * c {
+            0.0
+        } else {
+            1.0 - mu * c / slide
+        };
+        sub(p, scale(along, 1.0 - kept))
     }
 
     /// Pushes every free vertex of `x` that lies inside an obstacle onto its surface (m); returns how many.
@@ -462,5 +517,108 @@ mod tests {
         assert!(x.iter().all(|p| plane.signed_distance(*p).0 >= -1e-12));
         let unchanged = x.iter().zip(&before).filter(|(a, b)| a == b).count();
         assert!(unchanged > 0 && unchanged < x.len());
+    }
+
+    #[test]
+    fn friction_target_holds_a_short_slide_shortens_a_long_one_and_frees_a_vertex_outside() {
+        let (model, _) = model_and_potential();
+        let floor = |mu: f64| {
+            ContactPotential::new(&[Obstacle::new(
+                Shape::Plane {
+                    point: [0.0; 3],
+                    normal: [0.0, 0.0, 1.0],
+                },
+                0.0,
+                mu,
+            )
+            .unwrap()])
+        };
+        let d = ContactPotential::margin(&model);
+        let x = [0.2, 0.3, d];
+        // Pressed 1 mm into the floor while pulled 0.5 mm along it: static friction (mu 0.8) holds it.
+        let t = floor(0.8).friction_target(&model, x, [5e-4, 0.0, -1e-3]);
+        assert!(
+            (t[0] - x[0]).abs() < 1e-15 && (t[2] - d).abs() < 1e-15,
+            "{t:?}"
+        );
+        // Pulled 3 mm: it slides 3 - 0.8 mm.
+        let t = floor(0.8).friction_target(&model, x, [3e-3, 0.0, -1e-3]);
+        assert!(
+            (t[0] - x[0] - 2.2e-3).abs() < 1e-12 && (t[2] - d).abs() < 1e-15,
+            "{t:?}"
+        );
+        // Without friction the slide is whole; lifted off the floor the step is free.
+        let t = floor(0.0).friction_target(&model, x, [3e-3, 0.0, -1e-3]);
+        assert!((t[0] - x[0] - 3e-3).abs() < 1e-15);
+        let t = floor(0.8).friction_target(&model, x, [3e-3, 0.0, 1e-3]);
+        assert_eq!(t, add(x, [3e-3, 0.0, 1e-3]));
+    }
+
+    #[test]
+    fn a_moving_obstacle_answers_where_it_is_and_books_its_work() {
+        use crate::world::{ObstacleMotion, PinMotion};
+        // A floor rising at 1 m/s over the step from t = 0.5 s.
+        let motion = ObstacleMotion {
+            translation: PinMotion::Keyframes {
+                times: vec![0.0, 1.0],
+                offsets: vec![[0.0; 3], [0.0, 0.0, 1.0]],
+            },
+            angular_velocity: [0.0; 3],
+            pivot: [0.0; 3],
+        };
+        let mut ob = Obstacle::new(
+            Shape::Plane {
+                point: [0.0; 3],
+                normal: [0.0, 0.0, 1.0],
+            },
+            0.0,
+            0.0,
+        )
+        .unwrap()
+        .with_motion(motion)
+        .unwrap();
+        ob.place(0.5, 0.1);
+        let (phi, n) = ob.signed_distance([0.3, 0.0, 0.55]);
+        assert!((phi + 0.05).abs() < 1e-12 && n == [0.0, 0.0, 1.0], "{phi}");
+        let (phi0, _) = ob.signed_distance_at_start([0.3, 0.0, 0.55]);
+        assert!((phi0 - 0.05).abs() < 1e-12);
+        assert!(crate::math::norm(sub(ob.velocity_at([0.3, 0.0, 0.6]), [0.0, 0.0, 1.0])) < 1e-12);
+        // A vertex at rest at z = 0.55 is crossed by the floor within the step: the crossing is found.
+        let (t, point, normal) = ob
+            .first_crossing([0.3, 0.0, 0.55], [0.3, 0.0, 0.55])
+            .unwrap();
+        assert!(
+            (t - 0.5).abs() < 1e-9 && (point[2] - 0.6).abs() < 1e-9 && normal[2] == 1.0,
+            "{t} {point:?}"
+        );
+        // A vertex at rest, hit by the floor and carried at its velocity (the solve's contact velocity change
+        // 1 m/s): an inelastic impact at 1 m/s relative (loss m/2) and the floor's work m (its impulse m times its
+        // velocity), so the books hold the kinetic energy the vertex gained, m/2.
+        let (model, _) = model_and_potential();
+        let pot = {
+            let mut p = ContactPotential::new(&[ob.clone()]);
+            p.place(0.5, 0.1);
+            p
+        };
+        let mut state = State::at_rest(&model);
+        let i = (0..model.num_vertices())
+            .find(|&i| !model.pinned[i])
+            .unwrap();
+        state.x[i] = [0.3, 0.0, 0.6];
+        state.v[i] = [0.0, 0.0, 1.0];
+        let report = pot.apply_impacts(
+            &model,
+            &mut state,
+            0.1,
+            |_| [0.0; 3],
+            |k, _| (k == i).then_some([0.0, 0.0, 1.0]),
+        );
+        let m = model.masses[i];
+        assert!(
+            (report.work - 0.5 * m).abs() < 1e-12 * m.max(1.0),
+            "{} {m}",
+            report.work
+        );
+        assert!((report.impulse[2] - m).abs() < 1e-12);
     }
 }

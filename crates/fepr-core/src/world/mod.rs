@@ -19,6 +19,7 @@
 mod body_contact;
 mod contact_potential;
 mod mesh_collider;
+mod obstacle_motion;
 mod obstacles;
 mod self_contact;
 
@@ -26,6 +27,8 @@ pub use body_contact::*;
 pub use contact_potential::*;
 
 pub use mesh_collider::MeshCollider;
+pub(crate) use obstacle_motion::Moving;
+pub use obstacle_motion::{ObstacleMotion, Placement};
 pub use obstacles::*;
 pub use self_contact::SelfContact;
 

@@ -1,9 +1,11 @@
-//! Static obstacles (plane, sphere, box, capsule, triangle mesh) and vertex contact with them.
+//! Obstacles (plane, sphere, box, capsule, triangle mesh), static or moving along a prescribed rigid motion
+//! ([`ObstacleMotion`]), and vertex contact with them.
 //!
 //! Contact is resolved per vertex after the base step (fepr-spec section 2, "contact"): a vertex found inside
-//! an obstacle is put back outside, its normal velocity is reflected with the restitution coefficient and its
-//! tangential velocity is reduced by Coulomb friction (`|dv_t| <= mu |dv_n|`). What the contact did to the
-//! velocities is what it reports: the kinetic energy it removed (the step's energy budget) and the linear and
+//! an obstacle is put back outside, its normal velocity (relative to the obstacle's surface) is reflected with the
+//! restitution coefficient and its tangential velocity is reduced by Coulomb friction (`|dv_t| <= mu |dv_n|`).
+//! What the contact did to the velocities is what it reports: the kinetic energy it removed, or a moving obstacle
+//! added (the step's energy budget), and the linear and
 //! angular impulse (the momentum targets). The position correction is not physical work (it repairs the
 //! base step's overshoot); FEPR restores the energy it changes.
 
@@ -11,7 +13,7 @@ use crate::error::{invalid, Result};
 use crate::math::{add, cross, dot, norm, scale, sub, Mat3, Vec3};
 use crate::model::{Model, State};
 
-use super::MeshCollider;
+use super::{MeshCollider, Moving, ObstacleMotion};
 
 /// Geometry of an obstacle (metres). The solid is where the signed distance is negative.
 #[derive(Clone, Debug, PartialEq)]
@@ -32,15 +34,19 @@ pub enum Shape {
     Mesh(MeshCollider),
 }
 
-/// A static obstacle with its contact coefficients.
+/// An obstacle with its contact coefficients: static, or moving along a prescribed rigid motion
+/// ([`Obstacle::with_motion`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Obstacle {
+    /// The shape where the obstacle is at `t = 0`.
     pub shape: Shape,
-    /// Coefficient of restitution in [0, 1]: the normal velocity after contact is `-restitution` times the
-    /// normal velocity before.
+    /// Coefficient of restitution in [0, 1]: the normal velocity after contact (relative to the obstacle's
+    /// surface) is `-restitution` times the one before.
     pub restitution: f64,
     /// Coulomb friction coefficient (>= 0).
     pub friction: f64,
+    /// The motion and where it has the obstacle over the current step (None: static).
+    moving: Option<Box<Moving>>,
 }
 
 fn finite3(v: Vec3, what: &'static str) -> Result<()> {
@@ -148,7 +154,65 @@ impl Obstacle {
             shape,
             restitution,
             friction,
+            moving: None,
         })
+    }
+
+    /// The obstacle moving along `motion` (validated): at time `t` its shape as given is placed by
+    /// [`ObstacleMotion::pose`]. It stands at its `t = 0` placement until [`Obstacle::place`] moves it.
+    pub fn with_motion(mut self, motion: ObstacleMotion) -> Result<Self> {
+        motion.validate()?;
+        self.moving = Some(Box::new(Moving::new(motion)));
+        Ok(self)
+    }
+
+    /// The prescribed motion, or None for a static obstacle.
+    pub fn motion(&self) -> Option<&ObstacleMotion> {
+        self.moving.as_deref().map(|m| &m.motion)
+    }
+
+    /// Place a moving obstacle for a step from `t` over `h` seconds: its queries answer for where it is at the
+    /// step's end, [`Obstacle::first_crossing`] follows it from the step's start, and
+    /// [`Obstacle::velocity_at`] gives its surface's velocity over the step (`h = 0`: standing at `t`, velocity
+    /// 0). Nothing for a static obstacle.
+    pub fn place(&mut self, t: f64, h: f64) {
+        if let Some(m) = self.moving.as_deref_mut() {
+            m.place(t, h);
+        }
+    }
+
+    /// The velocity over the current step of the obstacle's surface point at `x` (m; where it is at the step's
+    /// end), m/s: 0 for a static obstacle.
+    pub fn velocity_at(&self, x: Vec3) -> Vec3 {
+        self.moving
+            .as_deref()
+            .map_or([0.0; 3], |m| m.velocity_at(x))
+    }
+
+    /// Where the obstacle's point at `x` at the end of the current step was at its start (m): `x` itself for a
+    /// static obstacle.
+    pub fn point_at_start(&self, x: Vec3) -> Vec3 {
+        self.moving.as_deref().map_or(x, |m| m.at_start(x))
+    }
+
+    /// [`Obstacle::signed_distance`] against the obstacle where it was at the start of the current step.
+    pub fn signed_distance_at_start(&self, x: Vec3) -> (f64, Vec3) {
+        match self.moving.as_deref() {
+            None => self.shape_distance(x),
+            Some(m) => {
+                let (d, n) = self.shape_distance(m.start.to_given(x));
+                (d, m.start.turn(n))
+            }
+        }
+    }
+
+    /// Where the obstacle's point at `x` at the start of the current step is at its end (m), and a direction
+    /// `n` there turned with it: `(x, n)` for a static obstacle.
+    pub fn carried_over_step(&self, x: Vec3, n: Vec3) -> (Vec3, Vec3) {
+        match self.moving.as_deref() {
+            None => (x, n),
+            Some(m) => (m.at_end(x), m.end.turn(m.start.unturn(n))),
+        }
     }
 
     /// Where the segment `p0 -> p1` (m) from outside the obstacle first touches it: `(t, point on the surface,
@@ -166,16 +230,32 @@ impl Obstacle {
     /// sliding over a bump or around a sphere ends its step on the surface, and only the straight line between
     /// its positions cuts the curve; one in the corner where a box stands on the floor slides along both.
     /// Passing through a thin obstacle ends on its far side, where the normal points the other way.
+    ///
+    /// A moving obstacle is followed over the step: the segment is taken in its own frame, from where `p0` was
+    /// against its start placement to where `p1` is against its end placement, and the point and normal
+    /// returned are where they are at the step's end.
     pub fn first_crossing(&self, p0: Vec3, p1: Vec3) -> Option<(f64, Vec3, Vec3)> {
+        match self.moving.as_deref() {
+            None => self.shape_crossing(p0, p1),
+            Some(m) => {
+                let (t, point, n) =
+                    self.shape_crossing(m.start.to_given(p0), m.end.to_given(p1))?;
+                Some((t, m.end.apply(point), m.end.turn(n)))
+            }
+        }
+    }
+
+    /// [`Obstacle::first_crossing`] against the shape where it is given.
+    fn shape_crossing(&self, p0: Vec3, p1: Vec3) -> Option<(f64, Vec3, Vec3)> {
         let len = norm(sub(p1, p0));
         // The signed distance changes by at most the distance moved: a segment shorter than the clearance at
         // its start cannot reach the obstacle (most vertices stop here, after one query bounded at `len`).
         // A start on the surface (where the last push-out left the vertex) counts as outside.
-        let (d0, n0) = self.signed_distance_below(p0, len)?;
+        let (d0, n0) = self.shape_distance_below(p0, len)?;
         if d0 < 0.0 {
             return None;
         }
-        let (d1, n1) = self.signed_distance(p1);
+        let (d1, n1) = self.shape_distance(p1);
         if d1 >= 0.0 && (dot(n0, n1) > -0.5 || len <= d1) {
             return None;
         }
@@ -183,7 +263,7 @@ impl Obstacle {
             // A mesh is not convex: its own ray cast finds the crossing.
             return mesh.ray_entry(p0, p1, d1, n1);
         }
-        let phi = |t: f64| self.signed_distance(add(p0, scale(sub(p1, p0), t))).0;
+        let phi = |t: f64| self.shape_distance(add(p0, scale(sub(p1, p0), t))).0;
         if d1 <= 0.0 {
             return Some(self.entry(p0, p1, 1.0));
         }
@@ -220,13 +300,13 @@ impl Obstacle {
         let (mut lo, mut hi) = (0.0, t_inside);
         while hi - lo > 1e-12 {
             let mid = 0.5 * (lo + hi);
-            if self.signed_distance(at(mid)).0 >= 0.0 {
+            if self.shape_distance(at(mid)).0 >= 0.0 {
                 lo = mid;
             } else {
                 hi = mid;
             }
         }
-        let (dist, n) = self.signed_distance(at(lo));
+        let (dist, n) = self.shape_distance(at(lo));
         (lo, sub(at(lo), scale(n, dist)), n)
     }
 
@@ -244,16 +324,39 @@ impl Obstacle {
     /// [`Obstacle::signed_distance`] where it is below `below` (m), else `None`; for a closed mesh without
     /// searching farther than needed ([`MeshCollider::signed_distance_below`]).
     pub fn signed_distance_below(&self, x: Vec3, below: f64) -> Option<(f64, Vec3)> {
+        match self.moving.as_deref() {
+            None => self.shape_distance_below(x, below),
+            Some(m) => {
+                let (d, n) = self.shape_distance_below(m.end.to_given(x), below)?;
+                Some((d, m.end.turn(n)))
+            }
+        }
+    }
+
+    /// [`Obstacle::signed_distance_below`] against the shape where it is given.
+    fn shape_distance_below(&self, x: Vec3, below: f64) -> Option<(f64, Vec3)> {
         if let Shape::Mesh(mesh) = &self.shape {
             return mesh.signed_distance_below(x, below);
         }
-        let (phi, n) = self.signed_distance(x);
+        let (phi, n) = self.shape_distance(x);
         (phi < below).then_some((phi, n))
     }
 
     /// Signed distance from `x` to the obstacle's surface (m, negative inside) and the unit outward normal
-    /// of the nearest surface point. Exact for every shape, so `x - d n` lies on the surface.
+    /// of the nearest surface point. Exact for every shape, so `x - d n` lies on the surface. A moving
+    /// obstacle answers for where it is at the end of the current step ([`Obstacle::place`]).
     pub fn signed_distance(&self, x: Vec3) -> (f64, Vec3) {
+        match self.moving.as_deref() {
+            None => self.shape_distance(x),
+            Some(m) => {
+                let (d, n) = self.shape_distance(m.end.to_given(x));
+                (d, m.end.turn(n))
+            }
+        }
+    }
+
+    /// [`Obstacle::signed_distance`] against the shape where it is given.
+    fn shape_distance(&self, x: Vec3) -> (f64, Vec3) {
         match &self.shape {
             Shape::Plane { point, normal } => (dot(sub(x, *point), *normal), *normal),
             Shape::Sphere { center, radius } => {
@@ -324,7 +427,8 @@ fn unit_or_up(r: Vec3, d: f64) -> Vec3 {
 pub struct ContactReport {
     /// Vertex-obstacle contacts resolved.
     pub contacts: usize,
-    /// Kinetic energy change of the velocity corrections, J (<= 0 for restitution < 1 or friction).
+    /// Kinetic energy change of the velocity corrections, J (<= 0 against static obstacles; a moving obstacle's
+    /// work on the body is included).
     pub work: f64,
     /// Linear impulse of the contacts, kg m/s.
     pub impulse: Vec3,
@@ -336,10 +440,13 @@ pub struct ContactReport {
 
 /// Resolve contacts of the free vertices of `state` (the base step's result for step size `h`) with the
 /// obstacles. Each vertex found inside an obstacle is moved out along the normal onto the surface, its
-/// normal velocity is reflected
-/// with the restitution, and Coulomb friction reduces its tangential velocity by at most `friction` times the
-/// normal velocity change (static friction stops it); the tangential position follows the corrected
-/// velocity over the step. The indices of the vertices touched are appended to `touched`.
+/// normal velocity relative to the surface (a moving obstacle's surface velocity over the step,
+/// [`Obstacle::velocity_at`]) is reflected with the restitution, and Coulomb friction reduces its relative
+/// tangential velocity by at most `friction` times the normal velocity change (static friction stops it); the
+/// tangential position follows the corrected velocity over the step. The work reported is the kinetic energy
+/// the velocity changes made: against a static obstacle never positive, against a moving one it includes the
+/// obstacle's work on the body (the impulse times the surface's velocity). The indices of the vertices touched
+/// are appended to `touched`.
 ///
 /// `x_start` (m, (m, 3); empty: not checked) are the positions at the start of the step: a vertex that ends
 /// outside every obstacle but whose straight path from there passed through one (a thin plate crossed within one
@@ -375,9 +482,12 @@ pub fn resolve_contacts(
             // but passed through, or one that ends inside nearer the far side than the side it came in by (its
             // nearest surface's normal points along its motion and away from the normal where it started).
             // Elsewhere (resting, sliding over a bump, ordinary impacts) the nearest surface point is the answer.
+            // (The motion relative to the obstacle: from where `x0` would be carried by a moving one.)
             let far_side = inside.is_some_and(|(_, n)| {
                 x_start.get(i).is_some_and(|&x0| {
-                    dot(n, sub(state.x[i], x0)) > 0.0 && dot(n, ob.signed_distance(x0).1) < 0.0
+                    let (carried, _) = ob.carried_over_step(x0, n);
+                    dot(n, sub(state.x[i], carried)) > 0.0
+                        && dot(n, ob.signed_distance_at_start(x0).1) < 0.0
                 })
             });
             let crossing = if inside.is_none() || far_side {
@@ -397,7 +507,9 @@ pub fn resolve_contacts(
             hit = true;
             report.contacts += 1;
             report.max_depth = report.max_depth.max(depth);
-            let v = state.v[i];
+            // Velocities relative to the obstacle's surface (a moving obstacle's), which the contact answers.
+            let v_surface = ob.velocity_at(surface);
+            let v = sub(state.v[i], v_surface);
             let vn = dot(v, n);
             let vt = sub(v, scale(n, vn));
             let dvn = if vn < 0.0 {
@@ -416,7 +528,7 @@ pub fn resolve_contacts(
             } else {
                 vt
             };
-            state.v[i] = add(scale(n, vn + dvn), vt_new);
+            state.v[i] = add(v_surface, add(scale(n, vn + dvn), vt_new));
             // Out of the solid, onto the surface. (Mirroring the penetration, a free particle's exact bounce,
             // moves a vertex by twice the depth; at the large steps of implicit integrators that is a large
             // fraction of an element and puts spikes of elastic energy into the body.)
