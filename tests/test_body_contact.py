@@ -490,3 +490,49 @@ def test_an_xpbd_body_apart_from_the_others_keeps_its_own_trajectory(projection)
     else:
         assert np.array_equal(apart.positions, alone.positions)
         assert np.array_equal(apart.velocities, alone.velocities)
+
+
+def _edge_cubes(integrator, dt):
+    """Two 0.2 m cubes meeting edge to edge in space at 2 m/s: A's lower edge along x, B's upper edge along y
+    (each turned 45 degrees about that axis). No vertex of either enters the other; only edges cross."""
+    c, s = np.cos(np.pi / 4), np.sin(np.pi / 4)
+    turns = {"x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]), "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])}
+    h = 0.1 * np.sqrt(2)
+    sims = []
+    for axis, z, v in (("x", h + 0.02, -1.0), ("y", -h - 0.02, 1.0)):
+        m = fepr.meshes.builtin("box", size=0.2, resolution=2, center=(0, 0, 0))
+        x = m.vertices @ turns[axis].T + [0, 0, z]
+        sim = fepr.Simulation(
+            fepr.TetMesh(x, m.tets), material=fepr.NeoHookean(1e5, 0.3), density=500, integrator=integrator(), dt=dt
+        )
+        vel = np.zeros_like(x)
+        vel[:, 2] = v
+        sim.velocities = vel
+        sims.append(sim)
+    return sims
+
+
+def _edge_depth(p, q):
+    """The deepest point of ``p``'s surface edges (19 points along each) inside ``q``'s surface, m."""
+    faces = _surface(p)
+    e = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
+    s = np.linspace(0.05, 0.95, 19)[:, None, None]
+    x = p.positions
+    return _penetration((x[e[:, 0]][None] * (1 - s) + x[e[:, 1]][None] * s).reshape(-1, 3), q)
+
+
+@pytest.mark.parametrize("integrator, dt", [(fepr.SymplecticEuler, 1e-4), (fepr.Xpbd, 1 / 60)])
+def test_cubes_meeting_edge_to_edge_do_not_cut_into_each_other(integrator, dt):
+    # Without the edge pass the edges cross 35 mm deep (a third of an edge) and no vertex is ever inside.
+    a, b = _edge_cubes(integrator, dt)
+    system = MultiBody([a, b], restitution=1.0, friction=0.0)
+    deepest = 0.0
+    for _ in range(int(round(0.2 / dt))):
+        system.step(1)
+        deepest = max(deepest, _edge_depth(a, b), _edge_depth(b, a))
+    assert deepest <= 0.01 * 0.1, deepest
+    # They bounced back (restitution 1): each leaves at more than half its approach speed, momentum kept.
+    va, vb = a.velocities[:, 2].mean(), b.velocities[:, 2].mean()
+    assert va > 0.5 and vb < -0.5, (va, vb)
+    p = a.history["pz"][-1] + b.history["pz"][-1]
+    assert abs(p) <= 1e-9 * a.history["total"].max(), p

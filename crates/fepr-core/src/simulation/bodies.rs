@@ -188,9 +188,13 @@ fn step_in_parts(
                 // Friction on the sliding within the part only where the pass is the contact's answer: after a
                 // joint solve, whose rows carry their own friction, it is a repair, and friction on the repair's
                 // displacements costs the pile convergence (84 against 71 unconverged projections of 960).
-                let start = (!(together || newton_together)).then_some(part == 0);
+                // Edges too where the pass is the contact's answer. After a joint solve, whose rows are vertex-face
+                // only, the edge pass pushed edges that the next solve took back in, and its parts tripled the
+                // pile's landing steps (0.3-1 s each).
+                let pass_answers = !(together || newton_together);
+                let start = pass_answers.then_some(part == 0);
                 let mut bodies = in_contact(sims, coefficients, start);
-                resolve_body_contacts(&mut bodies)
+                resolve_body_contacts(&mut bodies, pass_answers)
             };
             for (total, e) in exchanges.iter_mut().zip(part) {
                 total.accumulate(e);

@@ -21,9 +21,14 @@
 //! What each body gets is booked in its [`BodyExchange`]: the kinetic energy its velocities changed by, the
 //! impulse and its moment about the world origin (taken at the contact point for both sides, so the bodies'
 //! moments cancel). The position corrections are not physical work: each body's projection restores the energy
-//! they change, as for obstacles. Vertex-triangle proximity only: an edge of one body can still cross an edge of
-//! the other without a vertex entering (fine meshes against each other make this rare). A body against its own
-//! surface: [`super::self_contact`].
+//! they change, as for obstacles.
+//!
+//! Edge-edge: a surface edge of one body can cross a ridge of the other with neither end inside (two cubes
+//! meeting edge to edge). Where this pass is the contact's answer (symplectic Euler, XPBD, bodies of different
+//! integrators), each edge whose ends lie close enough to the other surface is searched for its deepest point
+//! inside it ([`deepest_on_edge`]), which is answered as above as a point of the edge (its ends sharing by their
+//! weights) against the nearest triangle. After a joint solve (Projective Dynamics, backward Euler), whose rows
+//! are vertex-face only, edges are not answered. A body against its own surface: [`super::self_contact`].
 
 use crate::error::Result;
 use crate::math::{add, cross, dot, norm, scale, sub, Vec3};
@@ -37,6 +42,8 @@ pub struct BodySurface {
     collider: MeshCollider,
     /// The vertices on the surface, increasing.
     vertices: Vec<u32>,
+    /// The surface's edges (each once, ends increasing), in increasing order.
+    edges: Vec<[u32; 2]>,
 }
 
 impl BodySurface {
@@ -47,7 +54,17 @@ impl BodySurface {
         let mut vertices: Vec<u32> = triangles.iter().flatten().copied().collect();
         vertices.sort_unstable();
         vertices.dedup();
-        Ok(Self { collider, vertices })
+        let mut edges: Vec<[u32; 2]> = triangles
+            .iter()
+            .flat_map(|t| (0..3).map(move |k| [t[k].min(t[(k + 1) % 3]), t[k].max(t[(k + 1) % 3])]))
+            .collect();
+        edges.sort_unstable();
+        edges.dedup();
+        Ok(Self {
+            collider,
+            vertices,
+            edges,
+        })
     }
 
     /// The surface as a collider (at the positions of the last [`BodySurface::follow`]).
@@ -176,9 +193,200 @@ pub(crate) fn inverse_mass(model: &Model, i: usize) -> f64 {
     }
 }
 
-/// Find and answer the contacts between every pair of `bodies` (see the module comment); one exchange per body,
+/// One side of a contact between bodies: a point `sum_k weights_k x_k` of a body's surface.
+#[derive(Clone, Copy)]
+struct Side<'s> {
+    vertices: &'s [usize],
+    weights: &'s [f64],
+}
+
+impl Side<'_> {
+    fn at(&self, x: &[Vec3]) -> Vec3 {
+        (0..self.vertices.len()).fold([0.0; 3], |s, k| {
+            add(s, scale(x[self.vertices[k]], self.weights[k]))
+        })
+    }
+}
+
+/// What one answered contact gave each side: the impulse as it reaches A's and B's free vertices (kg m/s), the
+/// contact point (m), the depth (m) and the approach speed (m/s, 0 when separating).
+struct Answered {
+    got_a: Vec3,
+    got_b: Vec3,
+    point: Vec3,
+    depth: f64,
+    approach: f64,
+}
+
+/// The velocities of `ba` (`first`) or `bb`, copied.
+fn bodies_v(ba: &BodyInContact, bb: &BodyInContact, first: bool) -> Vec<Vec3> {
+    if first {
+        ba.state.v.clone()
+    } else {
+        bb.state.v.clone()
+    }
+}
+
+/// Answer a contact between point `on_a` of body A's surface, `depth` (m) inside body B, and point `on_b` of B's
+/// surface, normal `n` out of B (see the module comment: positions along `n` by inverse masses, Coulomb friction
+/// on the sliding within the step, the restitution and friction impulse); `None` when neither side can move.
+#[allow(clippy::too_many_arguments)]
+fn answer_contact(
+    ba: &mut BodyInContact,
+    bb: &mut BodyInContact,
+    on_a: Side,
+    on_b: Side,
+    n: Vec3,
+    depth: f64,
+    restitution: f64,
+    friction: f64,
+) -> Option<Answered> {
+    let inv_a: Vec<f64> = on_a
+        .vertices
+        .iter()
+        .map(|&i| inverse_mass(ba.model, i))
+        .collect();
+    let inv_b: Vec<f64> = on_b
+        .vertices
+        .iter()
+        .map(|&j| inverse_mass(bb.model, j))
+        .collect();
+    let k_a: f64 = (0..inv_a.len())
+        .map(|k| on_a.weights[k] * on_a.weights[k] * inv_a[k])
+        .sum();
+    let k_eff = k_a
+        + (0..inv_b.len())
+            .map(|c| on_b.weights[c] * on_b.weights[c] * inv_b[c])
+            .sum::<f64>();
+    if k_eff <= 0.0 {
+        return None;
+    }
+    // Moves each side's vertices by `d` (A) and `-d` (B), shared by weight and inverse mass.
+    let shift = |ba: &mut BodyInContact,
+                 bb: &mut BodyInContact,
+                 d: Vec3,
+                 field: fn(&mut State) -> &mut Vec<Vec3>| {
+        for (k, &i) in on_a.vertices.iter().enumerate() {
+            let x = &mut field(ba.state)[i];
+            *x = add(*x, scale(d, on_a.weights[k] * inv_a[k]));
+        }
+        for (c, &j) in on_b.vertices.iter().enumerate() {
+            let x = &mut field(bb.state)[j];
+            *x = sub(*x, scale(d, on_b.weights[c] * inv_b[c]));
+        }
+    };
+    shift(ba, bb, scale(n, depth / k_eff), |s| &mut s.x);
+    if friction > 0.0 && !ba.start.is_empty() && !bb.start.is_empty() {
+        // Coulomb friction on the sliding within the step (the displacement of A's point relative to B's,
+        // tangential part), within the cone of the push-out's depth: a body resting on another under its weight
+        // sinks a little each step and is pushed back; the velocity impulse below stops its sliding velocity but
+        // not the sliding already done, which adds up to millimetres of creep over seconds.
+        let moved = |st: &State, start: &[Vec3], side: Side| sub(side.at(&st.x), side.at(start));
+        let rel = sub(
+            moved(ba.state, ba.start, on_a),
+            moved(bb.state, bb.start, on_b),
+        );
+        let slide = sub(rel, scale(n, dot(rel, n)));
+        let len = norm(slide);
+        if len > 0.0 {
+            let undo = scale(slide, (friction * depth / len).min(1.0) / k_eff);
+            shift(ba, bb, scale(undo, -1.0), |s| &mut s.x);
+        }
+    }
+    let rel = sub(on_a.at(&ba.state.v), on_b.at(&bb.state.v));
+    let u = dot(rel, n);
+    let impulse = contact_impulse(rel, n, k_eff, restitution, friction);
+    shift(ba, bb, impulse, |s| &mut s.v);
+    // Each side's impulse as it reaches the free vertices; the moment at the contact point.
+    let share = |side: Side, inv: &[f64]| -> f64 {
+        (0..inv.len())
+            .filter(|&k| inv[k] > 0.0)
+            .map(|k| side.weights[k])
+            .sum()
+    };
+    Some(Answered {
+        got_a: scale(impulse, share(on_a, &inv_a)),
+        got_b: scale(impulse, -share(on_b, &inv_b)),
+        point: on_a.at(&ba.state.x),
+        depth,
+        approach: -u,
+    })
+}
+
+/// Book an answered contact in the exchanges of bodies `a` and `b` (the vertices each side involved).
+fn book(
+    out: &mut [BodyExchange],
+    a: usize,
+    b: usize,
+    got: &Answered,
+    on_a: &[usize],
+    on_b: &[usize],
+) {
+    let (ea, eb) = pair_mut(out, a, b);
+    for (e, g, verts) in [(ea, got.got_a, on_a), (eb, got.got_b, on_b)] {
+        e.contacts += 1;
+        e.impulse = add(e.impulse, g);
+        e.moment = add(e.moment, cross(got.point, g));
+        e.vertices.extend(verts.iter().map(|&v| v as u32));
+        e.max_depth = e.max_depth.max(got.depth);
+        e.max_approach = e.max_approach.max(got.approach);
+    }
+}
+
+/// The deepest point of the segment `x0 -> x1` (m) inside the closed surface `collider`, when it dips inside
+/// by more than [`EDGE_DIP`] of its length below both its ends: `(t, phi, n, triangle, weights)` at
+/// `x0 + t (x1 - x0)` (the signed distance, the nearest triangle's outward normal, the triangle and the nearest
+/// point's barycentric weights). The distance is 1-Lipschitz, so a segment whose ends are farther out together
+/// than its length cannot dip inside (most edges stop there after two bounded queries); for the others a
+/// golden-section search along it (to 1e-6 of its length) finds the minimum of a ridge's distance, unimodal along
+/// an edge that crosses it. An end inside is the vertex pass's.
+fn deepest_on_edge(
+    collider: &MeshCollider,
+    x0: Vec3,
+    x1: Vec3,
+) -> Option<(f64, f64, Vec3, usize, [f64; 3])> {
+    let len = norm(sub(x1, x0));
+    let (phi0, _) = collider.signed_distance_below(x0, len)?;
+    let (phi1, _) = collider.signed_distance_below(x1, len)?;
+    if phi0 + phi1 >= len {
+        return None;
+    }
+    // A dip counts when it is this far below the surface and below both ends: edges lying along the other
+    // body's surface (bodies resting on each other) graze it everywhere, and answering the grazes pushes nothing
+    // that matters.
+    let floor = phi0.min(phi1).min(0.0) - EDGE_DIP * len;
+    let at = |t: f64| add(x0, scale(sub(x1, x0), t));
+    let phi = |t: f64| collider.closest(at(t)).0;
+    let inv_golden = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut lo, mut hi) = (0.0f64, 1.0f64);
+    let (mut c, mut d) = (hi - inv_golden * (hi - lo), lo + inv_golden * (hi - lo));
+    let (mut fc, mut fd) = (phi(c), phi(d));
+    while hi - lo > 1e-6 {
+        if fc < fd {
+            hi = d;
+            (d, fd) = (c, fc);
+            c = hi - inv_golden * (hi - lo);
+            fc = phi(c);
+        } else {
+            lo = c;
+            (c, fc) = (d, fd);
+            d = lo + inv_golden * (hi - lo);
+            fd = phi(d);
+        }
+    }
+    let t = 0.5 * (lo + hi);
+    let (phi, n, tri, w) = collider.closest(at(t));
+    (phi < floor).then_some((t, phi, n, tri, w))
+}
+
+/// How far below the surface (and below both its ends) an edge must dip, in units of its length, for the edge
+/// pass to answer it.
+const EDGE_DIP: f64 = 1e-3;
+
+/// Find and answer the contacts between every pair of `bodies` (see the module comment), with the edge pass when
+/// `edges` (a surface edge through a ridge of the other body with neither end inside); one exchange per body,
 /// in order. Deterministic: pairs in index order, vertices in increasing order.
-pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> {
+pub fn resolve_body_contacts(bodies: &mut [BodyInContact], edges: bool) -> Vec<BodyExchange> {
     let nb = bodies.len();
     let mut out = vec![BodyExchange::default(); nb];
     if nb < 2 {
@@ -207,66 +415,55 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact]) -> Vec<BodyExchange> 
                     continue;
                 }
                 let idx = bb.surface.collider.triangles()[tri].map(|j| j as usize);
-                let inv_i = inverse_mass(ba.model, i);
-                let inv_j = idx.map(|j| inverse_mass(bb.model, j));
-                let k_eff = inv_i + (0..3).map(|c| w[c] * w[c] * inv_j[c]).sum::<f64>();
-                if k_eff <= 0.0 {
+                let on_a = Side {
+                    vertices: &[i],
+                    weights: &[1.0],
+                };
+                let on_b = Side {
+                    vertices: &idx,
+                    weights: &w,
+                };
+                // Velocities before the first contact a body takes part in.
+                for k in [a, b] {
+                    v_before[k].get_or_insert_with(|| bodies_v(&*ba, &*bb, k == a));
+                }
+                let Some(got) = answer_contact(ba, bb, on_a, on_b, n, -phi, restitution, friction)
+                else {
+                    continue;
+                };
+                book(&mut out, a, b, &got, &[i], &idx);
+            }
+            // Edge-edge: a surface edge of A through a ridge of B with neither end inside (the vertex pass
+            // cannot see it). The deepest point of the edge inside B, found by a golden-section search along it,
+            // is answered as a contact of that point (its two ends by their weights) with B's nearest triangle.
+            for e in 0..if edges { ba.surface.edges.len() } else { 0 } {
+                let [i0, i1] = ba.surface.edges[e].map(|v| v as usize);
+                let (x0, x1) = (ba.state.x[i0], ba.state.x[i1]);
+                if !(inside(x0, bounds[b]) || inside(x1, bounds[b])) {
                     continue;
                 }
-                let depth = -phi;
-                for (k, body) in [(a, &*ba), (b, &*bb)] {
-                    v_before[k].get_or_insert_with(|| body.state.v.clone());
+                let Some((t, phi, n, tri, w)) = deepest_on_edge(&bb.surface.collider, x0, x1)
+                else {
+                    continue;
+                };
+                let idx = bb.surface.collider.triangles()[tri].map(|j| j as usize);
+                let on_a = Side {
+                    vertices: &[i0, i1],
+                    weights: &[1.0 - t, t],
+                };
+                let on_b = Side {
+                    vertices: &idx,
+                    weights: &w,
+                };
+                // Velocities before the first contact a body takes part in.
+                for k in [a, b] {
+                    v_before[k].get_or_insert_with(|| bodies_v(&*ba, &*bb, k == a));
                 }
-                ba.state.x[i] = add(x, scale(n, depth * inv_i / k_eff));
-                for c in 0..3 {
-                    let j = idx[c];
-                    bb.state.x[j] = sub(bb.state.x[j], scale(n, depth * w[c] * inv_j[c] / k_eff));
-                }
-                if friction > 0.0 && !ba.start.is_empty() && !bb.start.is_empty() {
-                    // Coulomb friction on the sliding within the step (the displacement of the vertex relative
-                    // to its point on the face, tangential part), within the cone of the push-out's depth: a
-                    // body resting on another under its weight sinks a little each step and is pushed back; the
-                    // velocity impulse below stops its sliding velocity but not the sliding already done, which
-                    // adds up to millimetres of creep over seconds.
-                    let moved = |st: &State, start: &[Vec3], j: usize| sub(st.x[j], start[j]);
-                    let d_p = (0..3).fold([0.0; 3], |s, c| {
-                        add(s, scale(moved(bb.state, bb.start, idx[c]), w[c]))
-                    });
-                    let rel = sub(moved(ba.state, ba.start, i), d_p);
-                    let slide = sub(rel, scale(n, dot(rel, n)));
-                    let len = norm(slide);
-                    if len > 0.0 {
-                        let undo = scale(slide, (friction * depth / len).min(1.0) / k_eff);
-                        ba.state.x[i] = sub(ba.state.x[i], scale(undo, inv_i));
-                        for c in 0..3 {
-                            let j = idx[c];
-                            bb.state.x[j] = add(bb.state.x[j], scale(undo, w[c] * inv_j[c]));
-                        }
-                    }
-                }
-                let v_p = (0..3).fold([0.0; 3], |s, c| add(s, scale(bb.state.v[idx[c]], w[c])));
-                let rel = sub(ba.state.v[i], v_p);
-                let u = dot(rel, n);
-                let impulse = contact_impulse(rel, n, k_eff, restitution, friction);
-                ba.state.v[i] = add(ba.state.v[i], scale(impulse, inv_i));
-                for c in 0..3 {
-                    let j = idx[c];
-                    bb.state.v[j] = sub(bb.state.v[j], scale(impulse, w[c] * inv_j[c]));
-                }
-                // Each side's impulse as it reaches the free vertices; the moment at the contact point.
-                let got_a = if inv_i > 0.0 { impulse } else { [0.0; 3] };
-                let share_b: f64 = (0..3).filter(|&c| inv_j[c] > 0.0).map(|c| w[c]).sum();
-                let got_b = scale(impulse, -share_b);
-                let point = ba.state.x[i];
-                let (ea, eb) = pair_mut(&mut out, a, b);
-                for (e, got, verts) in [(ea, got_a, &[i][..]), (eb, got_b, &idx[..])] {
-                    e.contacts += 1;
-                    e.impulse = add(e.impulse, got);
-                    e.moment = add(e.moment, cross(point, got));
-                    e.vertices.extend(verts.iter().map(|&v| v as u32));
-                    e.max_depth = e.max_depth.max(depth);
-                    e.max_approach = e.max_approach.max(-u);
-                }
+                let Some(got) = answer_contact(ba, bb, on_a, on_b, n, -phi, restitution, friction)
+                else {
+                    continue;
+                };
+                book(&mut out, a, b, &got, &[i0, i1], &idx);
             }
         }
     }
