@@ -1,12 +1,14 @@
 //! Small fixed-size linear algebra, batched polar decompositions, sparse Cholesky and its fill-reducing ordering.
 
 mod linalg;
+mod line_search;
 mod ordering;
 mod polar;
 pub(crate) mod simd;
 mod sparse;
 
 pub use linalg::*;
+pub use line_search::golden_section;
 pub use ordering::*;
 pub use polar::*;
 pub use sparse::*;

@@ -313,6 +313,51 @@ fn answer_contact(
     })
 }
 
+/// Bodies `a` and `b` of the scene in contact, with the pair's coefficients.
+#[derive(Clone, Copy)]
+struct Pair {
+    a: usize,
+    b: usize,
+    restitution: f64,
+    friction: f64,
+}
+
+/// Answer a contact of point `on_a` of body A found inside body B (`found`: B's outward normal, the depth (m), the
+/// nearest triangle of B's surface and the nearest point's barycentric weights) and book it in both exchanges;
+/// the velocities of each body are copied into `v_before` at its first contact.
+fn answer_and_book(
+    ba: &mut BodyInContact,
+    bb: &mut BodyInContact,
+    pair: Pair,
+    on_a: Side,
+    found: (Vec3, f64, usize, [f64; 3]),
+    v_before: &mut [Option<Vec<Vec3>>],
+    out: &mut [BodyExchange],
+) {
+    let (n, depth, tri, w) = found;
+    let idx = bb.surface.collider.triangles()[tri].map(|j| j as usize);
+    let on_b = Side {
+        vertices: &idx,
+        weights: &w,
+    };
+    for k in [pair.a, pair.b] {
+        v_before[k].get_or_insert_with(|| bodies_v(&*ba, &*bb, k == pair.a));
+    }
+    let answered = answer_contact(
+        ba,
+        bb,
+        on_a,
+        on_b,
+        n,
+        depth,
+        pair.restitution,
+        pair.friction,
+    );
+    if let Some(got) = answered {
+        book(out, pair.a, pair.b, &got, on_a.vertices, &idx);
+    }
+}
+
 /// Book an answered contact in the exchanges of bodies `a` and `b` (the vertices each side involved).
 fn book(
     out: &mut [BodyExchange],
@@ -357,24 +402,8 @@ fn deepest_on_edge(
     let floor = phi0.min(phi1).min(0.0) - EDGE_DIP * len;
     let at = |t: f64| add(x0, scale(sub(x1, x0), t));
     let phi = |t: f64| collider.closest(at(t)).0;
-    let inv_golden = 0.5 * (5f64.sqrt() - 1.0);
-    let (mut lo, mut hi) = (0.0f64, 1.0f64);
-    let (mut c, mut d) = (hi - inv_golden * (hi - lo), lo + inv_golden * (hi - lo));
-    let (mut fc, mut fd) = (phi(c), phi(d));
-    while hi - lo > 1e-6 {
-        if fc < fd {
-            hi = d;
-            (d, fd) = (c, fc);
-            c = hi - inv_golden * (hi - lo);
-            fc = phi(c);
-        } else {
-            lo = c;
-            (c, fc) = (d, fd);
-            d = lo + inv_golden * (hi - lo);
-            fd = phi(d);
-        }
-    }
-    let t = 0.5 * (lo + hi);
+    let [(c, fc), (d, fd)] = crate::math::golden_section(phi, 1e-6, |_| false);
+    let t = if fc <= fd { c } else { d };
     let (phi, n, tri, w) = collider.closest(at(t));
     (phi < floor).then_some((t, phi, n, tri, w))
 }
@@ -414,24 +443,18 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact], edges: bool) -> Vec<B
                 if phi >= 0.0 {
                     continue;
                 }
-                let idx = bb.surface.collider.triangles()[tri].map(|j| j as usize);
                 let on_a = Side {
                     vertices: &[i],
                     weights: &[1.0],
                 };
-                let on_b = Side {
-                    vertices: &idx,
-                    weights: &w,
+                let found = (n, -phi, tri, w);
+                let pair = Pair {
+                    a,
+                    b,
+                    restitution,
+                    friction,
                 };
-                // Velocities before the first contact a body takes part in.
-                for k in [a, b] {
-                    v_before[k].get_or_insert_with(|| bodies_v(&*ba, &*bb, k == a));
-                }
-                let Some(got) = answer_contact(ba, bb, on_a, on_b, n, -phi, restitution, friction)
-                else {
-                    continue;
-                };
-                book(&mut out, a, b, &got, &[i], &idx);
+                answer_and_book(ba, bb, pair, on_a, found, &mut v_before, &mut out);
             }
             // Edge-edge: a surface edge of A through a ridge of B with neither end inside (the vertex pass
             // cannot see it). The deepest point of the edge inside B, found by a golden-section search along it,
@@ -446,24 +469,18 @@ pub fn resolve_body_contacts(bodies: &mut [BodyInContact], edges: bool) -> Vec<B
                 else {
                     continue;
                 };
-                let idx = bb.surface.collider.triangles()[tri].map(|j| j as usize);
                 let on_a = Side {
                     vertices: &[i0, i1],
                     weights: &[1.0 - t, t],
                 };
-                let on_b = Side {
-                    vertices: &idx,
-                    weights: &w,
+                let found = (n, -phi, tri, w);
+                let pair = Pair {
+                    a,
+                    b,
+                    restitution,
+                    friction,
                 };
-                // Velocities before the first contact a body takes part in.
-                for k in [a, b] {
-                    v_before[k].get_or_insert_with(|| bodies_v(&*ba, &*bb, k == a));
-                }
-                let Some(got) = answer_contact(ba, bb, on_a, on_b, n, -phi, restitution, friction)
-                else {
-                    continue;
-                };
-                book(&mut out, a, b, &got, &[i0, i1], &idx);
+                answer_and_book(ba, bb, pair, on_a, found, &mut v_before, &mut out);
             }
         }
     }

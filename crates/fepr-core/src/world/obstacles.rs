@@ -267,23 +267,7 @@ impl Obstacle {
         if d1 <= 0.0 {
             return Some(self.entry(p0, p1, 1.0));
         }
-        let inv_golden = 0.5 * (5f64.sqrt() - 1.0);
-        let (mut a, mut b) = (0.0f64, 1.0f64);
-        let (mut c, mut d) = (b - inv_golden * (b - a), a + inv_golden * (b - a));
-        let (mut fc, mut fd) = (phi(c), phi(d));
-        while b - a > 1e-12 && fc.min(fd) > 0.0 {
-            if fc < fd {
-                b = d;
-                (d, fd) = (c, fc);
-                c = b - inv_golden * (b - a);
-                fc = phi(c);
-            } else {
-                a = c;
-                (c, fc) = (d, fd);
-                d = a + inv_golden * (b - a);
-                fd = phi(d);
-            }
-        }
+        let [(c, fc), (d, fd)] = crate::math::golden_section(phi, 1e-12, |v| v <= 0.0);
         let inside = if fc <= 0.0 {
             c
         } else if fd <= 0.0 {
