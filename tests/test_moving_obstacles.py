@@ -110,6 +110,39 @@ def test_a_turntable_turns_a_box_resting_on_it():
     assert _books(sim.history) <= 1e-8
 
 
+@pytest.mark.parametrize("tilt_deg, slides", [(15, False), (45, True)])
+def test_a_platform_tilted_by_keyframed_orientations_holds_or_sheds_a_box(tilt_deg, slides):
+    # A slab tilted about the y axis through the origin between t = 0.2 and 1.2 s; friction 0.5 holds the box up
+    # to atan(0.5) = 26.6 degrees.
+    tilt = np.radians(tilt_deg)
+    slab = fepr.Box(
+        center=(0, 0, -0.05),
+        half_extents=(2, 1, 0.05),
+        restitution=0.0,
+        friction=0.5,
+        motion=fepr.ObstacleMotion(orientation_times=[0.2, 1.2], orientations=[[0, 0, 0], [0, tilt, 0]]),
+    )
+    sim = fepr.Simulation(
+        _box((0.0, 0.0, 0.1001)),
+        material=fepr.NeoHookean(1e5, 0.3),
+        density=1000,
+        integrator=fepr.ProjectiveDynamics(),
+        dt=1 / 60,
+        obstacles=[slab],
+        gravity=(0, 0, -9.81),
+    )
+    sim.step(120)
+    r, offset = slab.motion.placement(sim.time)
+    # The box's centre in the slab's frame: along the slope (x) it stays near where it stood, or slides down.
+    c = r.T @ (sim.positions.mean(axis=0) - offset)
+    slid = abs(c[0]) > 0.1
+    assert slid == slides, c
+    # Never inside the slab: every vertex above its top face (its own frame).
+    local = (sim.positions - offset) @ r
+    assert local[:, 2].min() >= -1e-3 * 0.2 / 3, local[:, 2].min()
+    assert _books(sim.history) <= 1e-8
+
+
 @pytest.mark.parametrize("sliding", [False, True])
 def test_projective_dynamics_in_a_corner_does_not_make_elastic_energy(sliding):
     # A box on a floor against a wall (resting there, or sliding into it at 1 m/s, restitution 0): without FEPR
@@ -179,6 +212,9 @@ def test_obstacle_motion_placement_and_bad_motions():
         ("{ translation = 'sinusoidal', amplitude = [0, 0, 1], frequency = 1, times = [0] }", "times does not apply"),
         ("{ angular_velocity = [0, 1] }", "angular_velocity must be a list of 3 numbers"),
         ("[1, 2]", "motion must be a table"),
+        ("{ orientations = [[0, 0, 1]] }", "together"),
+        ("{ orientations = [[0, 0, 1]], orientation_times = [0, 1] }", "as many"),
+        ("{ orientations = [[0, 0], [0, 0, 1]], orientation_times = [0, 1] }", "orientations #1 must be"),
     ],
 )
 def test_a_bad_obstacle_motion_in_a_scene_is_named(tmp_path, motion, message):

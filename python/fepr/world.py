@@ -394,14 +394,35 @@ class Keyframes:
 Motion = Union[Sinusoid, Keyframes]
 
 
+def _rotation_matrix(w) -> np.ndarray:
+    """The rotation (3, 3) of rotation vector ``w`` (rad; Rodrigues' formula)."""
+    w = np.asarray(w, dtype=float)
+    angle = float(np.linalg.norm(w))
+    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if angle == 0:
+        return np.eye(3)
+    return np.eye(3) + math.sin(angle) / angle * k + (1 - math.cos(angle)) / angle**2 * (k @ k)
+
+
+def _rotation_vector(r: np.ndarray) -> np.ndarray:
+    """The rotation vector (rad) of rotation ``r`` (3, 3), angle in [0, pi)."""
+    angle = math.acos(max(-1.0, min(1.0, (np.trace(r) - 1) / 2)))
+    if angle < 1e-12:
+        return np.zeros(3)
+    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2 * math.sin(angle))
+    return angle * axis
+
+
 @dataclass(frozen=True)
 class ObstacleMotion:
     """A prescribed rigid motion of an obstacle (a moving platform, a piston, a turning drum or paddle).
 
     At time ``t`` (s) the point ``p`` of the obstacle as given is at
-    ``R(angular_velocity * t) (p - pivot) + pivot + d(t)``: ``translation`` is the displacement ``d``
+    ``R(angular_velocity * t) Q(t) (p - pivot) + pivot + d(t)``: ``translation`` is the displacement ``d``
     (:class:`Sinusoid`, :class:`Keyframes`, or None: no translation), ``angular_velocity`` (3,) rad/s a constant
-    rotation (its direction the axis, right-hand rule) about ``pivot`` (3,) m, which travels with ``d``.
+    rotation (its direction the axis, right-hand rule) and ``Q`` keyframed orientations (``orientation_times``
+    (k,) s strictly increasing, ``orientations`` (k, 3) rotation vectors in rad; slerp between them, held before
+    the first and after the last), both about ``pivot`` (3,) m, which travels with ``d``.
 
     The body's contact with a moving obstacle answers its velocity relative to the obstacle's surface
     (restitution and friction act on the relative velocity), and the work the obstacle does on the body is
@@ -414,6 +435,8 @@ class ObstacleMotion:
     translation: Optional[Motion] = None
     angular_velocity: Vec3 = (0.0, 0.0, 0.0)
     pivot: Vec3 = (0.0, 0.0, 0.0)
+    orientation_times: Sequence[float] = ()
+    orientations: Sequence[Vec3] = ()
 
     def __post_init__(self):
         if self.translation is not None and not isinstance(self.translation, (Sinusoid, Keyframes)):
@@ -422,23 +445,43 @@ class ObstacleMotion:
             )
         object.__setattr__(self, "angular_velocity", _vec3(self.angular_velocity, "ObstacleMotion angular_velocity"))
         object.__setattr__(self, "pivot", _vec3(self.pivot, "ObstacleMotion pivot"))
+        t = float_array(self.orientation_times, "ObstacleMotion orientation_times", "(k,)").reshape(-1)
+        r = float_array(self.orientations, "ObstacleMotion orientations", "(k, 3)")
+        if r.size == 0:
+            r = r.reshape(0, 3)
+        if r.shape != (t.size, 3):
+            raise ConfigError(
+                f"ObstacleMotion orientations must have shape ({t.size}, 3) (one rotation vector per time), got {r.shape}"
+            )
+        if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
+            raise ConfigError(f"ObstacleMotion orientation_times must be finite and strictly increasing, got {list(t)}")
+        if not np.all(np.isfinite(r)):
+            raise ConfigError("ObstacleMotion orientations must be finite (rotation vectors, rad)")
+        object.__setattr__(self, "orientation_times", tuple(float(x) for x in t))
+        object.__setattr__(self, "orientations", tuple(tuple(float(c) for c in row) for row in r))
 
     def _core(self):
         kind, params, times = ("none", [], []) if self.translation is None else self.translation._core()
-        return kind, params, times, list(self.angular_velocity), list(self.pivot)
+        turns = [c for row in self.orientations for c in row]
+        return kind, params, times, list(self.angular_velocity), list(self.pivot), list(self.orientation_times), turns
+
+    def _orientation(self, t: float) -> np.ndarray:
+        """The keyframed orientation at ``t`` (3, 3): slerp between the keyframes, held outside them."""
+        if not self.orientation_times:
+            return np.eye(3)
+        times, turns = np.asarray(self.orientation_times), np.asarray(self.orientations)
+        if t <= times[0] or t >= times[-1]:
+            return _rotation_matrix(turns[0] if t <= times[0] else turns[-1])
+        k = int(np.searchsorted(times, t, side="right")) - 1
+        s = (t - times[k]) / (times[k + 1] - times[k])
+        a, b = _rotation_matrix(turns[k]), _rotation_matrix(turns[k + 1])
+        # slerp: a times the rotation from a to b, scaled by s (as a rotation vector).
+        return a @ _rotation_matrix(s * _rotation_vector(a.T @ b))
 
     def placement(self, t: float) -> Tuple[np.ndarray, np.ndarray]:
         """Where the obstacle is at time ``t`` (s): ``(R (3, 3), offset (3,) m)`` with ``x = R @ p + offset`` for
         a point ``p`` of the obstacle as given (for drawing it, or placing a copy of its mesh in an export)."""
-        w = np.asarray(self.angular_velocity) * float(t)
-        angle = float(np.linalg.norm(w))
-        k = np.array(
-            [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]
-        )  # the cross-product matrix of the rotation vector
-        if angle > 0:
-            r = np.eye(3) + math.sin(angle) / angle * k + (1 - math.cos(angle)) / angle**2 * (k @ k)
-        else:
-            r = np.eye(3)
+        r = _rotation_matrix(np.asarray(self.angular_velocity) * float(t)) @ self._orientation(float(t))
         d = np.zeros(3) if self.translation is None else self.translation.displacement(float(t))
         c = np.asarray(self.pivot)
         return r, c + d - r @ c

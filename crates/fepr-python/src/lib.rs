@@ -37,8 +37,17 @@ mod settings;
 /// A kinematic pin group from Python: `(vertices, motion kind, motion parameters, keyframe times)`.
 type PinGroupArgs = (Vec<usize>, String, Vec<f64>, Vec<f64>);
 /// An obstacle's motion from Python: `(translation kind, its parameters, keyframe times, angular velocity,
-/// pivot)`; the translation as a kinematic pin's (`"none"`: no translation).
-type ObstacleMotionArgs = (String, Vec<f64>, Vec<f64>, [f64; 3], [f64; 3]);
+/// pivot, orientation times, orientations flattened (k * 3 rotation vectors))`; the translation as a kinematic
+/// pin's (`"none"`: no translation).
+type ObstacleMotionArgs = (
+    String,
+    Vec<f64>,
+    Vec<f64>,
+    [f64; 3],
+    [f64; 3],
+    Vec<f64>,
+    Vec<f64>,
+);
 /// `(kind, params, restitution, friction, triangles, motion)` of one obstacle (see `set_obstacles`).
 type ObstacleArgs = (
     String,
@@ -727,8 +736,15 @@ impl Simulation {
             };
             let mut ob = Obstacle::new(shape, restitution, friction)
                 .map_err(|e| PyValueError::new_err(format!("obstacle {k} ({kind}): {e}")))?;
-            if let Some((path, q, times, angular_velocity, pivot)) = motion {
+            if let Some((path, q, times, angular_velocity, pivot, turn_times, turns)) = motion {
                 let what = format!("obstacle {k} ({kind})");
+                if turns.len() != 3 * turn_times.len() {
+                    return Err(PyValueError::new_err(format!(
+                        "{what}: orientations must be one rotation vector (3 numbers) per time, got {} numbers for {} times",
+                        turns.len(),
+                        turn_times.len()
+                    )));
+                }
                 let translation = if path == "none" {
                     PinMotion::Keyframes {
                         times: vec![0.0],
@@ -742,6 +758,10 @@ impl Simulation {
                         translation,
                         angular_velocity,
                         pivot,
+                        orientations: (
+                            turn_times,
+                            turns.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+                        ),
                     })
                     .map_err(|e| PyValueError::new_err(format!("{what}: {e}")))?;
             }

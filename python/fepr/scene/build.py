@@ -110,7 +110,13 @@ def make_obstacle_motion(m: Dict[str, Any]):
         )
     else:
         path = None
-    return world.ObstacleMotion(translation=path, angular_velocity=m["angular_velocity"], pivot=m["pivot"])
+    return world.ObstacleMotion(
+        translation=path,
+        angular_velocity=m["angular_velocity"],
+        pivot=m["pivot"],
+        orientation_times=m.get("orientation_times", ()),
+        orientations=m.get("orientations", ()),
+    )
 
 
 def kinematic_pin_indices(kp: KinematicPinSettings, rest_vertices: np.ndarray) -> np.ndarray:

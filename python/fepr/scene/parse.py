@@ -503,7 +503,8 @@ def _parse_path(t: _Table, kind: str, kind_key: str) -> Dict[str, Any]:
 
 def _parse_obstacle_motion(raw: Any, where: str, label: str) -> Dict[str, Any]:
     """An obstacle's ``motion`` table: ``translation`` (``"sinusoidal"`` or ``"keyframes"``, with that path's
-    keys), ``angular_velocity`` (rad/s) and ``pivot`` (m)."""
+    keys), ``angular_velocity`` (rad/s), ``orientation_times`` (s) with ``orientations`` (rotation vectors, rad)
+    and ``pivot`` (m)."""
     if not isinstance(raw, dict):
         raise ConfigError(
             f"{where}{label} motion must be a table (keys: {', '.join(OBSTACLE_MOTION_KEYS)}), got {raw!r}"
@@ -512,13 +513,31 @@ def _parse_obstacle_motion(raw: Any, where: str, label: str) -> Dict[str, Any]:
     stray = [k for keys in MOTIONS.values() for k in keys if t.has(k)]
     if stray and not t.has("translation"):
         raise t.error(f"{stray[0]} needs 'translation' (one of {', '.join(repr(m) for m in MOTIONS)})")
-    if not (t.has("translation") or t.has("angular_velocity")):
-        raise t.error("give 'translation' (with its path's keys) and/or 'angular_velocity' (rad/s)")
+    if not (t.has("translation") or t.has("angular_velocity") or t.has("orientations")):
+        raise t.error(
+            "give 'translation' (with its path's keys), 'angular_velocity' (rad/s) and/or 'orientations' "
+            "(with 'orientation_times')"
+        )
     motion: Dict[str, Any] = {"translation": t.string("translation", None, choices=tuple(MOTIONS))}
     if motion["translation"] is not None:
         motion.update(_parse_path(t, motion["translation"], "translation"))
     motion["angular_velocity"] = t.vec3("angular_velocity", (0.0, 0.0, 0.0))
     motion["pivot"] = t.vec3("pivot", (0.0, 0.0, 0.0))
+    if t.has("orientations") != t.has("orientation_times"):
+        raise t.error("give 'orientations' (rotation vectors, rad) and 'orientation_times' (s) together")
+    times, turns = t.data.get("orientation_times", []), t.data.get("orientations", [])
+    if not isinstance(times, list) or not all(_is_number(c) for c in times):
+        raise t.error(f"orientation_times must be a list of numbers (s), got {times!r}")
+    if any(b <= a for a, b in zip(times, times[1:])):
+        raise t.error(f"orientation_times must be strictly increasing, got {times!r}")
+    if not isinstance(turns, list) or len(turns) != len(times):
+        raise t.error("orientations must be a list of as many [x, y, z] rotation vectors (rad) as orientation_times")
+    vecs = []
+    for j, r in enumerate(turns, 1):
+        bad = t.error(f"orientations #{j} must be a list of 3 numbers (rad), got {r!r}")
+        vecs.append(_as_vec3(r, lambda bad=bad: bad))
+    motion["orientation_times"] = tuple(float(c) for c in times)
+    motion["orientations"] = tuple(vecs)
     return motion
 
 

@@ -114,7 +114,7 @@ KINEMATIC_PIN_KEYS: Tuple[str, ...] = (
 )
 MOTIONS = {"sinusoidal": ("amplitude", "frequency", "phase"), "keyframes": ("times", "offsets")}
 #: Keys of an obstacle's ``motion`` table: a translation path (``translation`` names its kind, ``MOTIONS`` its
-#: keys) and a constant spin about a pivot.
+#: keys), a constant spin and keyframed orientations about a pivot.
 OBSTACLE_MOTION_KEYS: Tuple[str, ...] = (
     "translation",
     "amplitude",
@@ -124,6 +124,8 @@ OBSTACLE_MOTION_KEYS: Tuple[str, ...] = (
     "offsets",
     "angular_velocity",
     "pivot",
+    "orientation_times",
+    "orientations",
 )
 
 #: Name lists, defined once in the core (``fepr._core``) and read here.
@@ -297,7 +299,7 @@ class ObstacleSettings:
     ``restitution`` is in [0, 1] (1: elastic), ``friction`` the Coulomb coefficient (>= 0). ``motion`` is None
     (static) or the keyword arguments of a :class:`fepr.ObstacleMotion` as read from the entry's ``motion`` table
     (``translation``: ``"sinusoidal"`` or ``"keyframes"`` or None, that path's keys, ``angular_velocity`` rad/s,
-    ``pivot`` m). ``label`` names the entry in messages (``[[world.obstacles]] #2``).
+    ``pivot`` m, ``orientation_times`` s and ``orientations`` rotation vectors in rad). ``label`` names the entry in messages (``[[world.obstacles]] #2``).
     """
 
     type: str

@@ -565,6 +565,7 @@ mod tests {
             },
             angular_velocity: [0.0; 3],
             pivot: [0.0; 3],
+            orientations: (Vec::new(), Vec::new()),
         };
         let mut ob = Obstacle::new(
             Shape::Plane {

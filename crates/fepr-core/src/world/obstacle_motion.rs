@@ -2,8 +2,9 @@
 //! obstacle is at any time, and so where it is at the start and the end of a step.
 //!
 //! The obstacle's shape is given where it is at `t = 0`; at time `t` a point `p` of it is at
-//! `R(omega t) (p - pivot) + pivot + d(t)`, with `d` a translation path ([`PinMotion`]: keyframes or a sinusoid,
-//! `d(0) = 0` for a sinusoid) and `omega` a constant angular velocity about `pivot` (which travels with `d`).
+//! `R(omega t) Q(t) (p - pivot) + pivot + d(t)`, with `d` a translation path ([`PinMotion`]: keyframes or a
+//! sinusoid, `d(0) = 0` for a sinusoid), `Q` keyframed orientations (slerp between them) and `omega` a constant
+//! angular velocity, both about `pivot` (which travels with `d`).
 //! A query at `x` is answered in the obstacle's own frame (`x` mapped back by the inverse pose), so every shape,
 //! the triangle meshes included, moves without rebuilding anything (a mesh's BVH stays as built). The rotations
 //! and poses are `parry3d-f64`'s (glam quaternions), the library the mesh queries already use.
@@ -31,6 +32,9 @@ pub struct ObstacleMotion {
     pub angular_velocity: Vec3,
     /// The point the obstacle turns about at `t = 0`, m.
     pub pivot: Vec3,
+    /// Keyframed orientations about the pivot: `(times (s), rotation vectors (rad))`, interpolated by slerp and
+    /// held before the first and after the last; composed before the spin. Empty: none.
+    pub orientations: (Vec<f64>, Vec<Vec3>),
 }
 
 impl ObstacleMotion {
@@ -41,6 +45,31 @@ impl ObstacleMotion {
             return Err(invalid(
                 "angular_velocity",
                 format!("must be finite (rad/s), got {:?}", self.angular_velocity),
+            ));
+        }
+        let (times, turns) = &self.orientations;
+        if times.len() != turns.len() {
+            return Err(invalid(
+                "orientations",
+                format!(
+                    "need as many rotations as times, got {} times and {} rotations",
+                    times.len(),
+                    turns.len()
+                ),
+            ));
+        }
+        for (k, t) in times.iter().enumerate() {
+            if !t.is_finite() || (k > 0 && *t <= times[k - 1]) {
+                return Err(invalid(
+                    "orientations",
+                    format!("times must be finite and strictly increasing; time {k} is {t}"),
+                ));
+            }
+        }
+        if let Some(k) = turns.iter().position(|r| !r.iter().all(|c| c.is_finite())) {
+            return Err(invalid(
+                "orientations",
+                format!("rotation {k} is not finite: {:?}", turns[k]),
             ));
         }
         if !self.pivot.iter().all(|c| c.is_finite()) {
@@ -54,10 +83,29 @@ impl ObstacleMotion {
 
     /// The pose at time `t` (s): the map from the obstacle as given to where it is.
     pub fn pose(&self, t: f64) -> Placement {
-        let rotation = Rotation::from_scaled_axis(to_parry(self.angular_velocity) * t);
+        let rotation =
+            Rotation::from_scaled_axis(to_parry(self.angular_velocity) * t) * self.orientation(t);
         let c = to_parry(self.pivot);
         let d = to_parry(self.translation.displacement(t));
         Placement(Pose::from_parts(c + d - rotation * c, rotation))
+    }
+}
+
+impl ObstacleMotion {
+    /// The keyframed orientation at time `t` (identity without keyframes).
+    fn orientation(&self, t: f64) -> Rotation {
+        let (times, turns) = &self.orientations;
+        let at = |k: usize| Rotation::from_scaled_axis(to_parry(turns[k]));
+        match times.len() {
+            0 => Rotation::IDENTITY,
+            _ if t <= times[0] => at(0),
+            n if t >= times[n - 1] => at(n - 1),
+            _ => {
+                let k = times.partition_point(|tk| *tk <= t) - 1;
+                let s = (t - times[k]) / (times[k + 1] - times[k]);
+                at(k).slerp(at(k + 1), s)
+            }
+        }
     }
 }
 
@@ -159,7 +207,39 @@ mod tests {
             },
             angular_velocity: [0.0, 0.0, 0.7],
             pivot: [1.0, 2.0, 0.0],
+            orientations: (Vec::new(), Vec::new()),
         }
+    }
+
+    #[test]
+    fn keyframed_orientations_turn_about_the_pivot_and_are_held_outside() {
+        let m = ObstacleMotion {
+            translation: PinMotion::Keyframes {
+                times: vec![0.0],
+                offsets: vec![[0.0; 3]],
+            },
+            angular_velocity: [0.0; 3],
+            pivot: [1.0, 0.0, 0.0],
+            orientations: (
+                vec![1.0, 3.0],
+                vec![[0.0; 3], [0.0, 0.0, std::f64::consts::FRAC_PI_2]],
+            ),
+        };
+        m.validate().unwrap();
+        let p = [2.0, 0.0, 0.0];
+        // Half way between the keyframes: an eighth of a turn about z, through the pivot.
+        let q = m.pose(2.0).apply(p);
+        let a = std::f64::consts::FRAC_PI_4;
+        assert!(norm(sub(q, [1.0 + a.cos(), a.sin(), 0.0])) < 1e-12, "{q:?}");
+        assert!(norm(sub(m.pose(0.0).apply(p), p)) < 1e-15);
+        assert!(norm(sub(m.pose(5.0).apply(p), [1.0, 1.0, 0.0])) < 1e-12);
+        let mut bad = m.clone();
+        bad.orientations.0 = vec![1.0, 1.0];
+        assert!(bad
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("orientations"));
     }
 
     #[test]
