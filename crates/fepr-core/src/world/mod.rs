@@ -88,16 +88,7 @@ impl PinMotion {
                         ),
                     ));
                 }
-                for (k, t) in times.iter().enumerate() {
-                    if !t.is_finite() || (k > 0 && *t <= times[k - 1]) {
-                        return Err(invalid(
-                            "keyframes",
-                            format!(
-                                "times must be finite and strictly increasing; time {k} is {t}"
-                            ),
-                        ));
-                    }
-                }
+                check_key_times(times, "keyframes")?;
                 if let Some(k) = offsets
                     .iter()
                     .position(|o| !o.iter().all(|c| c.is_finite()))
@@ -162,6 +153,19 @@ impl PinMotion {
             }
         }
     }
+}
+
+/// Check that keyframe `times` (s) are finite and strictly increasing; the error names `key` and the time.
+pub(crate) fn check_key_times(times: &[f64], key: &'static str) -> Result<()> {
+    for (k, t) in times.iter().enumerate() {
+        if !t.is_finite() || (k > 0 && *t <= times[k - 1]) {
+            return Err(invalid(
+                key,
+                format!("times must be finite and strictly increasing; time {k} is {t}"),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// A group of pinned vertices that follow `anchor + d(t)`.

@@ -58,14 +58,7 @@ impl ObstacleMotion {
                 ),
             ));
         }
-        for (k, t) in times.iter().enumerate() {
-            if !t.is_finite() || (k > 0 && *t <= times[k - 1]) {
-                return Err(invalid(
-                    "orientations",
-                    format!("times must be finite and strictly increasing; time {k} is {t}"),
-                ));
-            }
-        }
+        super::check_key_times(times, "orientations")?;
         if let Some(k) = turns.iter().position(|r| !r.iter().all(|c| c.is_finite())) {
             return Err(invalid(
                 "orientations",
