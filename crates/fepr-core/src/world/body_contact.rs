@@ -241,16 +241,16 @@ fn answer_contact(
     restitution: f64,
     friction: f64,
 ) -> Option<Answered> {
-    let inv_a: Vec<f64> = on_a
-        .vertices
-        .iter()
-        .map(|&i| inverse_mass(ba.model, i))
-        .collect();
-    let inv_b: Vec<f64> = on_b
-        .vertices
-        .iter()
-        .map(|&j| inverse_mass(bb.model, j))
-        .collect();
+    // At most three vertices a side (a vertex, an edge's two ends, a triangle): no allocation per contact.
+    let inverse = |model: &Model, side: Side| -> [f64; 3] {
+        let mut inv = [0.0; 3];
+        for (k, &i) in side.vertices.iter().enumerate() {
+            inv[k] = inverse_mass(model, i);
+        }
+        inv
+    };
+    let (inv_a, inv_b) = (inverse(ba.model, on_a), inverse(bb.model, on_b));
+    let (inv_a, inv_b) = (&inv_a[..on_a.vertices.len()], &inv_b[..on_b.vertices.len()]);
     let k_a: f64 = (0..inv_a.len())
         .map(|k| on_a.weights[k] * on_a.weights[k] * inv_a[k])
         .sum();
@@ -305,8 +305,8 @@ fn answer_contact(
             .sum()
     };
     Some(Answered {
-        got_a: scale(impulse, share(on_a, &inv_a)),
-        got_b: scale(impulse, -share(on_b, &inv_b)),
+        got_a: scale(impulse, share(on_a, inv_a)),
+        got_b: scale(impulse, -share(on_b, inv_b)),
         point: on_a.at(&ba.state.x),
         depth,
         approach: -u,

@@ -13,7 +13,7 @@ use crate::error::{invalid, Result};
 use crate::math::{add, cross, dot, norm, scale, sub, Mat3, Vec3};
 use crate::model::{Model, State};
 
-use super::{MeshCollider, Moving, ObstacleMotion};
+use super::{MeshCollider, Moving, ObstacleMotion, Placement};
 
 /// Geometry of an obstacle (metres). The solid is where the signed distance is negative.
 #[derive(Clone, Debug, PartialEq)]
@@ -197,11 +197,16 @@ impl Obstacle {
 
     /// [`Obstacle::signed_distance`] against the obstacle where it was at the start of the current step.
     pub fn signed_distance_at_start(&self, x: Vec3) -> (f64, Vec3) {
+        self.placed_distance(x, |m| &m.start)
+    }
+
+    /// [`Obstacle::shape_distance`] of `x` against the shape where `at` places it (static: as given).
+    fn placed_distance(&self, x: Vec3, at: impl Fn(&Moving) -> &Placement) -> (f64, Vec3) {
         match self.moving.as_deref() {
             None => self.shape_distance(x),
             Some(m) => {
-                let (d, n) = self.shape_distance(m.start.to_given(x));
-                (d, m.start.turn(n))
+                let (d, n) = self.shape_distance(at(m).to_given(x));
+                (d, at(m).turn(n))
             }
         }
     }
@@ -330,13 +335,7 @@ impl Obstacle {
     /// of the nearest surface point. Exact for every shape, so `x - d n` lies on the surface. A moving
     /// obstacle answers for where it is at the end of the current step ([`Obstacle::place`]).
     pub fn signed_distance(&self, x: Vec3) -> (f64, Vec3) {
-        match self.moving.as_deref() {
-            None => self.shape_distance(x),
-            Some(m) => {
-                let (d, n) = self.shape_distance(m.end.to_given(x));
-                (d, m.end.turn(n))
-            }
-        }
+        self.placed_distance(x, |m| &m.end)
     }
 
     /// [`Obstacle::signed_distance`] against the shape where it is given.
