@@ -282,14 +282,25 @@ def test_a_block_resting_on_a_slab_stays_put_with_friction(integrator, projectio
             assert np.max(np.abs(h["total"] - h["total"][0] - h["budget_total"])) <= 1e-8 * abs(h["total"][0])
 
 
-@pytest.mark.parametrize("integrator", ["projective_dynamics", "implicit_euler"])
-def test_a_damped_block_on_a_slab_comes_to_rest_and_stays_with_fepr(integrator):
+@pytest.mark.parametrize(
+    "integrator, kinetic_limit",
+    [
+        ("projective_dynamics", 1e-6),
+        ("implicit_euler", 1e-6),
+        # XPBD's own jitter at rest (one iteration per substep leaves its constraints a little off; 6.7e-5 J
+        # without FEPR): the projection must not add to it.
+        ("xpbd", 1e-4),
+    ],
+)
+def test_a_damped_block_on_a_slab_comes_to_rest_and_stays_with_fepr(integrator, kinetic_limit):
     """With FEPR and a little Rayleigh damping (0.01 s), a block set on a slab settles in 5 s and then stays at
-    rest for 10 s: its centre moves less than 0.1 mm, its kinetic energy stays below 1e-6 J, the projections
-    converge or stand down by the resting rule (a retry every 16th step may fail), and the books close. Before
-    the resting rows' work was booked over the step's displacement, Projective Dynamics booked positive contact
-    work at rest (+4 J in 5 s) that FEPR put back as vibration: the block rocked by 1-2 mm for ever. (Without
-    damping, an energy-conserving run keeps the settling sag's energy as vibration: nothing dissipates it.)"""
+    rest for 10 s: its centre moves less than 0.1 mm, its kinetic energy stays below the limit, the projections
+    converge or stand down by the resting rule (a retry every 16th step may fail; where its best iterate would
+    add kinetic energy, it gives the base step's state back), and the books close. Before the resting rows' work was booked over the step's
+    displacement, Projective Dynamics booked positive contact work at rest (+4 J in 5 s) that FEPR put back as
+    vibration: the block rocked by 1-2 mm for ever. Before a failed retry gave the base state back, the XPBD
+    block was kicked to 2e-3 J every 16th step and crept 0.25 mm. (Without damping, an energy-conserving run
+    keeps the settling sag's energy as vibration: nothing dissipates it.)"""
     slab, block, system = _slab_and_block(0.5, projection=True, integrator=integrator, rayleigh_damping=0.01)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -302,7 +313,7 @@ def test_a_damped_block_on_a_slab_comes_to_rest_and_stays_with_fepr(integrator):
             creep = max(creep, float(np.linalg.norm(block.positions.mean(0) - c0)))
             kinetic = max(kinetic, 0.5 * float(block.masses @ (block.velocities**2).sum(1)))
     assert creep < 1e-4, creep
-    assert kinetic < 1e-6, kinetic
+    assert kinetic < kinetic_limit, kinetic
     for body in (slab, block):
         h = body.history
         failed = ((h["proj_converged"][start:] == 0) & (h["proj_stood_down"][start:] == 0)).sum()

@@ -72,6 +72,9 @@ pub(super) struct Restoration {
     /// (`2^failures - 1`).
     certify_failures: u32,
     certify_wait: u32,
+    /// The fraction of the gap the previous step's search accepted (`None`: it restored all of it, or no search
+    /// ran): the first fraction this step's search tries, where it lies inside the bracket.
+    pub(super) last_fraction: Option<f64>,
 }
 
 /// A tet's volume ratios in the base step's state: `J(x*)` and one step ahead, `J(x* + h v*)`.

@@ -20,10 +20,12 @@ use crate::error::{FeprError, Result};
 use crate::exec::{copy_rows, copy_rows2};
 use crate::integrators::{HandOver, Integrator, StepReport};
 use crate::invariants::{center_of_mass, measure, Invariants};
-use crate::math::{add, cross, dot, scale, sub, Vec3};
+use crate::math::{add, cross, dot, norm, scale, sub, Vec3};
 use crate::model::{Model, State};
 use crate::projection::{ProjectionReport, Projector, SystemMetric, Targets};
-use crate::world::{max_penetration, near_obstacles, resolve_contacts, Obstacle};
+use crate::world::{
+    max_penetration, near_obstacles, resolve_contacts, Obstacle, RESTING_SPEED_STEPS,
+};
 use crate::world::{BodyExchange, BodySurface, Drag, KinematicPins, SelfContact, Work, World};
 
 /// The strain whose elastic energy over the body is the least energy scale of a step (a body at rest without
@@ -213,6 +215,9 @@ pub struct Simulation {
     start_unchecked: bool,
     /// Consecutive contact steps at rest whose projection did not converge or stood down.
     resting_steps: usize,
+    /// The base step's positions and velocities on a step that retries the projection at rest (m, m/s): a retry
+    /// that does not converge gives them back (see [`Simulation::project_or_measure`]).
+    retry_base: (Vec<Vec3>, Vec<Vec3>),
     /// Energy the last step's projection left off its target, J (state minus target; 0 after a step that
     /// reached it): booked as `Work::deferred` until a later step places it.
     deferred: f64,
@@ -231,6 +236,17 @@ pub struct Simulation {
     /// `held_normal_forces` at the start of the step: a step redone in parts starts again from them, not from
     /// what its abandoned attempt held.
     held_at_step_start: Vec<((usize, usize), f64)>,
+}
+
+/// Where a step stands in the resting rule (see [`Simulation::step`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Resting {
+    /// Not at rest: the projection runs.
+    No,
+    /// At rest after a failed projection: the projection stands down if the rule still holds.
+    StandDown,
+    /// At rest, on a step that tries the projection again (every [`RESTING_RETRY`]-th).
+    Retry,
 }
 
 impl Simulation {
@@ -305,6 +321,7 @@ impl Simulation {
             unresolved_totals: (0.0, 0.0),
             start_unchecked: true,
             resting_steps: 0,
+            retry_base: (Vec::new(), Vec::new()),
             deferred: 0.0,
             surface: None,
             self_contact: None,
@@ -930,12 +947,17 @@ impl Simulation {
         }
         let t1 = Instant::now();
         // Resting contact: after a contact step whose projection could not converge at rest (or was asked to take
-        // out more energy than the body's kinetic energy), the projection stands down (its residual is booked
+        // out more energy than the velocities can give up), the projection stands down (its residual is booked
         // below) on the next contact steps while that holds, and tries again every RESTING_RETRY-th step.
-        let stand_down = contacts > 0
-            && self.resting_steps > 0
-            && !self.resting_steps.is_multiple_of(RESTING_RETRY);
-        let (projection, inv, base_total) = self.project_or_measure(&targets, stand_down);
+        let resting = match (
+            contacts > 0 && self.resting_steps > 0,
+            self.resting_steps.is_multiple_of(RESTING_RETRY),
+        ) {
+            (false, _) => Resting::No,
+            (true, false) => Resting::StandDown,
+            (true, true) => Resting::Retry,
+        };
+        let (projection, inv, base_total) = self.project_or_measure(&targets, resting);
         if !(inv.total.is_finite()
             && inv
                 .momentum
@@ -973,13 +995,16 @@ impl Simulation {
             &mut targets,
         );
         // At rest (kinetic energy below the residual's share of the scale), or asked to take out more energy
-        // than the body's kinetic energy: near static equilibrium H is stationary in the positions, and the
-        // velocities cannot give up more than they carry, so the next contact steps would fail the same way (a
-        // ball squeezed into the pile's bottom layer failed 26 steps in a row at 22 iterations each).
+        // than the velocities can give up: near static equilibrium H is stationary in the positions, and the
+        // velocities cannot give up more than they carry beyond the rigid motion the momentum targets fix, so the
+        // next contact steps would fail the same way (a ball squeezed into the pile's bottom layer failed 26 steps
+        // in a row at 22 iterations each; a ball rolling slowly on the pile, its kinetic energy nearly all its
+        // rolling, failed every step at 23 iterations).
         let resting = contacts > 0
             && projection.is_some_and(|p| {
                 !p.converged
-                    && (inv.kinetic <= RESTING_CONTACT_RESIDUAL * scale_h || -p.gap > inv.kinetic)
+                    && (inv.kinetic <= RESTING_CONTACT_RESIDUAL * scale_h
+                        || -p.gap > self.removable_kinetic(&inv, &targets))
             });
         self.resting_steps = if resting { self.resting_steps + 1 } else { 0 };
         // The references advance to this step's targets even when the projection did not converge: a failed
@@ -1064,6 +1089,44 @@ impl Simulation {
         Ok((adv, finite))
     }
 
+    /// The report of a projection standing down on the current state (measured as `inv`), if the resting rule
+    /// holds there: kinetic energy below the resting bound, or more to take out than the velocities can give up.
+    fn stood_down(&self, targets: &Targets, inv: &Invariants) -> Option<ProjectionReport> {
+        let gap = targets.energy - inv.total;
+        let at_rest = inv.kinetic <= RESTING_CONTACT_RESIDUAL * targets.energy_scale
+            || -gap > self.removable_kinetic(inv, targets);
+        at_rest.then(|| {
+            let residual = gap.abs() / targets.energy_scale;
+            ProjectionReport {
+                stood_down: true,
+                initial_residual: residual,
+                final_residual: residual,
+                base_energy: inv.total,
+                base_min_j: inv.min_j,
+                gap,
+                frozen_vertices: self.contact_vertices.len(),
+                ..Default::default()
+            }
+        })
+    }
+
+    /// The kinetic energy a projection could take out of the current state (J), as the resting rule counts it:
+    /// for a body slower than the contact's resting speed ([`RESTING_SPEED_STEPS`] `|g| h`: settling, rocking or
+    /// rolling on its support, where the positions cannot give energy up either), all of it but the rigid motion
+    /// the momentum rows keep ([`Projector::fixed_kinetic`]); for a faster one (an impact, whose strain can
+    /// still give energy up), all of it.
+    fn removable_kinetic(&self, inv: &Invariants, targets: &Targets) -> f64 {
+        let resting_speed = RESTING_SPEED_STEPS * norm(self.model.gravity) * self.dt;
+        if inv.kinetic > 0.5 * self.model.total_mass * resting_speed * resting_speed {
+            return inv.kinetic;
+        }
+        let fixed = self
+            .projector
+            .as_ref()
+            .map_or(0.0, |p| p.fixed_kinetic(&self.model, &self.state, targets));
+        inv.kinetic - fixed
+    }
+
     /// The error of a step that made the state unusable (`what`), with the integrator, the step size and `advice`.
     fn unstable(&self, step: usize, what: &str, advice: &str) -> FeprError {
         FeprError::Simulation(format!(
@@ -1079,31 +1142,29 @@ impl Simulation {
     /// The projection of the base step's state onto `targets` (with what the integrator handed over), or, without a
     /// projector, the state's measurement. Returns the report, the invariants and the base state's energy.
     ///
-    /// `stand_down`: a step of resting contact after one whose projection could not converge (see
-    /// [`Simulation::step`]): if the base state's kinetic energy is below the resting bound, the projection stands
-    /// down (no iteration; the report says `stood_down`, its residual is the energy's, relative to the energy scale).
+    /// `resting`: on a step of resting contact after one whose projection could not converge (see
+    /// [`Simulation::step`]), if the base state's kinetic energy is below the resting bound, the projection stands
+    /// down (no iteration; the report says `stood_down`, its residual is the energy's, relative to the energy
+    /// scale). On the steps that retry it, a projection that does not converge and whose best iterate has more
+    /// kinetic energy than the base step's state gives that state back and stands down too (reporting the
+    /// iterations it tried): the iterate would kick a body at rest every retry (an XPBD block resting on a slab
+    /// jumped from 6e-5 to 2e-3 J of kinetic energy every 16th step).
     fn project_or_measure(
         &mut self,
         targets: &Targets,
-        stand_down: bool,
+        resting: Resting,
     ) -> (Option<ProjectionReport>, Invariants, f64) {
-        if stand_down && self.projector.is_some() {
+        // A retry's way back: the base state's stand-down report and invariants.
+        let mut at_rest = None;
+        if resting != Resting::No && self.projector.is_some() {
             let inv = measure(&self.model, &self.state);
-            let gap = targets.energy - inv.total;
-            if inv.kinetic <= RESTING_CONTACT_RESIDUAL * targets.energy_scale || -gap > inv.kinetic
-            {
-                let residual = gap.abs() / targets.energy_scale;
-                let rep = ProjectionReport {
-                    stood_down: true,
-                    initial_residual: residual,
-                    final_residual: residual,
-                    base_energy: inv.total,
-                    base_min_j: inv.min_j,
-                    gap,
-                    frozen_vertices: self.contact_vertices.len(),
-                    ..Default::default()
-                };
-                return (Some(rep), inv, inv.total);
+            if let Some(rep) = self.stood_down(targets, &inv) {
+                if resting == Resting::StandDown {
+                    return (Some(rep), inv, inv.total);
+                }
+                let (x, v) = &mut self.retry_base;
+                copy_rows2(&self.state.x, x, &self.state.v, v);
+                at_rest = Some((rep, inv));
             }
         }
         match self.projector.as_mut() {
@@ -1122,6 +1183,21 @@ impl Simulation {
                     let system = metric.as_deref_mut().map(|m| m as &mut dyn SystemMetric);
                     p.project_with(&self.model, &mut self.state, self.dt, targets, system)
                 };
+                let kicked =
+                    |(_, base): &(ProjectionReport, Invariants)| inv.kinetic > base.kinetic;
+                if let (Some((stood, inv)), false) = (at_rest.filter(kicked), rep.converged) {
+                    p.take_final_hand_over();
+                    let (x, v) = &self.retry_base;
+                    self.state.x.copy_from_slice(x);
+                    self.state.v.copy_from_slice(v);
+                    let rep = ProjectionReport {
+                        iterations: rep.iterations,
+                        evaluations: rep.evaluations,
+                        trials: rep.trials,
+                        ..stood
+                    };
+                    return (Some(rep), inv, inv.total);
+                }
                 // The projection's final gradient, for an integrator that starts its next step with it.
                 if let Some((grad, x_copy)) = p.take_final_hand_over() {
                     if hand_over.reads_start_gradient() {
