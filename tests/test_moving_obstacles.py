@@ -192,6 +192,15 @@ def test_obstacle_motion_placement_and_bad_motions():
     # The pivot moved 1 m along x; a point 1 m along x from it turned a quarter turn about z.
     assert np.allclose(r @ np.array([1.0, 0, 0]) + offset, [2, 0, 0])
     assert np.allclose(r @ np.array([2.0, 0, 0]) + offset, [2, 1, 0])
+    # Keyframed orientations about the pivot: halfway between an eighth and three eighths of a turn about x
+    # (slerp) is a quarter turn, the last held after its time; the placement is the core's, a proper rotation.
+    turned = fepr.ObstacleMotion(orientation_times=[0, 2], orientations=[[np.pi / 4, 0, 0], [3 * np.pi / 4, 0, 0]])
+    r, offset = turned.placement(1.0)
+    assert np.allclose(r, [[1, 0, 0], [0, 0, -1], [0, 1, 0]], atol=1e-12) and np.allclose(offset, 0, atol=1e-12)
+    r, _ = turned.placement(5.0)
+    c, s = np.cos(3 * np.pi / 4), np.sin(3 * np.pi / 4)
+    assert np.allclose(r, [[1, 0, 0], [0, c, -s], [0, s, c]], atol=1e-12)
+    assert abs(np.linalg.det(r) - 1) < 1e-12
     with pytest.raises(ConfigError, match="angular_velocity"):
         fepr.ObstacleMotion(angular_velocity=(0, np.nan, 0))
     with pytest.raises(ConfigError, match="translation"):

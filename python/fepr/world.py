@@ -394,25 +394,6 @@ class Keyframes:
 Motion = Union[Sinusoid, Keyframes]
 
 
-def _rotation_matrix(w) -> np.ndarray:
-    """The rotation (3, 3) of rotation vector ``w`` (rad; Rodrigues' formula)."""
-    w = np.asarray(w, dtype=float)
-    angle = float(np.linalg.norm(w))
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if angle == 0:
-        return np.eye(3)
-    return np.eye(3) + math.sin(angle) / angle * k + (1 - math.cos(angle)) / angle**2 * (k @ k)
-
-
-def _rotation_vector(r: np.ndarray) -> np.ndarray:
-    """The rotation vector (rad) of rotation ``r`` (3, 3), angle in [0, pi)."""
-    angle = math.acos(max(-1.0, min(1.0, (np.trace(r) - 1) / 2)))
-    if angle < 1e-12:
-        return np.zeros(3)
-    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2 * math.sin(angle))
-    return angle * axis
-
-
 @dataclass(frozen=True)
 class ObstacleMotion:
     """A prescribed rigid motion of an obstacle (a moving platform, a piston, a turning drum or paddle).
@@ -465,26 +446,14 @@ class ObstacleMotion:
         turns = [c for row in self.orientations for c in row]
         return kind, params, times, list(self.angular_velocity), list(self.pivot), list(self.orientation_times), turns
 
-    def _orientation(self, t: float) -> np.ndarray:
-        """The keyframed orientation at ``t`` (3, 3): slerp between the keyframes, held outside them."""
-        if not self.orientation_times:
-            return np.eye(3)
-        times, turns = np.asarray(self.orientation_times), np.asarray(self.orientations)
-        if t <= times[0] or t >= times[-1]:
-            return _rotation_matrix(turns[0] if t <= times[0] else turns[-1])
-        k = int(np.searchsorted(times, t, side="right")) - 1
-        s = (t - times[k]) / (times[k + 1] - times[k])
-        a, b = _rotation_matrix(turns[k]), _rotation_matrix(turns[k + 1])
-        # slerp: a times the rotation from a to b, scaled by s (as a rotation vector).
-        return a @ _rotation_matrix(s * _rotation_vector(a.T @ b))
-
     def placement(self, t: float) -> Tuple[np.ndarray, np.ndarray]:
         """Where the obstacle is at time ``t`` (s): ``(R (3, 3), offset (3,) m)`` with ``x = R @ p + offset`` for
-        a point ``p`` of the obstacle as given (for drawing it, or placing a copy of its mesh in an export)."""
-        r = _rotation_matrix(np.asarray(self.angular_velocity) * float(t)) @ self._orientation(float(t))
-        d = np.zeros(3) if self.translation is None else self.translation.displacement(float(t))
-        c = np.asarray(self.pivot)
-        return r, c + d - r @ c
+        a point ``p`` of the obstacle as given (for drawing it, or placing a copy of its mesh in an export): the
+        core's own placement, the one contact uses."""
+        from . import _core
+
+        r, offset = _core.obstacle_placement(self._core(), float(t))
+        return np.asarray(r, dtype=float), np.asarray(offset, dtype=float)
 
 
 @dataclass(frozen=True)

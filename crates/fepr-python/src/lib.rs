@@ -78,6 +78,58 @@ fn pin_motion(kind: &str, p: Vec<f64>, times: Vec<f64>, what: &str) -> PyResult<
     }
 }
 
+/// An obstacle's motion from Python ([`ObstacleMotionArgs`]), `what` naming its owner in the error.
+fn obstacle_motion(args: ObstacleMotionArgs, what: &str) -> PyResult<ObstacleMotion> {
+    let (path, q, times, angular_velocity, pivot, turn_times, turns) = args;
+    if turns.len() != 3 * turn_times.len() {
+        return Err(PyValueError::new_err(format!(
+            "{what}: orientations must be one rotation vector (3 numbers) per time, got {} numbers for {} times",
+            turns.len(),
+            turn_times.len()
+        )));
+    }
+    let translation = if path == "none" {
+        PinMotion::Keyframes {
+            times: vec![0.0],
+            offsets: vec![[0.0; 3]],
+        }
+    } else {
+        pin_motion(&path, q, times, what)?
+    };
+    Ok(ObstacleMotion {
+        translation,
+        angular_velocity,
+        pivot,
+        orientations: (
+            turn_times,
+            turns.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
+        ),
+    })
+}
+
+/// Where an obstacle with `motion` ([`ObstacleMotionArgs`]) is at time `t` (s), as the core places it:
+/// `(R (3, 3) rows, offset (3,) m)` with `x = R p + offset` for a point `p` of the obstacle as given.
+#[pyfunction]
+fn obstacle_placement(motion: ObstacleMotionArgs, t: f64) -> PyResult<([[f64; 3]; 3], [f64; 3])> {
+    let motion = obstacle_motion(motion, "ObstacleMotion")?;
+    motion
+        .validate()
+        .map_err(|e| PyValueError::new_err(format!("ObstacleMotion: {e}")))?;
+    let pose = motion.pose(t);
+    let offset = pose.apply([0.0; 3]);
+    // Column c of R is where the unit vector e_c goes, less the offset.
+    let mut r = [[0.0; 3]; 3];
+    for c in 0..3 {
+        let mut e = [0.0; 3];
+        e[c] = 1.0;
+        let image = pose.apply(e);
+        for a in 0..3 {
+            r[a][c] = image[a] - offset[a];
+        }
+    }
+    Ok((r, offset))
+}
+
 fn value_error(e: FeprError) -> PyErr {
     PyValueError::new_err(e.to_string())
 }
@@ -736,33 +788,10 @@ impl Simulation {
             };
             let mut ob = Obstacle::new(shape, restitution, friction)
                 .map_err(|e| PyValueError::new_err(format!("obstacle {k} ({kind}): {e}")))?;
-            if let Some((path, q, times, angular_velocity, pivot, turn_times, turns)) = motion {
+            if let Some(args) = motion {
                 let what = format!("obstacle {k} ({kind})");
-                if turns.len() != 3 * turn_times.len() {
-                    return Err(PyValueError::new_err(format!(
-                        "{what}: orientations must be one rotation vector (3 numbers) per time, got {} numbers for {} times",
-                        turns.len(),
-                        turn_times.len()
-                    )));
-                }
-                let translation = if path == "none" {
-                    PinMotion::Keyframes {
-                        times: vec![0.0],
-                        offsets: vec![[0.0; 3]],
-                    }
-                } else {
-                    pin_motion(&path, q, times, &what)?
-                };
                 ob = ob
-                    .with_motion(ObstacleMotion {
-                        translation,
-                        angular_velocity,
-                        pivot,
-                        orientations: (
-                            turn_times,
-                            turns.chunks(3).map(|c| [c[0], c[1], c[2]]).collect(),
-                        ),
-                    })
+                    .with_motion(obstacle_motion(args, &what)?)
                     .map_err(|e| PyValueError::new_err(format!("{what}: {e}")))?;
             }
             out.push(ob);
@@ -1008,6 +1037,7 @@ fn check_mesh_obstacle(vertices: Vec<f64>, triangles: Vec<u32>) -> PyResult<bool
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(validate_mesh, m)?)?;
+    m.add_function(wrap_pyfunction!(obstacle_placement, m)?)?;
     m.add_function(wrap_pyfunction!(material_eval, m)?)?;
     m.add_function(wrap_pyfunction!(bench_sync_floor, m)?)?;
     m.add_class::<Simulation>()?;
