@@ -116,6 +116,19 @@ def check_mesh_obstacle(vertices: Sequence[float], triangles: Sequence[int]) -> 
     """Validate a triangle-mesh obstacle (``vertices`` (n * 3) m and ``triangles`` (k * 3), flattened); returns
     whether it is closed. Raises ValueError naming the vertex or triangle at fault."""
 
+# An obstacle's motion: (translation kind ("none", "sinusoid", "keyframes"), its parameters, keyframe times (s),
+# angular velocity (3) rad/s, pivot (3) m, orientation times (k) s, orientations flattened (k * 3 rotation
+# vectors, rad)).
+ObstacleMotionArgs = Tuple[
+    str, Sequence[float], Sequence[float], Sequence[float], Sequence[float], Sequence[float], Sequence[float]
+]
+
+def obstacle_placement(
+    motion: ObstacleMotionArgs, t: float
+) -> Tuple[Tuple[Tuple[float, float, float], ...], Tuple[float, float, float]]:
+    """Where an obstacle with ``motion`` is at time ``t`` (s), as contact places it: ``(R (3, 3) rows, offset (3,)
+    m)`` with ``x = R p + offset`` for a point ``p`` of the obstacle as given. Raises ValueError for a bad motion."""
+
 def validate_mesh(
     vertices: npt.NDArray[np.float64], tets: npt.NDArray[np.int64]
 ) -> Tuple[npt.NDArray[np.int64], int, int]:
@@ -294,15 +307,14 @@ class Simulation:
                 float,
                 float,
                 Sequence[int],
-                Optional[Tuple[str, Sequence[float], Sequence[float], Sequence[float], Sequence[float]]],
+                Optional[ObstacleMotionArgs],
             ]
         ],
     ) -> None:
         """Obstacles as ``(kind, params, restitution, friction, triangles, motion)``: "plane" [point (3), normal
         (3)], "sphere" [center (3), radius], "box" [center (3), half extents (3), 9 rotation entries (rows)],
         "capsule" [a (3), b (3), radius], "mesh" [vertices flattened (n * 3)] with ``triangles`` flattened (k * 3;
-        empty for the other kinds); lengths in m. ``motion``: None (static) or ``(translation kind ("none",
-        "sinusoid", "keyframes"), its parameters, keyframe times (s), angular velocity (3) rad/s, pivot (3) m)``.
+        empty for the other kinds); lengths in m. ``motion``: None (static) or an :data:`ObstacleMotionArgs`.
         Replaces the previous list. Raises ValueError for a bad obstacle."""
 
     def set_self_contact(self, coefficients: Optional[Tuple[float, float]]) -> None:
