@@ -25,6 +25,21 @@ def _box(center, size=0.2):
     return fepr.meshes.builtin("box", size=size, resolution=3, center=center)
 
 
+def _box_sim(center, obstacles, integrator=None, gravity=True, **kw):
+    """The 0.2 m Neo-Hookean box (1e5 / 0.3, 1000 kg/m^3) at ``center`` among ``obstacles``, at dt = 1/60 (Projective
+    Dynamics unless ``integrator`` is given), under gravity unless ``gravity`` is False."""
+    return fepr.Simulation(
+        _box(center),
+        material=fepr.NeoHookean(1e5, 0.3),
+        density=kw.pop("density", 1000),
+        integrator=integrator or fepr.ProjectiveDynamics(),
+        dt=1 / 60,
+        obstacles=obstacles,
+        gravity=(0, 0, -9.81) if gravity else (0, 0, 0),
+        **kw,
+    )
+
+
 def _books(h):
     """Largest |total - (H0 + budget_total)| over the run, relative to the largest |total|."""
     gap = h["total"] - (h["total"][0] + h["budget_total"])
@@ -35,16 +50,7 @@ def _books(h):
 def test_a_rising_platform_carries_a_box_and_books_its_work(name):
     # The plane z = 0 rises 0.5 m between t = 0.5 s and 1.5 s, under a box of 8 kg resting on it.
     lift = fepr.ObstacleMotion(translation=fepr.Keyframes(times=[0.5, 1.5], offsets=[[0, 0, 0], [0, 0, 0.5]]))
-    mesh = _box((0.0, 0.0, 0.1001))
-    sim = fepr.Simulation(
-        mesh,
-        material=fepr.NeoHookean(1e5, 0.3),
-        density=1000,
-        integrator=INTEGRATORS[name](),
-        dt=1 / 60,
-        obstacles=[fepr.Plane(restitution=0.0, friction=0.5, motion=lift)],
-        gravity=(0, 0, -9.81),
-    )
+    sim = _box_sim((0.0, 0.0, 0.1001), [fepr.Plane(restitution=0.0, friction=0.5, motion=lift)], INTEGRATORS[name]())
     sim.step(150)
     h = sim.history
     z = sim.positions[:, 2]
@@ -66,14 +72,7 @@ def test_a_thin_plate_swept_at_10_m_per_s_pushes_a_box_instead_of_passing_throug
     # A 1 cm plate moving at 10 m/s (17 cm per step at dt = 1/60) into a box floating in space.
     sweep = fepr.ObstacleMotion(translation=fepr.Keyframes(times=[0, 0.1], offsets=[[0, 0, 0], [1.0, 0, 0]]))
     plate = fepr.Box(center=(-0.5, 0, 0), half_extents=(0.005, 0.3, 0.3), restitution=0.5, motion=sweep)
-    sim = fepr.Simulation(
-        _box((0.0, 0.0, 0.0)),
-        material=fepr.NeoHookean(1e5, 0.3),
-        density=1000,
-        integrator=INTEGRATORS[name](),
-        dt=1 / 60,
-        obstacles=[plate],
-    )
+    sim = _box_sim((0.0, 0.0, 0.0), [plate], INTEGRATORS[name](), gravity=False)
     sim.step(18)
     x = sim.positions
     # The plate stopped at x = 0.5 (its front face at 0.505): every vertex is in front of it, and the box left
@@ -93,15 +92,7 @@ def test_a_turntable_turns_a_box_resting_on_it():
         friction=0.8,
         motion=fepr.ObstacleMotion(angular_velocity=(0, 0, 1.0)),
     )
-    sim = fepr.Simulation(
-        _box((0.5, 0.0, 0.1)),
-        material=fepr.NeoHookean(1e5, 0.3),
-        density=1000,
-        integrator=fepr.ProjectiveDynamics(),
-        dt=1 / 60,
-        obstacles=[table],
-        gravity=(0, 0, -9.81),
-    )
+    sim = _box_sim((0.5, 0.0, 0.1), [table])
     sim.step(180)
     c = sim.positions.mean(axis=0)
     assert abs(np.arctan2(c[1], c[0]) - 3.0) < 0.1, np.arctan2(c[1], c[0])
@@ -122,15 +113,7 @@ def test_a_platform_tilted_by_keyframed_orientations_holds_or_sheds_a_box(tilt_d
         friction=0.5,
         motion=fepr.ObstacleMotion(orientation_times=[0.2, 1.2], orientations=[[0, 0, 0], [0, tilt, 0]]),
     )
-    sim = fepr.Simulation(
-        _box((0.0, 0.0, 0.1001)),
-        material=fepr.NeoHookean(1e5, 0.3),
-        density=1000,
-        integrator=fepr.ProjectiveDynamics(),
-        dt=1 / 60,
-        obstacles=[slab],
-        gravity=(0, 0, -9.81),
-    )
+    sim = _box_sim((0.0, 0.0, 0.1001), [slab])
     sim.step(120)
     r, offset = slab.motion.placement(sim.time)
     # The box's centre in the slab's frame: along the slope (x) it stays near where it stood, or slides down.
@@ -149,16 +132,7 @@ def test_projective_dynamics_in_a_corner_does_not_make_elastic_energy(sliding):
     # the energy can only fall. The contact constraints used to hold the face along the wall where the
     # inertial prediction put it (in free fall): 36 J of elastic energy from 2 J of kinetic.
     wall = fepr.Box(center=(0.15 if sliding else 0.1301, 0, 0.1), half_extents=(0.03, 0.3, 0.2), restitution=0.0)
-    sim = fepr.Simulation(
-        _box((0.0, 0.0, 0.1)),
-        material=fepr.NeoHookean(1e5, 0.3),
-        density=500,
-        integrator=fepr.ProjectiveDynamics(),
-        dt=1 / 60,
-        obstacles=[fepr.Plane(restitution=0.0), wall],
-        projection=False,
-        gravity=(0, 0, -9.81),
-    )
+    sim = _box_sim((0.0, 0.0, 0.1), [fepr.Plane(restitution=0.0), wall], density=500, projection=False)
     if sliding:
         v = np.zeros_like(sim.positions)
         v[:, 0] = 1.0
