@@ -5,7 +5,7 @@
 use super::restoration::{QualityCheck, Restoration, Rule};
 use super::{Metric, ProjectionReport, Projector, SystemMetric, Targets};
 use crate::invariants::Invariants;
-use crate::math::{cross, dot, sub, Vec3};
+use crate::math::{cross, dot, sub, Mat3, Vec3};
 use crate::model::{Model, State};
 
 /// Projections tried after the full restoration failed the guard, before the fraction search stops.
@@ -26,6 +26,13 @@ fn next_fraction(lo: f64, e_lo: f64, hi: f64, e_hi: f64) -> f64 {
         0.3
     };
     lo + s * w
+}
+
+/// The kinetic energy of a rotation with angular momentum `l` (kg m^2/s) of a body whose inverse inertia about
+/// its centre is `inv`, J: `l . I^-1 l / 2`.
+fn spin_energy(inv: &Mat3, l: Vec3) -> f64 {
+    let w = [0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * l[b]).sum::<f64>());
+    0.5 * dot(w, l)
 }
 
 /// What the fraction search tallies over its projections.
@@ -69,64 +76,50 @@ impl Projector {
     /// deformational rest carries no momenta, so it keeps its energy). 0 where the momentum rows do not hold the
     /// whole body (pins, rows off, slack free) or the body is degenerate.
     fn momentum_energy(&self, model: &Model, x: &[Vec3], v: &[Vec3], targets: &Targets) -> f64 {
-        self.rigid_kinetic(model, x, v, targets)
-            .map_or(0.0, |(now, on_targets)| on_targets - now)
+        if !self.momenta_hold_the_body(model, targets) {
+            return 0.0;
+        }
+        let rigid = crate::invariants::rigid_motion(&model.masses, x, v);
+        let Some(inv) = rigid.inertia_inv else {
+            return 0.0;
+        };
+        let m = rigid.mass;
+        let (vt, l_t) = targets.rigid_motion_at(m, rigid.center);
+        let k_now = 0.5 * dot(rigid.momentum, rigid.momentum) / m
+            + spin_energy(&inv, rigid.angular_momentum);
+        let k_next = 0.5 * m * dot(vt, vt) + spin_energy(&inv, l_t);
+        k_next - k_now
     }
 
     /// The kinetic energy that the momentum rows keep in a state `(x, v)` (J): that of its rigid motion (`V = P / m`,
     /// `omega = I^-1 L` about the centre of mass), which a projection that holds the momenta cannot take out (up
-    /// to their slack); 0 where vertices are pinned or a momentum row is off. What a projection can remove from
+    /// to their slack); 0 where a momentum row is off or vertices are pinned. What a projection can remove from
     /// the kinetic energy is the rest.
     pub(crate) fn fixed_kinetic(&self, model: &Model, state: &State, targets: &Targets) -> f64 {
-        let rows = self.active_rows(model, targets);
-        if model.num_pinned() > 0 || !rows[1..7].iter().all(|&a| a) {
+        if !self.momentum_rows_on(model, targets) {
             return 0.0;
         }
         let rigid = crate::invariants::rigid_motion(&model.masses, &state.x, &state.v);
         rigid.inertia_inv.map_or(0.0, |inv| {
-            let w = [0, 1, 2].map(|a| {
-                (0..3)
-                    .map(|b| inv[a][b] * rigid.angular_momentum[b])
-                    .sum::<f64>()
-            });
             0.5 * dot(rigid.momentum, rigid.momentum) / rigid.mass
-                + 0.5 * dot(w, rigid.angular_momentum)
+                + spin_energy(&inv, rigid.angular_momentum)
         })
-    }
-
-    /// The kinetic energy of the rigid part of `v` and of the rigid motion on the momentum targets, J; `None` where the momentum rows do not hold the whole body or it is degenerate.
-    fn rigid_kinetic(
-        &self,
-        model: &Model,
-        x: &[Vec3],
-        v: &[Vec3],
-        targets: &Targets,
-    ) -> Option<(f64, f64)> {
-        if !self.momenta_hold_the_body(model, targets) {
-            return None;
-        }
-        let rigid = crate::invariants::rigid_motion(&model.masses, x, v);
-        let inv = rigid.inertia_inv?;
-        let m = rigid.mass;
-        let (vt, l_t) = targets.rigid_motion_at(m, rigid.center);
-        let spin = |l: Vec3| {
-            let w = [0, 1, 2].map(|a| (0..3).map(|b| inv[a][b] * l[b]).sum::<f64>());
-            0.5 * dot(w, l)
-        };
-        let k_now = 0.5 * dot(rigid.momentum, rigid.momentum) / m + spin(rigid.angular_momentum);
-        let k_next = 0.5 * m * dot(vt, vt) + spin(l_t);
-        Some((k_now, k_next))
     }
 
     /// Whether the momentum rows hold the whole body to their targets (no pins, every row on, no slack).
     fn momenta_hold_the_body(&self, model: &Model, targets: &Targets) -> bool {
-        let rows = self.active_rows(model, targets);
         let slack = match self.settings.slack {
             super::Slack::On => true,
             super::Slack::Off => false,
             super::Slack::Auto => targets.uncertain_impulses,
         };
-        model.num_pinned() == 0 && rows[1..7].iter().all(|&a| a) && !slack
+        self.momentum_rows_on(model, targets) && !slack
+    }
+
+    /// Whether every momentum row is on and no vertex is pinned.
+    fn momentum_rows_on(&self, model: &Model, targets: &Targets) -> bool {
+        let rows = self.active_rows(model, targets);
+        model.num_pinned() == 0 && rows[1..7].iter().all(|&a| a)
     }
 
     /// Put the rigid part of `state`'s velocities on the momentum targets (the change
@@ -478,8 +471,7 @@ impl Projector {
         // regula falsi from the full projection's measure alone undershoots, as the measure grows faster than
         // linearly towards the full restoration), and where it is accepted, the fraction just above the
         // search's precision next: where that one is refused, the bracket is narrow enough after two trials.
-        // Why not stop at an accepted fraction whose measure is near the rule's limit: the measure can be flat
-        // in the fraction (on the armadillo's landing, 0.025 and 0.064 of the gap both used 99% of the margin).
+        // The stop is on the bracket, not on the measure: the measure can be flat in the fraction.
         let mut guess = rs.last_fraction.take().filter(|&t| t > lo && t < hi);
         let mut grow = false;
         for _ in 0..MAX_FRACTION_TRIALS {
