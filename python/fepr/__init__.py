@@ -17,7 +17,7 @@ Quick example::
 
 from . import export, meshes
 from ._core import __version__
-from .errors import ConfigError, FeprError, MeshError, MissingDependencyError, SimulationError
+from .errors import CheckpointError, ConfigError, FeprError, MeshError, MissingDependencyError, SimulationError
 from .io import load_mesh
 from .materials import Arap, ConstraintNeoHookean, NeoHookean, StableNeoHookean
 from .mesh import TetMesh
@@ -51,6 +51,7 @@ __all__ = [
     "Sphere",
     "ConstraintNeoHookean",
     "ProjectiveDynamics",
+    "CheckpointError",
     "ConfigError",
     "Energy",
     "FeprError",

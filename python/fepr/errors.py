@@ -30,3 +30,8 @@ class MissingDependencyError(FeprError, ImportError):
 
     For example :func:`fepr.tetrahedralize` needs the ``mesh`` extra: ``pip install "fepr[mesh]"``.
     """
+
+
+class CheckpointError(FeprError, ValueError):
+    """A checkpoint cannot be read or does not fit: not a fepr checkpoint, damaged, written by another checkpoint
+    version, or for another mesh or settings (the message names the file and what does not match)."""

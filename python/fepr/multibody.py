@@ -337,25 +337,29 @@ class MultiBody:
                 raise err from None
 
     def _step_together(self, n: int) -> None:
-        """``n`` steps of all bodies at once, with contact between them (``fepr._core.step_bodies``)."""
+        """``n`` steps of all bodies at once, with contact between them (``fepr._core.step_bodies``), in batches
+        of at most :attr:`fepr.Simulation.BATCH_SECONDS` (signals are handled between them)."""
         from . import _core
 
-        before = [b.num_steps for b in self._bodies]
-        try:
-            _core.step_bodies([b._sim for b in self._bodies], n, self._coefficients)
-        except RuntimeError as exc:
-            k, message = exc.args if len(exc.args) == 2 else (0, str(exc))
-            name = self._names[k]
-            # The core numbers the bodies; the user named them.
-            message = re.sub(r"\bbody (\d+)\b", lambda m: f"body {self._names[int(m.group(1))]!r}", message)
-            err = SimulationError(message if message.startswith("body ") else f"body {name!r}: {message}")
-            err.step = self._bodies[k].num_steps + 1  # type: ignore[attr-defined]
-            err.body = name  # type: ignore[attr-defined]
-            raise err from None
-        finally:
-            for b, k in zip(self._bodies, before):
-                b._check_runaway(k)
-                b._check_projection(k)
+        remaining = n
+        while remaining:
+            before = [b.num_steps for b in self._bodies]
+            try:
+                remaining -= _core.step_bodies(
+                    [b._sim for b in self._bodies], remaining, self._coefficients, Simulation.BATCH_SECONDS
+                )
+            except RuntimeError as exc:
+                k, message = exc.args if len(exc.args) == 2 else (0, str(exc))
+                name = self._names[k]
+                # The core numbers the bodies; the user named them.
+                message = re.sub(r"\bbody (\d+)\b", lambda m: f"body {self._names[int(m.group(1))]!r}", message)
+                err = SimulationError(message if message.startswith("body ") else f"body {name!r}: {message}")
+                err.step = self._bodies[k].num_steps + 1  # type: ignore[attr-defined]
+                err.body = name  # type: ignore[attr-defined]
+                raise err from None
+            finally:
+                for b, k in zip(self._bodies, before):
+                    b._after_batch(k)
 
     @property
     def coefficients(self) -> Tuple[Tuple[float, float], ...]:
@@ -441,6 +445,28 @@ class MultiBody:
     def save_diagnostics(self, path: Union[str, Path]) -> None:
         """Write :attr:`history` (the totals) as CSV (one row per step, header of column names)."""
         self.history.to_csv(path)
+
+    def save_checkpoint(self, path: Union[str, Path], *, history: bool = True) -> None:
+        """Write every body's checkpoint (:meth:`fepr.Simulation.save_checkpoint`) and the system's names, contact
+        switch and coefficients to one ``.npz`` file, atomically; :meth:`load_checkpoint` resumes it bit for bit."""
+        from .checkpoint import save_multibody
+
+        for b in self._bodies:
+            b._take_history()
+        save_multibody(self, path, history=history)
+
+    @classmethod
+    def load_checkpoint(cls, path: Union[str, Path], *, threads: Optional[int] = None) -> "MultiBody":
+        """A system resumed from :meth:`save_checkpoint`'s file (its next steps are the saved system's, bit for
+        bit). Raises :class:`fepr.errors.CheckpointError` for a file that is not a multi-body checkpoint."""
+        from .checkpoint import load_multibody
+
+        return load_multibody(path, threads=threads)
+
+    @property
+    def last(self) -> Dict[str, float]:
+        """The last row of :attr:`history` as ``{column: value}``."""
+        return self.history.last
 
     def save_state(self, path: Union[str, Path]) -> None:
         """Write the system to a NumPy ``.npz`` file.

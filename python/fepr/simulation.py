@@ -6,7 +6,6 @@ velocities have shape ``(m, 3)``.
 
 from __future__ import annotations
 
-import csv
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ import numpy as np
 from . import _core
 from ._validate import float_array, integer, real
 from .errors import ConfigError, SimulationError
+from .history import History, HistoryStore
 from .materials import MATERIAL_TYPES, _Material
 from .mesh import TetMesh
 from .world import OBSTACLE_TYPES, KinematicPins, Obstacle
@@ -281,59 +281,12 @@ class ProjectionReport:
     stood_down: bool = False
 
 
-class History:
-    """Per-step diagnostics, one row per step; row 0 is the initial state.
-
-    ``h["total"]`` is a column as a (rows,) float64 array; ``h.columns`` lists the names; ``h.as_dict()``
-    gives all columns. Energies in J, momenta in kg m/s, angular momenta (about the centre of mass) in
-    kg m^2/s, times in s, wall times in ms. Every column is described in ``docs/concepts.md`` (Diagnostics).
-    The counts and 0/1 flags (:attr:`INTEGER_COLUMNS`) are integer-valued floats in memory and integers in the
-    CSV that :meth:`to_csv` writes.
-    """
-
-    #: The columns that hold counts or 0/1 flags (written as integers by :meth:`to_csv`).
-    INTEGER_COLUMNS: FrozenSet[str] = frozenset(_core.HISTORY_INTEGER_COLUMNS)
-
-    def __init__(self, data: np.ndarray, columns: Sequence[str]):
-        self._data = data
-        self.columns: List[str] = list(columns)
-        self._index = {c: i for i, c in enumerate(self.columns)}
-
-    def __len__(self) -> int:
-        return int(self._data.shape[0])
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        try:
-            return self._data[:, self._index[name]]
-        except KeyError:
-            raise KeyError(f"no history column {name!r} (columns: {', '.join(self.columns)})") from None
-
-    def __iter__(self) -> Iterator[Dict[str, float]]:
-        for row in self._data:
-            yield dict(zip(self.columns, row.tolist()))
-
-    def as_dict(self) -> Dict[str, np.ndarray]:
-        return {c: self._data[:, i].copy() for i, c in enumerate(self.columns)}
-
-    def to_csv(self, path: Union[str, Path]) -> None:
-        """Write the history as CSV: a header of column names, then one row per step. The counts and flags
-        (:attr:`INTEGER_COLUMNS`) are written as integers (``3``, not ``3.0``), the other columns as floats
-        (shortest round-trip form; ``nan`` where undefined)."""
-        ints = [c in self.INTEGER_COLUMNS for c in self.columns]
-        with open(path, "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(self.columns)
-            for row in self._data:
-                w.writerow([str(int(v)) if i and np.isfinite(v) else repr(float(v)) for i, v in zip(ints, row)])
-
-    def __repr__(self) -> str:
-        return f"History({len(self)} rows, columns={self.columns})"
-
-
 #: The projection's warm-start thresholds of ``Projection(warm_start="auto")`` (the core's policy,
 #: ``fepr_core::simulation::auto_warm_start_threshold``): after Projective Dynamics always (any energy error above
 #: the tolerance), after XPBD above 5% of the energy scale.
 PD_WARM_START = _core.PD_WARM_START
+#: The history's ``step`` column (the store's rows are found by it).
+_STEP_COLUMN = list(_core.Simulation.history_columns()).index("step")
 XPBD_WARM_START = _core.XPBD_WARM_START
 
 
@@ -532,6 +485,25 @@ class Simulation:
         self._warned_runaway = False
         self._warned_unconverged = False
         self._warned_unresolved = False
+        self._history = HistoryStore(_core.Simulation.history_columns())
+        # What a checkpoint needs to build this simulation again (fepr.checkpoint), as the caller gave it.
+        self._recipe = dict(
+            mesh=mesh,
+            material=material,
+            node_mass=node_masses if node_masses is not None else (mass_value if mass_kind == "node_mass" else None),
+            density=mass_value if mass_kind == "density" else None,
+            integrator=integrator,
+            dt=dt,
+            projection=proj if proj is not None else False,
+            gravity=tuple(gravity),
+            pinned=[int(i) for i in self._pinned_indices(pinned, m)],
+            damping=float(damping),
+            obstacles=list(obstacles),
+            kinematic_pins=list(kinematic),
+            self_contact=self.self_contact if self.self_contact is not None else False,
+            air_damping=self.air_damping,
+            rayleigh_damping=self.rayleigh_damping,
+        )
 
     @staticmethod
     def _pinned_indices(pinned, m: int) -> List[int]:
@@ -579,6 +551,8 @@ class Simulation:
             setattr(self._sim, name, a)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        if self.num_steps == 0:
+            self._history.clear()  # row 0 describes the state the run starts from: taken again at the first step
 
     @property
     def rest_positions(self) -> np.ndarray:
@@ -623,8 +597,16 @@ class Simulation:
         return self._sim.integrator
 
     # --- stepping ----------------------------------------------------------------------------------------
+    #: Longest stretch of stepping, s, before control comes back to Python (signals such as Ctrl-C are handled
+    #: there, and the history rows are taken from the core): a run stops within this plus one step.
+    BATCH_SECONDS = 0.05
+
     def step(self, n: int = 1) -> None:
         """Advance ``n`` steps (the GIL is released while stepping).
+
+        The steps run in batches of at most :attr:`BATCH_SECONDS` of wall time; between batches Python handles
+        signals, so Ctrl-C (``KeyboardInterrupt``) stops a long ``step(n)`` within about 0.05 s plus one step, at
+        a step boundary: the state, the history and :attr:`num_steps` then describe the steps completed.
 
         Raises
         ------
@@ -634,16 +616,33 @@ class Simulation:
         """
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
             raise ConfigError(f"n must be a non-negative integer, got {n!r}")
-        before = self.num_steps
-        try:
-            self._sim.step(int(n))
-        except RuntimeError as exc:
-            err = SimulationError(str(exc))
-            err.step = self.num_steps + 1  # the step that failed
-            raise err from None
-        finally:
-            self._check_runaway(before)
-            self._check_projection(before)
+        remaining = int(n)
+        while remaining:
+            before = self.num_steps
+            try:
+                remaining -= self._sim.step(remaining, self.BATCH_SECONDS)
+            except RuntimeError as exc:
+                err = SimulationError(str(exc))
+                err.step = self.num_steps + 1  # the step that failed
+                raise err from None
+            finally:
+                self._after_batch(before)
+
+    def _after_batch(self, before: int) -> None:
+        """After a batch of steps from step ``before``: the warnings, then the new history rows into the store
+        (the core keeps only its last row)."""
+        self._check_runaway(before)
+        self._check_projection(before)
+        self._take_history()
+
+    def _take_history(self) -> None:
+        """Move the core's history rows that the store does not hold yet into it."""
+        last = self._history.last
+        after = -1 if last is None else int(last[_STEP_COLUMN])
+        rows = self._sim.history_after(after)
+        if len(rows):
+            self._history.append(rows)
+        self._sim.trim_history()
 
     #: Unresolved energy (a share of the run's initial energy scale) above which :meth:`step` warns, once.
     UNRESOLVED_WARNING = 1e-3
@@ -781,12 +780,56 @@ class Simulation:
 
     @property
     def history(self) -> History:
-        """Per-step diagnostics (row 0: the initial state)."""
-        return History(self._sim.history(), _core.Simulation.history_columns())
+        """Per-step diagnostics (row 0: the initial state), a snapshot (later steps do not change it). Reading a
+        column reads only that column; :attr:`last` gives the last row without building anything."""
+        self._take_history()
+        return History(self._history, self._history.columns)
+
+    @property
+    def last(self) -> Dict[str, float]:
+        """The last row of the history as ``{column: value}`` (O(1), whatever the number of steps)."""
+        self._take_history()
+        return dict(zip(self._history.columns, self._history.last.tolist()))
+
+    @property
+    def history_memory_rows(self) -> Optional[int]:
+        """Rows of history kept in memory (default :data:`fepr.history.DEFAULT_MEMORY_ROWS`, about 31 MB); older
+        rows go to a temporary folder and are read back when a column is read. ``None``: keep every row in
+        memory."""
+        return self._history.memory_rows
+
+    @history_memory_rows.setter
+    def history_memory_rows(self, rows: Optional[int]) -> None:
+        self._history.memory_rows = rows
 
     def save_diagnostics(self, path: Union[str, Path]) -> None:
-        """Write :attr:`history` as CSV (one row per step, header of column names)."""
-        self.history.to_csv(path)
+        """Write :attr:`history` as CSV (one row per step, header of column names), atomically (a temporary file
+        in the same folder, renamed)."""
+        from .io.atomic import atomic_path
+
+        with atomic_path(path) as tmp:
+            self.history.to_csv(tmp)
+
+    def save_checkpoint(self, path: Union[str, Path], *, history: bool = True) -> None:
+        """Write everything the next steps depend on to ``path`` (a NumPy ``.npz`` file, written atomically):
+        the settings this simulation was built with (mesh, material, masses, integrator, projection, obstacles,
+        pins), the state, time and step count, the projection's running references and books, the kinematic
+        pins' anchors, the forces and damping set since, and (``history=True``) the history so far.
+        :meth:`load_checkpoint` builds a simulation whose next steps are this one's, bit for bit."""
+        from .checkpoint import save_simulation
+
+        self._take_history()
+        save_simulation(self, path, history=history)
+
+    @classmethod
+    def load_checkpoint(cls, path: Union[str, Path], *, threads: Optional[int] = None) -> "Simulation":
+        """A simulation resumed from a checkpoint written by :meth:`save_checkpoint`: its next steps are the
+        saved simulation's, bit for bit (any ``threads``). Raises :class:`fepr.errors.CheckpointError` for a file
+        that is not a fepr checkpoint, is damaged, comes from another checkpoint version, or holds a multi-body
+        system (use :meth:`fepr.MultiBody.load_checkpoint`)."""
+        from .checkpoint import load_simulation
+
+        return load_simulation(path, threads=threads)
 
     def save_state(self, path: Union[str, Path]) -> None:
         """Write ``positions, velocities, rest_positions, tets, masses, time`` to a NumPy ``.npz`` file."""

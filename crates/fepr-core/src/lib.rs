@@ -24,6 +24,7 @@
 // Index loops mirror the tensor formulas (P_ij, dP_ij/dF_kl) and read better than iterator chains here.
 #![allow(clippy::needless_range_loop)]
 
+pub mod checkpoint;
 pub mod elasticity;
 pub mod error;
 pub mod exec;

@@ -430,20 +430,58 @@ impl Simulation {
         })
     }
 
-    /// Take `n` steps with the GIL released. Raises RuntimeError (naming the step) on a runaway to a non-finite state.
-    /// Returns the number of steps taken.
-    fn step(&mut self, py: Python<'_>, n: usize) -> PyResult<usize> {
+    /// Take up to `n` steps with the GIL released; with `max_seconds`, stop after the first step that ends later
+    /// than that after the call began (so that the caller can check for signals and take the history between
+    /// bounded batches). Raises RuntimeError (naming the step) on a runaway to a non-finite state. Returns the
+    /// number of steps taken.
+    #[pyo3(signature = (n, max_seconds=None))]
+    fn step(&mut self, py: Python<'_>, n: usize, max_seconds: Option<f64>) -> PyResult<usize> {
         let Self { inner, threads, .. } = self;
-        // Onto the threads once for all `n` steps.
+        let budget = max_seconds.unwrap_or(f64::INFINITY);
+        // Onto the threads once for the whole batch.
         let result = py.detach(|| {
             threads.run(|| -> Result<usize, FeprError> {
-                for _ in 0..n {
+                let t0 = std::time::Instant::now();
+                for k in 0..n {
                     inner.step()?;
+                    if t0.elapsed().as_secs_f64() > budget {
+                        return Ok(k + 1);
+                    }
                 }
                 Ok(n)
             })
         });
         result.map_err(|e| PyRuntimeError::new_err(e.to_string()))
+    }
+
+    /// What the next steps depend on besides the settings (`fepr_core::simulation::Simulation::carry`), as named
+    /// float64 arrays (internal vertex order: only [`Simulation::resume`] of the same settings reads them).
+    fn carry<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        for (name, values) in self.inner.carry().entries() {
+            d.set_item(name, values.clone().into_pyarray(py))?;
+        }
+        Ok(d)
+    }
+
+    /// Put back a [`Simulation::carry`] taken from a simulation with the same settings; ValueError names what
+    /// does not match.
+    fn resume(&mut self, carry: std::collections::BTreeMap<String, Vec<f64>>) -> PyResult<()> {
+        self.inner
+            .resume(&fepr_core::checkpoint::Carry::from_entries(carry))
+            .map_err(value_error)
+    }
+
+    /// The history rows of the steps after `step` as a (rows, columns) float64 array (see `history_columns()`).
+    fn history_after<'py>(&self, py: Python<'py>, step: i64) -> Bound<'py, PyArray2<f64>> {
+        let h = self.inner.history();
+        let first = h.partition_point(|d| (d.step as i64) <= step);
+        rows_array(py, &h[first..])
+    }
+
+    /// Drop every history row but the last (the caller has taken them with `history_after`).
+    fn trim_history(&mut self) {
+        self.inner.trim_history();
     }
 
     #[getter]
@@ -695,7 +733,7 @@ impl Simulation {
         self.inner
             .history()
             .iter()
-            .skip(start)
+            .filter(|d| d.step >= start)
             .find(|d| d.runaway)
             .map(|d| d.step)
     }
@@ -705,7 +743,7 @@ impl Simulation {
         self.inner
             .history()
             .iter()
-            .skip(start)
+            .filter(|d| d.step >= start)
             .find(|d| d.projection.is_some_and(|p| !p.converged && !p.stood_down))
             .map(|d| d.step)
     }
@@ -853,17 +891,24 @@ impl Simulation {
     fn history_columns() -> Vec<&'static str> {
         HISTORY_COLUMNS.to_vec()
     }
-    /// The diagnostics as a (rows, columns) float64 array; see `history_columns()`.
+    /// The diagnostics the core still holds as a (rows, columns) float64 array; see `history_columns()`.
     fn history<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray2<f64>> {
-        let h = self.inner.history();
-        let mut a = Array2::<f64>::zeros((h.len(), HISTORY_COLUMNS.len()));
-        for (r, d) in h.iter().enumerate() {
-            for (c, v) in history_row(d).iter().enumerate() {
-                a[[r, c]] = *v;
-            }
-        }
-        a.into_pyarray(py)
+        rows_array(py, self.inner.history())
     }
+}
+
+/// Diagnostics rows as a (rows, columns) float64 array.
+fn rows_array<'py>(
+    py: Python<'py>,
+    h: &[fepr_core::simulation::StepDiagnostics],
+) -> Bound<'py, PyArray2<f64>> {
+    let mut a = Array2::<f64>::zeros((h.len(), HISTORY_COLUMNS.len()));
+    for (r, d) in h.iter().enumerate() {
+        for (c, v) in history_row(d).iter().enumerate() {
+            a[[r, c]] = *v;
+        }
+    }
+    a.into_pyarray(py)
 }
 
 impl Simulation {
@@ -952,12 +997,14 @@ fn warm_start_threshold(integrator: &str) -> f64 {
 /// (`fepr_core::simulation::step_bodies`); `coefficients` holds each body's `(restitution, friction)`. On a
 /// failure raises RuntimeError with args `(body index, message)`; the steps completed before it stay.
 #[pyfunction]
+#[pyo3(signature = (sims, n, coefficients, max_seconds=None))]
 fn step_bodies(
     py: Python<'_>,
     mut sims: Vec<PyRefMut<'_, Simulation>>,
     n: usize,
     coefficients: Vec<(f64, f64)>,
-) -> PyResult<()> {
+    max_seconds: Option<f64>,
+) -> PyResult<usize> {
     if sims.len() != coefficients.len() {
         return Err(PyValueError::new_err(format!(
             "{} bodies but {} coefficient pairs",
@@ -974,7 +1021,7 @@ fn step_bodies(
         })
         .collect::<PyResult<Vec<_>>>()?;
     let Some(first) = sims.first() else {
-        return Ok(());
+        return Ok(0);
     };
     let dt = first.inner.dt();
     if let Some(k) = sims.iter().position(|s| s.inner.dt() != dt) {
@@ -993,12 +1040,17 @@ fn step_bodies(
     let (inners, threads): (Vec<&mut CoreSimulation>, Vec<&Threads>) = parts.drain(..).unzip();
     let threads = threads[0];
     let mut inners = inners;
+    let budget = max_seconds.unwrap_or(f64::INFINITY);
     let result = py.detach(|| {
-        threads.run(|| -> Result<(), (usize, FeprError)> {
-            for _ in 0..n {
+        threads.run(|| -> Result<usize, (usize, FeprError)> {
+            let t0 = std::time::Instant::now();
+            for k in 0..n {
                 fepr_core::simulation::step_bodies(&mut inners, &coeffs)?;
+                if t0.elapsed().as_secs_f64() > budget {
+                    return Ok(k + 1);
+                }
             }
-            Ok(())
+            Ok(n)
         })
     });
     result.map_err(|(k, e)| PyRuntimeError::new_err((k, e.to_string())))

@@ -173,6 +173,27 @@ impl HandOver {
         self.stored(model, None);
     }
 
+    /// The entry the next step's integrator would take at the positions `x` (the projection's final gradient),
+    /// for a checkpoint: a gradient the projection handed over can differ in its last bits from one evaluated
+    /// afresh at the same positions (it was evaluated before the projection's last rigid shift), so a resumed
+    /// run must start from the same entry to take the same steps.
+    pub fn start_gradient_at(&self, model: &Model, x: &[Vec3]) -> Option<&[Vec3]> {
+        (self.key == Some(model.elastic_key())
+            && self.summary.is_none()
+            && self.x.len() == x.len()
+            && self.grad.len() == x.len()
+            && same_bits(&self.x, x))
+        .then_some(&self.grad[..])
+    }
+
+    /// Put back an entry [`HandOver::start_gradient_at`] gave: `grad` of `model` at the positions `x`.
+    pub fn restore_start_gradient(&mut self, model: &Model, x: &[Vec3], grad: Vec<Vec3>) {
+        copy_rows(x, &mut self.x);
+        self.grad = grad;
+        self.reads_start_gradient = true;
+        self.stored(model, None);
+    }
+
     /// The position metric the integrator shares, locked for the projection (see [`SystemMetric`]).
     pub fn metric(&self) -> Option<MutexGuard<'_, dyn SystemMetric + Send + 'static>> {
         let m = self.metric.as_ref()?;

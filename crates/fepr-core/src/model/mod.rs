@@ -231,6 +231,13 @@ impl ModelBuilder {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct ModelKey(u64);
 
+impl ModelKey {
+    /// The key's bits (for a checkpoint that must be resumed on the same model).
+    pub fn bits(self) -> u64 {
+        self.0
+    }
+}
+
 impl Model {
     /// Key of everything the elastic energy depends on besides the positions: the rest mesh and the material.
     /// O(1) (the mesh's hash is computed once, by the builder).

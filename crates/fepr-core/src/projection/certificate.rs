@@ -18,6 +18,8 @@
 //! Where that is within the guard's margin (and below the base state's smallest volume ratio, so no tet can
 //! flip), the per-tet trust region holds and the full check is not needed.
 
+use crate::checkpoint::Carry;
+use crate::error::Result;
 use crate::exec::{copy_rows, reduce_chunks};
 use crate::invariants::{center_of_mass, linear_momentum};
 use crate::math::{norm, sub, Vec3};
@@ -60,6 +62,37 @@ impl Certificate {
         self.c_hat = center_of_mass(&model.masses, model.total_mass, x);
         self.sensitivity = sensitivity;
         self.key = Some(model.elastic_key());
+    }
+
+    /// What the next steps' bounds start from, into a checkpoint (`prefix` names its entries): the last full
+    /// check's base positions, centre of mass and sensitivity (empty where nothing is kept).
+    pub(super) fn carry(&self, model: &Model, prefix: &str, c: &mut Carry) {
+        let kept =
+            self.key == Some(model.elastic_key()) && self.x_hat.len() == model.num_vertices();
+        let (x, rest): (&[Vec3], Vec<f64>) = if kept {
+            let mut rest = self.c_hat.to_vec();
+            rest.extend_from_slice(&self.sensitivity.0);
+            (&self.x_hat, rest)
+        } else {
+            (&[], Vec::new())
+        };
+        c.put_vec3s(&format!("{prefix}.x"), x);
+        c.put(&format!("{prefix}.center_sensitivity"), rest);
+    }
+
+    /// Back from [`Certificate::carry`].
+    pub(super) fn resume(&mut self, model: &Model, prefix: &str, c: &Carry) -> Result<()> {
+        let rest = c.get(&format!("{prefix}.center_sensitivity"))?;
+        if rest.is_empty() {
+            *self = Self::default();
+            return Ok(());
+        }
+        let rest = c.get_len(&format!("{prefix}.center_sensitivity"), 6)?;
+        self.x_hat = c.vec3s(&format!("{prefix}.x"), model.num_vertices())?;
+        self.c_hat = [rest[0], rest[1], rest[2]];
+        self.sensitivity = Sensitivity([rest[3], rest[4], rest[5]]);
+        self.key = Some(model.elastic_key());
+        Ok(())
     }
 
     /// The largest change of a tet's volume ratio that the projection from `(xb, vb)` to `state` can have

@@ -193,6 +193,24 @@ impl Projector {
         }
     }
 
+    /// What the next projections depend on besides their input, into a checkpoint (see [`crate::checkpoint`]):
+    /// the quality guard's memory and the iteration count the next projection expects (it decides which passes
+    /// sum the moments, and so the order of their sums).
+    pub fn carry(&self, model: &Model, c: &mut crate::checkpoint::Carry) {
+        self.restoration.carry(model, c);
+        c.put_scalar(
+            "projection.expected_iterations",
+            self.expected_iterations as f64,
+        );
+    }
+
+    /// Back from [`Projector::carry`], for the same model and settings.
+    pub fn resume(&mut self, model: &Model, c: &crate::checkpoint::Carry) -> Result<()> {
+        self.restoration.resume(model, c)?;
+        self.expected_iterations = c.count("projection.expected_iterations")?;
+        Ok(())
+    }
+
     /// Freeze the positions of these vertices in the next projections (their velocities stay free): the
     /// simulation passes the vertices that touched an obstacle this step, so that the projection cannot
     /// push them back into it. Replaces the previous set.

@@ -33,6 +33,8 @@
 
 use super::certificate::{Certificate, Sensitivity};
 use super::ProjectionReport;
+use crate::checkpoint::{as_count, Carry};
+use crate::error::Result;
 use crate::exec::{copy_rows2, for_each_mut};
 use crate::math::{cross, dot, norm, sub, Vec3};
 use crate::model::BLOCK;
@@ -231,6 +233,28 @@ fn flipped(before: f64, after: f64) -> usize {
 }
 
 impl Restoration {
+    /// What the next steps' restorations depend on, into a checkpoint: the certificate's memory and back-off,
+    /// and the fraction the last search accepted (the next search's first guess).
+    pub(super) fn carry(&self, model: &Model, c: &mut Carry) {
+        self.certificate.carry(model, "projection.certificate", c);
+        c.put(
+            "projection.certify_back_off",
+            vec![self.certify_failures as f64, self.certify_wait as f64],
+        );
+        c.put_option("projection.last_fraction", self.last_fraction);
+    }
+
+    /// Back from [`Restoration::carry`].
+    pub(super) fn resume(&mut self, model: &Model, c: &Carry) -> Result<()> {
+        self.certificate
+            .resume(model, "projection.certificate", c)?;
+        let b = c.get_len("projection.certify_back_off", 2)?;
+        self.certify_failures = as_count("projection.certify_back_off", b[0])? as u32;
+        self.certify_wait = as_count("projection.certify_back_off", b[1])? as u32;
+        self.last_fraction = c.option("projection.last_fraction")?;
+        Ok(())
+    }
+
     /// Check `state` against the base step's volume ratios (from the saved `(x*, v*)`). `same_positions`: the
     /// projection moved no position but by a translation (it took no iteration). The first check of a step
     /// (`first`) also keeps what the [`Certificate`] needs, when its bound is due to be tried again soon.

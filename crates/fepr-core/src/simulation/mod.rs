@@ -10,6 +10,7 @@ mod body_constraints;
 mod body_newton;
 mod history;
 mod policy;
+mod resume;
 pub use bodies::*;
 pub use history::*;
 pub use policy::*;
@@ -368,10 +369,18 @@ impl Simulation {
         self.initial_potential = inv.gravitational;
         // Before the first step, row 0 must describe the state the run starts from.
         if let [only] = self.history.as_mut_slice() {
+            if only.step > 0 {
+                // A trimmed history's last step, not the start of the run.
+                return self.after_reset();
+            }
             only.invariants = inv;
             only.time = self.state.time;
             only.references = self.references;
         }
+        self.after_reset();
+    }
+
+    fn after_reset(&mut self) {
         // Kinematic pins follow their path from where the state now has them.
         self.world.anchor_pins(&self.state);
         self.start_unchecked = true;
@@ -515,6 +524,15 @@ impl Simulation {
     }
     pub fn history(&self) -> &[StepDiagnostics] {
         &self.history
+    }
+    /// Drop every row of the history but the last (the one the next step reads): a caller that keeps the rows
+    /// elsewhere (the Python package's bounded history) calls this after taking them, so that the core's
+    /// memory does not grow with the steps.
+    pub fn trim_history(&mut self) {
+        let n = self.history.len();
+        if n > 1 {
+            self.history.drain(..n - 1);
+        }
     }
     /// Number of steps taken.
     pub fn num_steps(&self) -> usize {
