@@ -55,7 +55,7 @@ def _resume_matches(sim, steps_before, steps_after, path, threads=None):
     sim.save_checkpoint(path)
     loader = MultiBody if isinstance(sim, MultiBody) else fepr.Simulation
     resumed = loader.load_checkpoint(path, threads=threads)
-    assert resumed.num_steps == sim.num_steps == steps_before
+    assert resumed.num_steps == sim.num_steps
     sim.step(steps_after)
     resumed.step(steps_after)
     return sim, resumed

@@ -5,7 +5,7 @@ method and argument of ``crates/fepr-python/src/lib.rs`` is declared here; ``tes
 the names, kinds and argument lists against the compiled module.
 """
 
-from typing import List, Optional, Sequence, Tuple, TypedDict, Union
+from typing import Dict, List, Optional, Sequence, Tuple, TypedDict, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -103,10 +103,16 @@ def conserved_material(integrator: str) -> Optional[str]:
 def warm_start_threshold(integrator: str) -> float:
     """The projection's warm-start threshold under ``warm_start="auto"`` after ``integrator`` (inf: off)."""
 
-def step_bodies(sims: Sequence[Simulation], n: int, coefficients: Sequence[Tuple[float, float]]) -> None:
-    """Advance the bodies ``sims`` (same dt) ``n`` steps together with contact between them; ``coefficients``
-    holds each body's ``(restitution, friction)``. On a failure raises RuntimeError with args ``(body index,
-    message)``; the steps completed before it stay."""
+def step_bodies(
+    sims: Sequence[Simulation],
+    n: int,
+    coefficients: Sequence[Tuple[float, float]],
+    max_seconds: Optional[float] = None,
+) -> int:
+    """Advance the bodies ``sims`` (same dt) up to ``n`` steps together with contact between them (with
+    ``max_seconds``: stop after the first step that ends later than that); ``coefficients`` holds each body's
+    ``(restitution, friction)``. Returns the steps taken. On a failure raises RuntimeError with args ``(body
+    index, message)``; the steps completed before it stay."""
 
 def bench_body_detection(sims: Sequence[Simulation], repeats: int) -> float:
     """Seconds per detection pass of contact between ``sims`` at their current states (nothing changes), the
@@ -206,9 +212,22 @@ class Simulation:
         None: no projection. Under projective_dynamics and xpbd the material is :func:`conserved_material`'s,
         built from the given moduli."""
 
-    def step(self, n: int) -> int:
-        """Take ``n`` steps with the GIL released; returns the number taken. Raises RuntimeError (naming the
-        step) on a runaway to a non-finite state."""
+    def step(self, n: int, max_seconds: Optional[float] = None) -> int:
+        """Take up to ``n`` steps with the GIL released (with ``max_seconds``: stop after the first step that ends
+        later than that); returns the number taken. Raises RuntimeError (naming the step) on a runaway to a
+        non-finite state."""
+
+    def carry(self) -> Dict[str, npt.NDArray[np.float64]]:
+        """What the next steps depend on besides the settings, as named float64 arrays (internal vertex order)."""
+
+    def resume(self, carry: Dict[str, Sequence[float]]) -> None:
+        """Put back a :meth:`carry` of a simulation with the same settings; ValueError names what does not fit."""
+
+    def history_after(self, step: int) -> npt.NDArray[np.float64]:
+        """The history rows of the steps after ``step`` the core still holds, (rows, columns) float64."""
+
+    def trim_history(self) -> None:
+        """Drop every history row but the last."""
 
     @property
     def positions(self) -> npt.NDArray[np.float64]:
@@ -340,4 +359,5 @@ class Simulation:
         """Column names of :meth:`history`, in order."""
 
     def history(self) -> npt.NDArray[np.float64]:
-        """The per-step diagnostics as a (rows, columns) float64 array (row 0: the initial state)."""
+        """The per-step diagnostics the core still holds (all of them unless trimmed) as a (rows, columns)
+        float64 array."""
