@@ -407,16 +407,20 @@ class MultiBody:
         """
         hs = [b.history for b in self._bodies]
         rows = min(len(h) for h in hs)
-        common = set(hs[0].columns)
-        for h in hs[1:]:
-            common &= set(h.columns)
+        return self._totals([lambda name, h=h: h[name][:rows] for h in hs], [h.columns for h in hs], rows)
+
+    def _totals(self, sources, columns, rows: int) -> History:
+        """The system's columns from each body's (``sources[k](name)``: a (rows,) array of that column)."""
+        common = set(columns[0])
+        for c in columns[1:]:
+            common &= set(c)
         cols: Dict[str, np.ndarray] = {}
 
         def stack(name: str) -> np.ndarray:
-            return np.stack([np.asarray(h[name][:rows], dtype=np.float64) for h in hs])  # (bodies, rows)
+            return np.stack([np.asarray(src(name), dtype=np.float64) for src in sources])  # (bodies, rows)
 
-        cols["step"] = np.asarray(hs[0]["step"][:rows], dtype=np.float64)
-        cols["time"] = np.asarray(hs[0]["time"][:rows], dtype=np.float64)
+        cols["step"] = np.asarray(sources[0]("step"), dtype=np.float64)
+        cols["time"] = np.asarray(sources[0]("time"), dtype=np.float64)
         for name in SUM_COLUMNS[:7]:
             cols[name] = stack(name).sum(axis=0)
         masses = np.array([float(b.total_mass) for b in self._bodies])
@@ -465,8 +469,12 @@ class MultiBody:
 
     @property
     def last(self) -> Dict[str, float]:
-        """The last row of :attr:`history` as ``{column: value}``."""
-        return self.history.last
+        """The last row of :attr:`history` as ``{column: value}``, from each body's last row (O(1) in the
+        steps)."""
+        rows = [b.last for b in self._bodies]
+        if len({r["step"] for r in rows}) > 1:  # the bodies stand at different steps (a body failed)
+            return self.history.last
+        return self._totals([lambda name, r=r: np.array([r[name]]) for r in rows], [list(r) for r in rows], 1).last
 
     def save_state(self, path: Union[str, Path]) -> None:
         """Write the system to a NumPy ``.npz`` file.

@@ -337,7 +337,7 @@ class ViewerSession:
         if self._pending_steps:
             self._pending_steps -= 1
         if dragging:  # the spring's work, as the simulation put it into this step's budget
-            self._drag_work += float(sim.history["work_forces"][-1])
+            self._drag_work += float(sim.last["work_forces"])
         self._steps += 1
         self._sim_time += float(sim.dt)
         rep = sim.last_projection
