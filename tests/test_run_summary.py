@@ -292,17 +292,18 @@ def test_strict_fails_on_unconverged_projections_and_inverted_tets(tmp_path, cap
     assert main(["run", str(tight), "--steps", "20", "--out", out, "-q"]) == EXIT_OK  # reported, not failed
     line = capsys.readouterr().out.strip().splitlines()[-1]
     assert re.search(r"unconverged [1-9]\d*", line) and "; problems: " in line and "unconverged projection" in line
-    assert main(["run", str(tight), "--steps", "20", "--out", out, "-q", "--strict"]) == EXIT_STRICT
+    assert main(["run", str(tight), "--steps", "20", "--out", out, "-q", "--strict", "--overwrite"]) == EXIT_STRICT
     assert "--strict:" in capsys.readouterr().err
     # symplectic Euler alone on the stretched L: 4 tets inverted at step 13, two steps before it runs away
-    code = main(["run", str(SEED), "--steps", "13", "--no-projection", "--out", out, "-q", "--strict"])
+    code = main(["run", str(SEED), "--steps", "13", "--no-projection", "--out", out, "-q", "--strict", "--overwrite"])
     assert code == EXIT_STRICT
     captured = capsys.readouterr()
     assert "inverted tets at the end" in captured.out and "inverted tets at the end" in captured.err
-    assert main(["run", str(SEED), "--steps", "13", "--no-projection", "--out", out, "-q"]) == EXIT_OK
+    assert main(["run", str(SEED), "--steps", "13", "--no-projection", "--out", out, "-q", "--overwrite"]) == EXIT_OK
     capsys.readouterr()
     # a clean run passes --strict
-    assert main(["run", str(DROP), "--steps", str(DROP_STEPS), "--out", out, "-q", "--strict"]) == EXIT_OK
+    args = ["run", str(DROP), "--steps", str(DROP_STEPS), "--out", out, "-q", "--strict", "--overwrite"]
+    assert main(args) == EXIT_OK
     assert "problems" not in capsys.readouterr().out
 
 

@@ -9,7 +9,7 @@ column costs the rows of that column; the last row costs nothing (:attr:`History
 
 from __future__ import annotations
 
-import csv
+import math
 import shutil
 import tempfile
 import weakref
@@ -116,38 +116,36 @@ class HistoryStore:
             self._full[i] = path
             self._in_memory -= len(chunk)
 
-    def _chunks(self, stop: int) -> Iterator[np.ndarray]:
-        """The chunks holding rows ``[0, stop)``, in order, the last cut at ``stop``."""
+    def _chunks(self, stop: int, start: int = 0) -> Iterator[np.ndarray]:
+        """The parts of the chunks holding rows ``[start, stop)``, in order (chunks outside are not read)."""
         seen = 0
         for chunk in [*self._full, *self._open]:
             if seen >= stop:
                 return
-            a = np.load(chunk, mmap_mode="r") if isinstance(chunk, Path) else chunk
-            take = min(len(a), stop - seen)
-            yield a[:take]
-            seen += take
+            n = CHUNK_ROWS if isinstance(chunk, Path) else len(chunk)
+            if seen + n > start:
+                a = np.load(chunk, mmap_mode="r") if isinstance(chunk, Path) else chunk
+                yield a[max(start - seen, 0) : min(n, stop - seen)]
+            seen += n
 
-    def column(self, index: int, stop: Optional[int] = None) -> np.ndarray:
-        """Column ``index`` over rows ``[0, stop)`` as a new (rows,) float64 array."""
+    def column(self, index: int, stop: Optional[int] = None, start: int = 0) -> np.ndarray:
+        """Column ``index`` over rows ``[start, stop)`` as a new (rows,) float64 array."""
         stop = self._rows if stop is None else stop
-        parts = [np.asarray(c[:, index]) for c in self._chunks(stop)]
+        parts = [np.asarray(c[:, index]) for c in self._chunks(stop, start)]
         return np.concatenate(parts) if parts else np.zeros(0)
 
-    def table(self, stop: Optional[int] = None) -> np.ndarray:
-        """Rows ``[0, stop)`` as one (rows, columns) float64 array."""
+    def table(self, stop: Optional[int] = None, start: int = 0) -> np.ndarray:
+        """Rows ``[start, stop)`` as one (rows, columns) float64 array."""
         stop = self._rows if stop is None else stop
-        parts = [np.asarray(c) for c in self._chunks(stop)]
+        parts = [np.asarray(c) for c in self._chunks(stop, start)]
         return np.concatenate(parts) if parts else np.zeros((0, len(self.columns)))
 
     def batches(self, start: int = 0, stop: Optional[int] = None) -> Iterator[np.ndarray]:
         """Rows ``[start, stop)`` chunk by chunk (for writing without holding the whole table)."""
         stop = self._rows if stop is None else stop
-        seen = 0
-        for c in self._chunks(stop):
-            lo = max(start - seen, 0)
-            if lo < len(c):
-                yield np.asarray(c[lo:])
-            seen += len(c)
+        for c in self._chunks(stop, start):
+            if len(c):
+                yield np.asarray(c)
 
 
 class History:
@@ -195,6 +193,13 @@ class History:
             raise KeyError(f"no history column {name!r} (columns: {', '.join(self.columns)})") from None
         return self._col(i)
 
+    def _slice(self, name: str, start: int, stop: int) -> np.ndarray:
+        """Column ``name`` over rows ``[start, stop)`` (reading only those rows)."""
+        i = self._index[name]
+        if self._store is not None:
+            return self._store.column(i, min(stop, self._rows), start)
+        return self._data[start:stop, i]
+
     @property
     def last(self) -> Dict[str, float]:
         """The last row as ``{column: value}`` (O(1) for a simulation's history)."""
@@ -220,8 +225,15 @@ class History:
             for row in batch:
                 yield dict(zip(self.columns, row.tolist()))
 
-    def as_dict(self) -> Dict[str, np.ndarray]:
-        return {c: np.array(self._col(i)) for i, c in enumerate(self.columns)}
+    def as_dict(self, columns: Optional[Sequence[str]] = None) -> Dict[str, np.ndarray]:
+        """Every column (or those of ``columns`` it has), as new arrays; the rows are read once."""
+        names = [c for c in (self.columns if columns is None else columns) if c in self._index]
+        if self._store is not None:
+            idx = [self._index[c] for c in names]
+            parts = [np.asarray(c)[:, idx] for c in self._store._chunks(self._rows)]
+            table = np.concatenate(parts) if parts else np.zeros((0, len(idx)))
+            return {c: np.array(table[:, k]) for k, c in enumerate(names)}
+        return {c: np.array(self._data[:, self._index[c]]) for c in names}
 
     def to_csv(self, path: Union[str, Path], *, start: int = 0, header: bool = True, append: bool = False) -> None:
         """Write the history as CSV: a header of column names, then one row per step. The counts and flags
@@ -243,11 +255,20 @@ class History:
 
 
 def write_csv_rows(fh, columns: Optional[Sequence[str]], ints: Sequence[bool], batches) -> None:
-    """Write a header (unless ``columns`` is None) and the rows of ``batches`` to an open text file."""
-    w = csv.writer(fh)
+    """Write a header (unless ``columns`` is None) and the rows of ``batches`` to an open text file: the columns
+    flagged in ``ints`` as integers where finite, the others in Python's shortest round-trip form (``repr``), so
+    that reading the file back gives the same bits. Rows end in CRLF, as the csv module writes them."""
     if columns is not None:
-        w.writerow(columns)
+        fh.write(",".join(columns) + "\r\n")
+    int_columns = [i for i, flag in enumerate(ints) if flag]
     for batch in batches:
-        for row in batch:
-            w.writerow([str(int(v)) if i and np.isfinite(v) else repr(float(v)) for i, v in zip(ints, row)])
-
+        lines = []
+        for row in np.asarray(batch, dtype=np.float64).tolist():
+            text = list(map(repr, row))
+            for i in int_columns:
+                v = row[i]
+                if v == v and v != math.inf and v != -math.inf:
+                    text[i] = str(int(v))
+            lines.append(",".join(text))
+        if lines:
+            fh.write("\r\n".join(lines) + "\r\n")

@@ -312,8 +312,10 @@ class MultiBody:
         return float(sum(float(b.total_mass) for b in self._bodies))
 
     # --- stepping ----------------------------------------------------------------------------------------
-    def step(self, n: int = 1) -> None:
-        """Advance every body ``n`` steps (each body in turn; the GIL is released while each steps).
+    def step(self, n: int = 1, callback=None) -> int:
+        """Advance every body ``n`` steps (each body in turn; the GIL is released while each steps); returns the
+        steps taken. ``callback(system)`` as for :meth:`fepr.Simulation.step` (called after every batch; True
+        stops). Ctrl-C stops at a step boundary that every body has reached.
 
         Raises
         ------
@@ -324,19 +326,53 @@ class MultiBody:
         """
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
             raise ConfigError(f"n must be a non-negative integer, got {n!r}")
+        if callback is not None and not callable(callback):
+            raise ConfigError(f"callback must be callable, got {callback!r}")
         if self.contact and len(self._bodies) > 1:
-            self._step_together(int(n))
-            return
-        for name, b in zip(self._names, self._bodies):
-            try:
-                b.step(int(n))
-            except SimulationError as exc:
-                err = SimulationError(f"body {name!r}: {exc}")
-                err.step = getattr(exc, "step", None)  # type: ignore[attr-defined]
-                err.body = name  # type: ignore[attr-defined]
-                raise err from None
+            return self._step_together(int(n), callback)
+        start = self.num_steps
+        remaining = int(n)
+        while remaining:
+            # Rounds of one batch of the first body and as many steps of each other, so that the bodies stand at
+            # the same step whenever control returns (a Ctrl-C during a round is raised after it).
+            k, interrupted = None, None
+            for name, b in zip(self._names, self._bodies):
+                before = b.num_steps
+                try:
+                    if k is None:
+                        try:
+                            b.step(remaining, lambda _: True)  # one batch: the round's length
+                        except KeyboardInterrupt as exc:
+                            interrupted = exc
+                        k = b.num_steps - before
+                    else:
+                        interrupted = self._catch_up(b, k) or interrupted
+                except SimulationError as exc:
+                    err = SimulationError(f"body {name!r}: {exc}")
+                    err.step = getattr(exc, "step", None)  # type: ignore[attr-defined]
+                    err.body = name  # type: ignore[attr-defined]
+                    raise err from None
+            if interrupted is not None:
+                raise interrupted
+            remaining -= k
+            if callback is not None and callback(self) is True:
+                break
+        return self.num_steps - start
 
-    def _step_together(self, n: int) -> None:
+    @staticmethod
+    def _catch_up(body: Simulation, k: int) -> Optional[KeyboardInterrupt]:
+        """``k`` steps of ``body``, finished even through Ctrl-C (returned, for the caller to raise after the
+        round), so that every body stands at the same step."""
+        target = body.num_steps + k
+        interrupted = None
+        while body.num_steps < target:
+            try:
+                body.step(target - body.num_steps)
+            except KeyboardInterrupt as exc:
+                interrupted = exc
+        return interrupted
+
+    def _step_together(self, n: int, callback=None) -> int:
         """``n`` steps of all bodies at once, with contact between them (``fepr._core.step_bodies``), in batches
         of at most :attr:`fepr.Simulation.BATCH_SECONDS` (signals are handled between them)."""
         from . import _core
@@ -360,6 +396,9 @@ class MultiBody:
             finally:
                 for b, k in zip(self._bodies, before):
                     b._after_batch(k)
+            if callback is not None and callback(self) is True:
+                break
+        return n - remaining
 
     @property
     def coefficients(self) -> Tuple[Tuple[float, float], ...]:
@@ -405,9 +444,17 @@ class MultiBody:
         ``proj_fallback`` the largest over the bodies; ``min_j`` and ``proj_converged`` the smallest. Rows are
         the steps every body completed.
         """
+        return self._history_slice(0, None)
+
+    def _history_slice(self, start: int, stop: Optional[int]) -> History:
+        """:attr:`history`'s rows ``[start, stop)`` (``stop`` None: the rows every body has), reading only those
+        rows of the bodies' histories."""
         hs = [b.history for b in self._bodies]
         rows = min(len(h) for h in hs)
-        return self._totals([lambda name, h=h: h[name][:rows] for h in hs], [h.columns for h in hs], rows)
+        stop = rows if stop is None else min(stop, rows)
+        start = min(start, stop)
+        sources = [lambda name, h=h: h._slice(name, start, stop) for h in hs]
+        return self._totals(sources, [h.columns for h in hs], stop - start)
 
     def _totals(self, sources, columns, rows: int) -> History:
         """The system's columns from each body's (``sources[k](name)``: a (rows,) array of that column)."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Dict, FrozenSet, Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -601,12 +601,14 @@ class Simulation:
     #: there, and the history rows are taken from the core): a run stops within this plus one step.
     BATCH_SECONDS = 0.05
 
-    def step(self, n: int = 1) -> None:
-        """Advance ``n`` steps (the GIL is released while stepping).
+    def step(self, n: int = 1, callback: Optional[Callable[["Simulation"], Optional[bool]]] = None) -> int:
+        """Advance ``n`` steps (the GIL is released while stepping); returns the steps taken.
 
         The steps run in batches of at most :attr:`BATCH_SECONDS` of wall time; between batches Python handles
         signals, so Ctrl-C (``KeyboardInterrupt``) stops a long ``step(n)`` within about 0.05 s plus one step, at
         a step boundary: the state, the history and :attr:`num_steps` then describe the steps completed.
+        ``callback(sim)``, if given, is called after every batch (progress bars, live plots); when it returns
+        True, stepping stops there (fewer than ``n`` steps are taken).
 
         Raises
         ------
@@ -616,6 +618,8 @@ class Simulation:
         """
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
             raise ConfigError(f"n must be a non-negative integer, got {n!r}")
+        if callback is not None and not callable(callback):
+            raise ConfigError(f"callback must be callable, got {callback!r}")
         remaining = int(n)
         while remaining:
             before = self.num_steps
@@ -627,6 +631,9 @@ class Simulation:
                 raise err from None
             finally:
                 self._after_batch(before)
+            if callback is not None and callback(self) is True:
+                break
+        return int(n) - remaining
 
     def _after_batch(self, before: int) -> None:
         """After a batch of steps from step ``before``: the warnings, then the new history rows into the store

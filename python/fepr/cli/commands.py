@@ -25,13 +25,14 @@ energy, P and L drift against the momentum targets, min J, inverted tets, unconv
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 import warnings
 from pathlib import Path
 from typing import Optional, Sequence
 
-from ..errors import FeprError
+from ..errors import ConfigError, FeprError
 
 __all__ = ["EXIT_ERROR", "EXIT_INVALID", "EXIT_OK", "EXIT_RUNAWAY", "EXIT_STRICT", "build_parser", "main"]
 
@@ -109,7 +110,9 @@ def build_parser() -> argparse.ArgumentParser:
         "impulses), min J, inverted tets, unconverged projections, substeps, and the run's problems. Exit "
         "status 3: the run ran away, or with --strict it has a problem.",
     )
-    run.add_argument("scene", metavar="SCENE.toml", help="scene file")
+    run.add_argument(
+        "scene", metavar="SCENE.toml", nargs="?", default=None, help="scene file (with --resume: the run's own)"
+    )
     run.add_argument(
         "--steps",
         type=_steps,
@@ -142,6 +145,27 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="K",
         help="export every K-th step (default: [export] every, or 1)",
+    )
+    run.add_argument(
+        "--checkpoint-every",
+        type=_every,
+        default=None,
+        metavar="K",
+        help="write a checkpoint to DIR/checkpoint every K steps, so that a crash or a kill loses at most K steps "
+        "(fepr run --resume DIR continues, bit-identical to an uninterrupted run)",
+    )
+    run.add_argument(
+        "--resume",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="continue the run in DIR from its last checkpoint (written by --checkpoint-every or when the run "
+        "was interrupted), with the settings it was started with",
+    )
+    run.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the files of an earlier run in the output folder (those its run.json lists)",
     )
     run.add_argument("--strict", action="store_true", help=_STRICT_HELP)
     run.add_argument("--quiet", "-q", action="store_true", help="print only the final summary line")
@@ -268,24 +292,34 @@ def _err(msg: str) -> None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from ..report.metrics import RunProblemWarning
-    from ..scene import load_scene, run_scene
+    from ..scene import StopRequest, load_scene, run_scene
 
-    scene = load_scene(args.scene)
-    out = args.out if args.out is not None else Path("fepr-out") / Path(args.scene).stem
-    steps = scene.run.steps if args.steps is None else args.steps
+    if args.resume is not None:
+        if args.out is not None and Path(args.out).resolve() != Path(args.resume).resolve():
+            raise ConfigError("--resume DIR continues the run in DIR: give no other --out")
+        if args.overwrite:
+            raise ConfigError("--resume continues a run, --overwrite replaces one: give one of them")
+        out = Path(args.resume)
+        scene = load_scene(args.scene if args.scene is not None else _resumed_scene_path(out))
+    else:
+        if args.scene is None:
+            raise ConfigError("fepr run: give a scene file (or --resume DIR to continue a run)")
+        scene = load_scene(args.scene)
+        out = args.out if args.out is not None else Path("fepr-out") / Path(args.scene).stem
     projection = False if args.no_projection else None
-    last = [time.perf_counter()]
+    last: list = []  # the time of the last progress line (empty before the header)
 
     def progress(done: int, total: int, sim) -> None:
         if args.quiet:
             return
-        if done == 0:
+        if not last:  # the first call, before the first step: the header
+            last.append(time.perf_counter())
             proj = "off" if (args.no_projection or not scene.projection.enabled) else "on"
             bodies = f"{len(scene.bodies)} bodies, " if scene.is_multibody else ""
+            what = f"resuming at step {done} of {total}" if args.resume is not None else f"{total} steps"
             print(
                 f"fepr run {scene.name}: {bodies}{len(sim.rest_positions)} vertices, {len(sim.tets)} tets, "
-                f"{scene.integrator.name} dt={scene.integrator.dt:.6g} s, FEPR {proj}, {total} steps "
-                f"-> {out}",
+                f"{scene.integrator.name} dt={scene.integrator.dt:.6g} s, FEPR {proj}, {what} -> {out}",
                 flush=True,
             )
             return
@@ -294,24 +328,43 @@ def _cmd_run(args: argparse.Namespace) -> int:
             last[0] = now
             print(f"  step {done}/{total}  t={float(sim.time):.4g} s", flush=True)
 
-    with warnings.catch_warnings():
-        # the end-of-run warning is in result.warnings, printed below with the others
-        warnings.simplefilter("ignore", RunProblemWarning)
-        result = run_scene(
-            scene,
-            steps=steps,
-            out_dir=out,
-            projection=projection,
-            progress=progress,
-            export=args.export,
-            export_every=args.export_every,
-        )
+    stop = StopRequest().install()
+    try:
+        with warnings.catch_warnings():
+            # the end-of-run warning is in result.warnings, printed below with the others
+            warnings.simplefilter("ignore", RunProblemWarning)
+            result = run_scene(
+                scene,
+                steps=args.steps,
+                out_dir=out,
+                projection=projection,
+                progress=progress,
+                export=args.export,
+                export_every=args.export_every,
+                checkpoint_every=args.checkpoint_every,
+                overwrite=args.overwrite,
+                resume=args.resume is not None,
+                stop=stop,
+            )
+    finally:
+        stop.restore()
     if not args.quiet:
         for w in result.warnings:
             _err(f"warning: {w}")
     if result.runaway:
         _err(f"runaway at step {result.runaway_step}: {result.runaway_message}")
     print(result.summary(), flush=True)
+    if result.interrupted is not None:
+        sig = signal.Signals(result.interrupted)
+        kept = [p.name for p in (result.diagnostics_path, result.state_path) if p is not None]
+        if result.export_dir is not None:
+            kept.append(f"{result.export_frames} exported frames")
+        _err(
+            f"{sig.name}: stopped at step {result.steps_completed + (result.resumed_from or 0)} "
+            f"(t = {float(result.simulation.time):.6g} s); kept {', '.join(kept)} and a checkpoint in {out}: "
+            f"fepr run --resume {out} continues"
+        )
+        return 128 + int(sig)
     if not args.quiet:
         print(f"wrote {result.diagnostics_path} and {result.state_path}", flush=True)
         if result.body_diagnostics_paths:
@@ -329,6 +382,27 @@ def _cmd_run(args: argparse.Namespace) -> int:
         _err(f"--strict: {'; '.join(result.problems)}")
         return EXIT_STRICT
     return EXIT_OK
+
+
+def _resumed_scene_path(out: Path) -> Path:
+    """The scene file of the run in ``out`` (from its manifest), unchanged since the run started."""
+    import hashlib
+    import json
+
+    manifest = out / "run.json"
+    try:
+        entry = json.loads(manifest.read_text(encoding="utf-8")).get("scene", {})
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"--resume {out}: cannot read {manifest} ({exc})") from None
+    path = entry.get("path")
+    if not path:
+        raise ConfigError(f"--resume {out}: the manifest names no scene file; give it: fepr run SCENE.toml --resume")
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"--resume {out}: the run's scene file {p} is gone; give it: fepr run SCENE.toml --resume")
+    if entry.get("sha256") and hashlib.sha256(p.read_bytes()).hexdigest() != entry["sha256"]:
+        raise ConfigError(f"--resume {out}: the scene file {p} changed since the run started")
+    return p
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:

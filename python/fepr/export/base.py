@@ -63,6 +63,24 @@ class FrameWriter:
     def _write(self, frame: Frame) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    #: The writer writes a file per frame (its earlier frames stay on disk when a run is resumed).
+    per_frame = False
+
+    def resume_frame(self, frame: Frame) -> None:
+        """A frame an earlier part of a resumed run recorded: a writer with a file per frame takes the file it
+        wrote then (it must still be there), a writer that writes at :meth:`close` takes the frame's data
+        (its surface rows: what such writers read)."""
+        if self.closed:
+            raise ConfigError(f"the {self.format} writer is closed; no frame can be added")
+        if self.per_frame:
+            self._adopt(frame)
+        else:
+            self._write(frame)
+        self.num_frames += 1
+
+    def _adopt(self, frame: Frame) -> None:  # pragma: no cover - per-frame writers
+        raise NotImplementedError
+
     def close(self) -> List[Path]:
         """Finish the files; returns the paths written (the collection file first, where there is one)."""
         if self.closed:

@@ -34,6 +34,7 @@ from typing import Any, Dict, List, Optional, Tuple
 import numpy as np
 
 from ..errors import ConfigError
+from ..io.atomic import atomic_path
 from .base import FrameWriter, PathLike
 from .fields import Frame
 
@@ -357,8 +358,13 @@ class GlbWriter(FrameWriter):
     def _finish(self) -> None:
         if not self._frames:
             return
+        with atomic_path(self.path) as tmp:
+            self._write_glb(tmp)
+        self._frames = []
+
+    def _write_glb(self, path) -> None:
         write_glb(
-            self.path,
+            path,
             np.stack(self._frames),
             self.surface.local_faces,
             np.asarray(self._times),
@@ -374,7 +380,6 @@ class GlbWriter(FrameWriter):
                 }
             },
         )
-        self._frames = []
 
     def paths(self) -> List[Path]:
         return [self.path] if self.closed and self.path.exists() else []

@@ -7,8 +7,11 @@ import time
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple, Union
 
+import numpy as np
+
 from .._validate import integer
 from ..errors import ConfigError
+from ..io.atomic import atomic_path
 from .base import FrameWriter, PathLike
 from .fields import Frame, TetKinematics
 from .gltf import GlbWriter
@@ -87,6 +90,11 @@ class Recorder:
         File name prefix (letters, digits, ``_``, ``-``, ``.``); also the object name in Blender.
     normals : bool
         Write vertex normals into OBJ and PLY files.
+    start_step : int, optional
+        The step the cadence counts from (default: the simulation's current step).
+    keep_frames : bool
+        Keep each frame's positions and velocities until :meth:`take_frames` (a run that writes checkpoints
+        saves them, so that a resumed run can :meth:`replay` them into the animation files).
 
     Raises
     ------
@@ -111,6 +119,8 @@ class Recorder:
         every: int = 1,
         name: str = "frame",
         normals: bool = False,
+        start_step: Optional[int] = None,
+        keep_frames: bool = False,
     ):
         self.formats = parse_formats(formats)
         if "usd" in self.formats:
@@ -122,7 +132,9 @@ class Recorder:
         self.sim = sim
         self.out_dir = Path(out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        self.start_step = int(sim.num_steps)
+        self.start_step = int(sim.num_steps) if start_step is None else int(start_step)
+        self.keep_frames = bool(keep_frames)
+        self._kept: List[Frame] = []
         self.frames: List[Tuple[int, int, float]] = []
         self.closed = False
         #: Wall time spent computing and writing frames, s.
@@ -178,11 +190,59 @@ class Recorder:
             return False
         t0 = time.perf_counter()
         frame = Frame.from_simulation(self.sim, self.kinematics, index=len(self.frames))
+        self._add(frame)
+        if self.keep_frames:
+            self._kept.append(frame)
+        self.write_s += time.perf_counter() - t0
+        return True
+
+    def _add(self, frame: Frame) -> None:
         for w in self.writers.values():
             w.add_frame(frame)
         self.frames.append((frame.index, frame.step, frame.time))
-        self.write_s += time.perf_counter() - t0
-        return True
+
+    def frame_files(self) -> List[Path]:
+        """The files of the newest frame in the formats that write a file per frame (vtu, obj, ply)."""
+        return [w.paths()[-1] for w in self.writers.values() if w.per_frame and w.num_frames]
+
+    def take_frames(self) -> Dict[str, np.ndarray]:
+        """The frames recorded since the last call (with ``keep_frames``), as arrays: ``steps`` (f,) int64,
+        ``times`` (f,) s and, where a format writes its file at the end (glb, usd), the surface vertices'
+        ``positions`` and ``velocities`` (f, s, 3) float64 (what those writers read; the per-frame formats'
+        files are on disk already)."""
+        kept, self._kept = self._kept, []
+        rows = self.surface.vertices if any(not w.per_frame for w in self.writers.values()) else []
+        out = {
+            "steps": np.array([f.step for f in kept], dtype=np.int64),
+            "times": np.array([f.time for f in kept], dtype=np.float64),
+        }
+        shape = (len(kept), len(rows), 3)
+        out["positions"] = np.stack([f.positions[rows] for f in kept]) if kept else np.zeros(shape)
+        out["velocities"] = np.stack([f.velocities[rows] for f in kept]) if kept else np.zeros(shape)
+        return out
+
+    def replay(self, steps, times, positions, velocities) -> None:
+        """The frames an earlier part of a resumed run recorded (arrays as :meth:`take_frames` gave them): the
+        per-frame formats take their files from disk, the others the surface rows, so that the collection and
+        animation files hold the whole run."""
+        m = len(self.kinematics.rest_positions)
+        rows = self.surface.vertices if len(positions) and positions.shape[1] else None
+        for k, (step, t) in enumerate(zip(steps, times)):
+            x, v = np.zeros((m, 3)), np.zeros((m, 3))
+            if rows is not None:
+                x[rows], v[rows] = positions[k], velocities[k]
+            frame = Frame(
+                index=len(self.frames),
+                step=int(step),
+                time=float(t),
+                positions=x,
+                velocities=v,
+                kinematics=self.kinematics,
+                material=getattr(self.sim, "material", None),
+            )
+            for w in self.writers.values():
+                w.resume_frame(frame)
+            self.frames.append((frame.index, frame.step, frame.time))
 
     def close(self) -> Dict[str, List[Path]]:
         """Finish every file; returns the paths written per format (see :attr:`paths`)."""
@@ -191,10 +251,11 @@ class Recorder:
             self.closed = True
             for w in self.writers.values():
                 w.close()
-            with open(self.out_dir / "frames.csv", "w", encoding="ascii", newline="\n") as fh:
-                fh.write("frame,step,time\n")
-                for i, step, t in self.frames:
-                    fh.write(f"{i},{step},{t!r}\n")
+            with atomic_path(self.out_dir / "frames.csv") as tmp:
+                with open(tmp, "w", encoding="ascii", newline="\n") as fh:
+                    fh.write("frame,step,time\n")
+                    for i, step, t in self.frames:
+                        fh.write(f"{i},{step},{t!r}\n")
             self.write_s += time.perf_counter() - t0
         return self.paths
 

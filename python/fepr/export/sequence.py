@@ -13,6 +13,8 @@ from typing import List
 
 import numpy as np
 
+from ..errors import ConfigError
+from ..io.atomic import atomic_path
 from .base import FrameWriter, PathLike
 from .fields import Frame
 from .surface import vertex_normals
@@ -31,12 +33,21 @@ class _SurfaceSequence(FrameWriter):
         self.directory.mkdir(parents=True, exist_ok=True)
         self._paths: List[Path] = []
 
+    per_frame = True
+
+    def _adopt(self, frame: Frame) -> None:
+        path = self.directory / f"{self.name}_{self.num_frames:05d}{self.suffix}"
+        if not path.is_file():
+            raise ConfigError(f"cannot resume the export: the earlier frame {path} is missing")
+        self._paths.append(path)
+
     def _write(self, frame: Frame) -> None:
         s = self.surface
         pts = frame.positions[s.vertices]
         nrm = vertex_normals(pts, s.local_faces) if self.normals else None
         path = self.directory / f"{self.name}_{self.num_frames:05d}{self.suffix}"
-        self._write_file(path, frame, pts, nrm)
+        with atomic_path(path) as tmp:  # renamed when complete: never a truncated frame
+            self._write_file(Path(tmp), frame, pts, nrm)
         self._paths.append(path)
 
     def _write_file(self, path: Path, frame: Frame, pts: np.ndarray, nrm) -> None:  # pragma: no cover

@@ -16,6 +16,7 @@ from typing import List, Optional
 import numpy as np
 
 from ..errors import ConfigError, MissingDependencyError
+from ..io.atomic import atomic_path
 from .base import FrameWriter, PathLike
 from .fields import Frame
 
@@ -87,7 +88,8 @@ class UsdWriter(FrameWriter):
         if not (np.isfinite(self.fps) and self.fps > 0):
             raise ConfigError(f"fps must be a positive number, got {fps!r}")
         root = "/fepr"
-        self.stage = Usd.Stage.CreateNew(str(self.path))
+        # In memory, exported at close through a temporary name: the file on disk is complete or absent.
+        self.stage = Usd.Stage.CreateInMemory()
         UsdGeom.SetStageUpAxis(self.stage, UsdGeom.Tokens.z)
         UsdGeom.SetStageMetersPerUnit(self.stage, 1.0)
         self.stage.SetTimeCodesPerSecond(self.fps)
@@ -123,7 +125,9 @@ class UsdWriter(FrameWriter):
             "fepr:frames": self.num_frames,
             "fepr:first_time_s": float(self._times[0]) if self._times else 0.0,
         }
-        self.stage.Save()
+        with atomic_path(self.path, suffix=self.path.suffix) as tmp:
+            if not self.stage.GetRootLayer().Export(tmp):
+                raise OSError(f"USD could not write {self.path}")
 
     def paths(self) -> List[Path]:
         return [self.path]

@@ -10,6 +10,7 @@ from xml.sax.saxutils import quoteattr
 import meshio
 
 from ..errors import ConfigError
+from ..io.atomic import atomic_path
 from .base import FrameWriter, PathLike
 from .fields import Frame
 
@@ -37,6 +38,7 @@ class VtuSeries(FrameWriter):
     """
 
     format = "vtu"
+    per_frame = True
 
     def __init__(self, sim, pvd_path: PathLike, *, frames_dir: Optional[PathLike] = None, name=None, **kw):
         super().__init__(sim, **kw)
@@ -47,15 +49,26 @@ class VtuSeries(FrameWriter):
         self.pvd_path.parent.mkdir(parents=True, exist_ok=True)
         self._entries: List[Tuple[float, Path]] = []
 
+    def _frame_path(self) -> Path:
+        return self.frames_dir / f"{self.name}_{self.num_frames:05d}.vtu"
+
+    def _adopt(self, frame: Frame) -> None:
+        path = self._frame_path()
+        if not path.is_file():
+            raise ConfigError(f"cannot resume the export: the earlier frame {path} is missing")
+        self._entries.append((frame.time, path))
+
     def _write(self, frame: Frame) -> None:
-        path = self.frames_dir / f"{self.name}_{self.num_frames:05d}.vtu"
+        path = self._frame_path()
         mesh = meshio.Mesh(
             frame.positions,
             [("tetra", frame.tets)],
             point_data={"velocity": frame.velocities, "displacement": frame.displacement},
             cell_data={"J": [frame.volume_ratio], "energy_density": [frame.energy_density]},
         )
-        meshio.write(str(path), mesh, file_format="vtu", binary=True)
+        # A temporary name, renamed when complete: a run stopped mid-frame leaves no truncated .vtu.
+        with atomic_path(path) as tmp:
+            meshio.write(tmp, mesh, file_format="vtu", binary=True)
         self._entries.append((frame.time, path))
 
     def _finish(self) -> None:
@@ -72,7 +85,8 @@ class VtuSeries(FrameWriter):
                 rel = path.resolve().as_posix()
             lines.append(f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(rel)}/>')
         lines += ["  </Collection>", "</VTKFile>", ""]
-        self.pvd_path.write_text("\n".join(lines), encoding="utf-8")
+        with atomic_path(self.pvd_path) as tmp:
+            Path(tmp).write_text("\n".join(lines), encoding="utf-8")
 
     def paths(self) -> List[Path]:
         return [self.pvd_path] + [p for _, p in self._entries]

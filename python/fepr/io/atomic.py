@@ -28,10 +28,10 @@ _FILE_MODE = 0o666 & ~_umask()
 @contextlib.contextmanager
 def atomic_path(path: Union[str, os.PathLike], suffix: str = "") -> Iterator[str]:
     """A temporary path next to ``path`` to write to; renamed onto ``path`` when the block ends without an
-    exception, removed otherwise. ``suffix``: the temporary name's ending (for writers that choose the format by
-    extension)."""
+    exception, removed otherwise. The temporary name is ``.<name>.<random>.part<suffix>``: ``suffix`` for writers
+    that choose the format by the extension."""
     target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=suffix + ".part", dir=target.parent or ".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part" + suffix, dir=target.parent or ".")
     os.close(fd)
     try:
         yield tmp

@@ -475,24 +475,25 @@ _ADD_MIN = ("proj_restored",)
 _TARGETS = ("px_target", "py_target", "pz_target", "lx_target", "ly_target", "lz_target")
 
 
-def system_history(system) -> Dict[str, np.ndarray]:
+def system_history(system, start: int = 0, stop: Optional[int] = None) -> Dict[str, np.ndarray]:
     """The history of a :class:`fepr.multibody.MultiBody` for :func:`compute_metrics`.
 
     ``system.history`` (the totals), plus the columns it does not combine, from the bodies' histories: the
     momentum targets (``P_target = sum_b P_target,b``; about the system's centre of mass ``C``,
     ``L_target = sum_b [L_target,b + (c_b - C) x P_target,b]``, so that ``L - L_target`` is the sum of the bodies'
     drifts moved to ``C``), ``work_unresolved`` and ``base_substeps`` summed, the projection's trials, metric
-    switches and quality excess the largest, the restored fraction the smallest.
+    switches and quality excess the largest, the restored fraction the smallest. ``start`` and ``stop``: only those
+    rows (a run writes its diagnostics as it goes).
     """
-    h = system.history.as_dict()
-    bodies = [b.history.as_dict() for b in system.bodies]
+    h = system._history_slice(start, stop).as_dict()
     rows = len(h["step"])
-    common = set(bodies[0])
-    for b in bodies[1:]:
-        common &= set(b)
+    hists = [b.history for b in system.bodies]
+    common = set(hists[0].columns)
+    for b in hists[1:]:
+        common &= set(b.columns)
 
     def stack(name: str) -> np.ndarray:
-        return np.stack([np.asarray(b[name][:rows], dtype=np.float64) for b in bodies])  # (bodies, rows)
+        return np.stack([np.asarray(b._slice(name, start, start + rows), dtype=np.float64) for b in hists])
 
     for name in _ADD_SUM:
         if name in common and name not in h:
@@ -521,9 +522,19 @@ def _is_system(sim) -> bool:
     return hasattr(sim, "bodies") and hasattr(sim, "names")
 
 
+#: The history columns :func:`compute_metrics` reads.
+METRIC_COLUMNS = (
+    "step", "time", "total", "kinetic", "elastic", "gravitational", "budget_total", "work_unresolved",
+    "px", "py", "pz", "lx", "ly", "lz", "px_target", "py_target", "pz_target", "lx_target", "ly_target",
+    "lz_target", "inverted", "proj_converged", "proj_stood_down", "proj_iterations", "base_substeps", "base_ms",
+    "proj_ms", "base_energy_error", "min_j",
+)  # fmt: skip
+
+
 def simulation_history(sim) -> Dict[str, np.ndarray]:
-    """The history columns of a :class:`fepr.Simulation` or (:func:`system_history`) a ``MultiBody``."""
-    return system_history(sim) if _is_system(sim) else sim.history.as_dict()
+    """The history columns of a :class:`fepr.Simulation` (those :func:`compute_metrics` reads) or
+    (:func:`system_history`) a ``MultiBody``."""
+    return system_history(sim) if _is_system(sim) else sim.history.as_dict(METRIC_COLUMNS)
 
 
 def simulation_metrics(

@@ -42,7 +42,7 @@ defaults and docs), :mod:`~fepr.scene.parse` (TOML -> validated settings, errors
 """
 
 from .parse import load_scene, scene_from_dict
-from .run import RunResult, run_scene
+from .run import RunResult, StopRequest, run_scene
 from .schema import (
     BODY_KEYS,
     INTEGRATORS,
@@ -88,6 +88,7 @@ __all__ = [
     "WorldSettings",
     "load_scene",
     "run_scene",
+    "StopRequest",
     "scene_from_dict",
     # also public in the single module
     "BODY_KEYS",
