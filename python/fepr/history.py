@@ -26,9 +26,9 @@ __all__ = ["History", "HistoryStore", "DEFAULT_MEMORY_ROWS"]
 #: Rows a chunk holds once full (the small batches the core hands over are gathered into chunks of this size).
 CHUNK_ROWS = 4096
 
-#: Rows of history kept in memory by default (about 31 MB for a single body); older rows go to a temporary
+#: Rows of history kept in memory by default (about 8 MB for a single body); older rows go to a temporary
 #: folder. ``sim.history_memory_rows`` (or ``HistoryStore(memory_rows=...)``) changes it; ``None`` keeps all.
-DEFAULT_MEMORY_ROWS = 16 * CHUNK_ROWS
+DEFAULT_MEMORY_ROWS = 4 * CHUNK_ROWS
 
 
 class HistoryStore:

@@ -800,7 +800,7 @@ class Simulation:
 
     @property
     def history_memory_rows(self) -> Optional[int]:
-        """Rows of history kept in memory (default :data:`fepr.history.DEFAULT_MEMORY_ROWS`, about 31 MB); older
+        """Rows of history kept in memory (default :data:`fepr.history.DEFAULT_MEMORY_ROWS`, about 8 MB); older
         rows go to a temporary folder and are read back when a column is read. ``None``: keep every row in
         memory."""
         return self._history.memory_rows
