@@ -100,14 +100,14 @@ class RunFolder:
         if self.resume:
             if self.earlier is None:
                 raise ConfigError(f"--resume {self.path}: no {MANIFEST} there (not a fepr run folder)")
+            if self.earlier.get("status") == "complete":
+                raise ConfigError(f"--resume {self.path}: that run is complete; nothing to resume")
             ck = self.earlier.get("checkpoint") or {}
             if not (ck.get("state") and (self.path / CHECKPOINT_DIR / ck["state"]).is_file()):
                 raise ConfigError(
                     f"--resume {self.path}: the run has no checkpoint (its {MANIFEST} names none, or the file is "
                     "gone); a run keeps one with --checkpoint-every K, or when it is interrupted"
                 )
-            if self.earlier.get("status") == "complete":
-                raise ConfigError(f"--resume {self.path}: that run is complete; nothing to resume")
             return
         found = sorted(n for n in _RUN_NAMES if (self.path / n).exists())
         found += sorted(p.name for p in self.path.glob("diagnostics_*.csv"))
