@@ -365,3 +365,22 @@ def test_a_scene_of_several_bodies_is_viewed_dragged_and_switched_as_one():
     s.set_projection(False)
     s.run_pending()
     np.testing.assert_array_equal(s.snapshot().positions, snap.positions)
+
+
+def test_view_on_a_busy_port_is_an_error_naming_it_and_port_0_picks_a_free_one(capsys):
+    pytest.importorskip("viser")
+    from fepr.viewer.app import _check_port, _free_port
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        busy = s.getsockname()[1]
+        assert main(["view", str(SCENE), "--port", str(busy), "--max-seconds", "0.5"]) == 2
+        err = capsys.readouterr().err
+        assert f"port {busy} on 127.0.0.1 is in use" in err and "--port 0" in err
+        with pytest.raises(fepr.ConfigError, match="in use"):
+            _check_port("127.0.0.1", busy)
+    free = _free_port("127.0.0.1")
+    assert _check_port("127.0.0.1", free) == free
+    assert main(["view", str(SCENE), "--port", "0", "--max-seconds", "0.5"]) == 0
+    assert "http://127.0.0.1:" in capsys.readouterr().out

@@ -2,8 +2,9 @@
 
 Commands::
 
-    fepr run SCENE.toml [--steps N] [--out DIR] [--no-projection] [--export FORMATS] [--export-every K] [--strict]
-                        [--quiet]
+    fepr run SCENE.toml [--steps N] [--out DIR] [--no-projection] [--export FORMATS] [--export-every K]
+                        [--checkpoint-every K] [--overwrite] [--strict] [--quiet]
+    fepr run [SCENE.toml] --resume DIR [--steps N] [--quiet]
     fepr demo [--steps N] [--out DIR] [--frames F] [--size WxH] [--no-video] [--strict] [--quiet]
     fepr compare SCENE.toml --out DIR [--integrators a,b] [--steps N] [--frames F] [--size WxH] [--no-video]
                             [--strict] [--quiet]

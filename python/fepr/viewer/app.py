@@ -16,7 +16,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from .. import _core
-from ..errors import MissingDependencyError
+from ..errors import ConfigError, MissingDependencyError
 from ..report.style import rgb, run_color
 from .colors import COLOR_MODES, NUM_BINS, SurfaceColoring
 from .session import ViewerSession
@@ -36,6 +36,33 @@ def _viser():
     return viser
 
 
+
+def _port_in_use(host: str, port: int) -> str:
+    return f"port {port} on {host} is in use: give another --port, or --port 0 for any free port"
+
+
+def _check_port(host: str, port: int) -> int:
+    """``port`` if it can be bound on ``host`` now, else a ConfigError naming it."""
+    import socket
+
+    if not 0 < int(port) < 65536:
+        raise ConfigError(f"port must be in 1..65535 (or 0 for any free port), got {port}")
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind((host, int(port)))
+        except OSError:
+            raise ConfigError(_port_in_use(host, port)) from None
+    return int(port)
+
+
+def _free_port(host: str) -> int:
+    """A port that is free on ``host`` now."""
+    import socket
+
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
 class ViewerApp:
     """A viser server bound to ``host:port`` that shows and drives a :class:`ViewerSession`.
 
@@ -48,7 +75,8 @@ class ViewerApp:
     host : str
         Address to bind; ``"127.0.0.1"`` (default) serves this machine only.
     port : int
-        Port; 0 picks a free one (see :attr:`url`).
+        Port; 0 picks a free one (see :attr:`url`). A port in use is an error (viser alone would move to the
+        next free port, and the URL the user expects would show another program or nothing).
     log : callable
         Receives one line per event (the URL, and every change the GUI makes).
     """
@@ -65,9 +93,13 @@ class ViewerApp:
         viser = _viser()
         self.session = session
         self.log = log
+        port = _free_port(host) if port == 0 else _check_port(host, port)
         self.server = viser.ViserServer(host=host, port=port, label=f"fepr: {title}", verbose=False)
         self.host = host
         self.port = int(self.server.get_port())
+        if self.port != port:  # taken between the check and the bind
+            self.server.stop()
+            raise ConfigError(_port_in_use(host, port))
         sim = session.simulation
         self.coloring = SurfaceColoring(sim.rest_positions, sim.tets, getattr(sim, "material", None))
         self._mode = COLOR_MODES[0]
