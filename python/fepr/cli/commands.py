@@ -17,7 +17,7 @@ Exit status: 0 success; 1 an output file could not be written; 2 invalid command
 3 the simulation ran away (the state became non-finite; the diagnostics up to that step are still written), or,
 with ``--strict``, the run has a problem (:meth:`fepr.report.metrics.RunMetrics.problems`: a runaway, inverted
 tets at the end, unconverged projections, unresolved energy above 1e-3 of the energy scale; for ``compare`` and
-``demo``, in a run with FEPR).
+``demo``, in a run with FEPR); 130 and 143 ``fepr run`` stopped by SIGINT or SIGTERM (its work kept).
 
 Every command prints the same summary (:mod:`fepr.report.metrics`): energy error against the books, unresolved
 energy, P and L drift against the momentum targets, min J, inverted tets, unconverged projections, substeps.
@@ -96,7 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="fepr",
         description="FEPR: tetrahedral FEM with energy- and momentum-conserving projection.",
         epilog="Exit status: 0 ok, 1 write error, 2 invalid input, 3 runaway simulation (or, with --strict, a run "
-        "with inverted tets at the end, unconverged projections or unresolved energy above 1e-3).",
+        "with inverted tets at the end, unconverged projections or unresolved energy above 1e-3), 130/143 a run "
+        "stopped by SIGINT/SIGTERM (its work kept: fepr run --resume DIR continues).",
     )
     parser.add_argument("--version", action="version", version=f"fepr {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
