@@ -18,7 +18,8 @@ Structure (what Blender's stock glTF importer turns into shape keys and a shape-
 glTF is +Y up and fepr's scenes are +Z up, so positions are written as ``(x, z, -y)`` (a rotation, which keeps
 the winding): importers that convert glTF to +Z up (Blender does) show the body the way up it was simulated.
 Units are metres. Every ``POSITION`` accessor and the animation's time accessor carry exact ``min``/``max``;
-buffer views are 4-byte aligned and both chunks are padded as the GLB container requires.
+buffer views are 4-byte aligned. The document and the GLB container (header, chunks, padding) are pygltflib's:
+fepr only packs the arrays.
 
 Size: about ``12 V N`` bytes for ``N`` frames of ``V`` surface vertices plus ``4 N^2`` bytes of weights (the
 weights of all targets at every key); keep ``N`` to a few hundred frames (``every``) for long runs.
@@ -32,6 +33,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
+import pygltflib as gl
 
 from ..errors import ConfigError
 from ..io.atomic import atomic_path
@@ -40,61 +42,38 @@ from .fields import Frame
 
 __all__ = ["GlbWriter", "Z_UP_TO_Y_UP", "glb_accessor", "read_glb", "write_glb"]
 
-GLB_MAGIC = 0x46546C67  # b"glTF"
-CHUNK_JSON = 0x4E4F534A  # b"JSON"
-CHUNK_BIN = 0x004E4942  # b"BIN\0"
-ARRAY_BUFFER = 34962
-ELEMENT_ARRAY_BUFFER = 34963
-FLOAT = 5126
-UNSIGNED_INT = 5125
 _COMPONENTS = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
-_DTYPES = {5120: "<i1", 5121: "<u1", 5122: "<i2", 5123: "<u2", 5125: "<u4", 5126: "<f4"}
+_DTYPES = {gl.BYTE: "<i1", gl.UNSIGNED_BYTE: "<u1", gl.SHORT: "<i2", gl.UNSIGNED_SHORT: "<u2",
+           gl.UNSIGNED_INT: "<u4", gl.FLOAT: "<f4"}  # fmt: skip
 
 #: Rotation taking fepr's +Z-up coordinates to glTF's +Y-up ones: ``(x, y, z) -> (x, z, -y)``.
 Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
-def _pad4(n: int) -> int:
-    return (-n) % 4
-
-
 class _Buffer:
-    """The binary chunk under construction: buffer views (4-byte aligned) and accessors."""
+    """The binary buffer under construction: one 4-byte aligned buffer view and one accessor per array."""
 
     def __init__(self) -> None:
         self.parts: List[bytes] = []
         self.length = 0
-        self.views: List[Dict[str, Any]] = []
-        self.accessors: List[Dict[str, Any]] = []
+        self.views: List[gl.BufferView] = []
+        self.accessors: List[gl.Accessor] = []
 
     def accessor(self, data: np.ndarray, kind: str, *, target: Optional[int] = None, bounds: bool = False) -> int:
         a = np.ascontiguousarray(data)
-        if a.dtype.kind == "f":
-            a, ctype = a.astype("<f4"), FLOAT
-        else:
-            a, ctype = a.astype("<u4"), UNSIGNED_INT
+        a, ctype = (a.astype("<f4"), gl.FLOAT) if a.dtype.kind == "f" else (a.astype("<u4"), gl.UNSIGNED_INT)
         raw = a.tobytes()
-        view: Dict[str, Any] = {"buffer": 0, "byteOffset": self.length, "byteLength": len(raw)}
-        if target is not None:
-            view["target"] = target
-        self.parts.append(raw)
-        pad = _pad4(len(raw))
-        if pad:
-            self.parts.append(b"\0" * pad)
+        self.views.append(gl.BufferView(buffer=0, byteOffset=self.length, byteLength=len(raw), target=target))
+        pad = (-len(raw)) % 4
+        self.parts.append(raw + b"\0" * pad)
         self.length += len(raw) + pad
-        self.views.append(view)
         comps = _COMPONENTS[kind]
-        acc: Dict[str, Any] = {
-            "bufferView": len(self.views) - 1,
-            "componentType": ctype,
-            "count": int(a.size // comps),
-            "type": kind,
-        }
+        acc = gl.Accessor(bufferView=len(self.views) - 1, componentType=ctype, count=int(a.size // comps), type=kind)
         if bounds and a.size:
             flat = a.reshape(-1, comps)
             # float32 values are exactly representable as Python floats, so min/max match the stored data.
-            acc["min"] = [float(v) for v in flat.min(axis=0)]
-            acc["max"] = [float(v) for v in flat.max(axis=0)]
+            acc.min = [float(v) for v in flat.min(axis=0)]
+            acc.max = [float(v) for v in flat.max(axis=0)]
         self.accessors.append(acc)
         return len(self.accessors) - 1
 
@@ -156,72 +135,54 @@ def write_glb(
     base = pos[0].astype("<f4")
 
     buf = _Buffer()
-    i_idx = buf.accessor(tri.reshape(-1), "SCALAR", target=ELEMENT_ARRAY_BUFFER)
-    i_pos = buf.accessor(base, "VEC3", target=ARRAY_BUFFER, bounds=True)
+    i_idx = buf.accessor(tri.reshape(-1), "SCALAR", target=gl.ELEMENT_ARRAY_BUFFER)
+    i_pos = buf.accessor(base, "VEC3", target=gl.ARRAY_BUFFER, bounds=True)
     targets = []
     for k in range(1, n):
         delta = (pos[k] - base.astype(np.float64)).astype("<f4")
-        targets.append({"POSITION": buf.accessor(delta, "VEC3", target=ARRAY_BUFFER, bounds=True)})
-    primitive: Dict[str, Any] = {"attributes": {"POSITION": i_pos}, "indices": i_idx, "mode": 4, "material": 0}
-    mesh: Dict[str, Any] = {"name": name, "primitives": [primitive]}
-    gltf: Dict[str, Any] = {
-        "asset": {"version": "2.0", "generator": f"fepr {_version()}"},
-        "scene": 0,
-        "scenes": [{"name": name, "nodes": [0]}],
-        "nodes": [{"name": name, "mesh": 0}],
-        "meshes": [mesh],
-        "materials": [
-            {
-                "name": "fepr_body",
-                "pbrMetallicRoughness": {
-                    "baseColorFactor": [0.80, 0.50, 0.25, 1.0],
-                    "metallicFactor": 0.0,
-                    "roughnessFactor": 0.6,
-                },
-            }
+        targets.append({"POSITION": buf.accessor(delta, "VEC3", target=gl.ARRAY_BUFFER, bounds=True)})
+    primitive = gl.Primitive(attributes=gl.Attributes(POSITION=i_pos), indices=i_idx, mode=gl.TRIANGLES, material=0)
+    mesh = gl.Mesh(name=name, primitives=[primitive])
+    doc = gl.GLTF2(
+        asset=gl.Asset(version="2.0", generator=f"fepr {_version()}"),
+        scene=0,
+        scenes=[gl.Scene(name=name, nodes=[0])],
+        nodes=[gl.Node(name=name, mesh=0)],
+        meshes=[mesh],
+        materials=[
+            gl.Material(
+                name="fepr_body",
+                pbrMetallicRoughness=gl.PbrMetallicRoughness(
+                    baseColorFactor=[0.80, 0.50, 0.25, 1.0], metallicFactor=0.0, roughnessFactor=0.6
+                ),
+            )
         ],
-    }
+    )
     if targets:
-        primitive["targets"] = targets
-        mesh["weights"] = [0.0] * len(targets)
-        mesh["extras"] = {"targetNames": [f"frame_{k:05d}" for k in range(1, n)]}
+        primitive.targets = targets
+        mesh.weights = [0.0] * len(targets)
+        mesh.extras = {"targetNames": [f"frame_{k:05d}" for k in range(1, n)]}
         weights = np.zeros((n, n - 1), dtype="<f4")
         weights[np.arange(1, n), np.arange(n - 1)] = 1.0
         i_in = buf.accessor(t32, "SCALAR", bounds=True)
         i_out = buf.accessor(weights.reshape(-1), "SCALAR")
-        gltf["animations"] = [
-            {
-                "name": "simulation",
-                "samplers": [{"input": i_in, "output": i_out, "interpolation": interpolation}],
-                "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
-            }
+        doc.animations = [
+            gl.Animation(
+                name="simulation",
+                samplers=[gl.AnimationSampler(input=i_in, output=i_out, interpolation=interpolation)],
+                channels=[gl.AnimationChannel(sampler=0, target=gl.AnimationChannelTarget(node=0, path="weights"))],
+            )
         ]
-    gltf["buffers"] = [{"byteLength": buf.length}]
-    gltf["bufferViews"] = buf.views
-    gltf["accessors"] = buf.accessors
+    doc.buffers = [gl.Buffer(byteLength=buf.length)]
+    doc.bufferViews = buf.views
+    doc.accessors = buf.accessors
     if extras:
-        gltf["extras"] = extras
+        doc.extras = extras
+    doc.set_binary_blob(buf.data())
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "wb") as fh:
-        fh.write(_glb_bytes(gltf, buf.data()))
+    out.write_bytes(b"".join(doc.save_to_bytes()))
     return out
-
-
-def _glb_bytes(gltf: Dict[str, Any], binary: bytes) -> bytes:
-    js = json.dumps(gltf, separators=(",", ":"), allow_nan=False).encode("utf-8")
-    js += b" " * _pad4(len(js))
-    binary = binary + b"\0" * _pad4(len(binary))
-    total = 12 + 8 + len(js) + 8 + len(binary)
-    return b"".join(
-        [
-            struct.pack("<III", GLB_MAGIC, 2, total),
-            struct.pack("<II", len(js), CHUNK_JSON),
-            js,
-            struct.pack("<II", len(binary), CHUNK_BIN),
-            binary,
-        ]
-    )
 
 
 def _version() -> str:
@@ -234,15 +195,15 @@ def _version() -> str:
 
 
 def read_glb(path: PathLike) -> Tuple[Dict[str, Any], bytes]:
-    """Parse a ``.glb`` container: ``(gltf JSON as a dict, binary chunk)``.
+    """Parse a ``.glb``: ``(gltf JSON as a dict, binary chunk)`` (pygltflib reads the container).
 
-    Checks the header (magic, version 2, total length equal to the file size), the chunk order and types,
-    4-byte chunk alignment, and that the buffer fits in the binary chunk.
+    Checks first what pygltflib takes on trust, so that a damaged file is an error naming the file: the header
+    (magic, version 2, total length equal to the file size), and that buffer 0 fits in the binary chunk.
 
     Raises
     ------
     ConfigError
-        If any of these checks fails.
+        If a check fails or pygltflib cannot parse the file.
     """
     p = Path(path)
     data = p.read_bytes()
@@ -253,32 +214,18 @@ def read_glb(path: PathLike) -> Tuple[Dict[str, Any], bytes]:
     if len(data) < 20:
         raise bad(f"only {len(data)} bytes")
     magic, version, total = struct.unpack_from("<III", data, 0)
-    if magic != GLB_MAGIC:
+    if data[:4] != b"glTF":
         raise bad("wrong magic")
     if version != 2:
         raise bad(f"version {version}, expected 2")
     if total != len(data):
         raise bad(f"header length {total} != file size {len(data)}")
-    pos = 12
-    chunks = []
-    while pos < total:
-        if pos + 8 > total:
-            raise bad("truncated chunk header")
-        length, ctype = struct.unpack_from("<II", data, pos)
-        if length % 4:
-            raise bad(f"chunk at byte {pos} has length {length}, not a multiple of 4")
-        if pos + 8 + length > total:
-            raise bad("truncated chunk")
-        chunks.append((ctype, data[pos + 8 : pos + 8 + length]))
-        pos += 8 + length
-    if not chunks or chunks[0][0] != CHUNK_JSON:
-        raise bad("the first chunk is not JSON")
-    gltf = json.loads(chunks[0][1].decode("utf-8"))
-    binary = b""
-    if len(chunks) > 1:
-        if chunks[1][0] != CHUNK_BIN:
-            raise bad("the second chunk is not BIN")
-        binary = chunks[1][1]
+    try:
+        doc = gl.GLTF2.load_from_bytes(data)
+    except Exception as exc:  # pygltflib raises whatever its parser meets (struct, JSON, key errors)
+        raise bad(str(exc)) from None
+    binary = doc.binary_blob() or b""
+    gltf = json.loads(doc.to_json())  # plain JSON types, empty fields left out (as in the file)
     buffers = gltf.get("buffers", [])
     if buffers and buffers[0].get("byteLength", 0) > len(binary):
         raise bad("buffer 0 is longer than the BIN chunk")
@@ -294,11 +241,11 @@ def glb_accessor(gltf: Dict[str, Any], binary: bytes, index: int) -> np.ndarray:
     view = gltf["bufferViews"][acc["bufferView"]]
     comps = _COMPONENTS[acc["type"]]
     dtype = np.dtype(_DTYPES[acc["componentType"]])
-    if "byteStride" in view and view["byteStride"] != comps * dtype.itemsize:
+    if view.get("byteStride") not in (None, comps * dtype.itemsize):
         raise ConfigError("strided buffer views are not supported")
-    offset = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    offset = (view.get("byteOffset") or 0) + (acc.get("byteOffset") or 0)
     count = acc["count"] * comps
-    if offset + count * dtype.itemsize > view.get("byteOffset", 0) + view["byteLength"]:
+    if offset + count * dtype.itemsize > (view.get("byteOffset") or 0) + view["byteLength"]:
         raise ConfigError(f"accessor {index} runs past its buffer view")
     a = np.frombuffer(binary, dtype=dtype, count=count, offset=offset)
     return a if comps == 1 else a.reshape(-1, comps)
