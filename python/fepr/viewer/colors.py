@@ -7,6 +7,7 @@ colour bins so that each bin can be drawn as one single-coloured mesh (cheap to 
 
 from __future__ import annotations
 
+import functools
 from typing import List, Tuple
 
 import numpy as np
@@ -20,30 +21,20 @@ __all__ = ["COLOR_MODES", "NUM_BINS", "SurfaceColoring", "boundary_faces_with_te
 COLOR_MODES = ("solid", "J (volume change)", "energy density")
 NUM_BINS = 9
 
-#: Diverging palette for J: compressed (blue) .. unchanged (light) .. stretched (red), RGB 0..255.
-J_PALETTE = (
-    (33, 102, 172),
-    (67, 147, 195),
-    (146, 197, 222),
-    (209, 229, 240),
-    (240, 240, 240),
-    (253, 219, 199),
-    (244, 165, 130),
-    (214, 96, 77),
-    (178, 24, 43),
-)
-#: Sequential palette for the energy density: low (dark violet) .. high (yellow).
-PSI_PALETTE = (
-    (68, 1, 84),
-    (72, 40, 120),
-    (62, 74, 137),
-    (49, 104, 142),
-    (38, 130, 142),
-    (31, 158, 137),
-    (53, 183, 121),
-    (110, 206, 88),
-    (253, 231, 37),
-)
+#: The colour maps (matplotlib's): diverging for J (compressed blue .. unchanged light .. stretched red),
+#: perceptually uniform for the energy density (low dark violet .. high yellow).
+J_COLORMAP = "RdBu_r"
+PSI_COLORMAP = "viridis"
+
+
+@functools.lru_cache(maxsize=None)
+def palette(name: str, bins: int = NUM_BINS) -> Tuple[Tuple[int, int, int], ...]:
+    """``bins`` colours sampled evenly from matplotlib's colour map ``name``, RGB 0..255 (matplotlib is imported
+    when a field is first coloured, so the viewer starts without it)."""
+    from matplotlib import colormaps
+
+    cmap = colormaps[name]
+    return tuple(tuple(int(round(255 * c)) for c in cmap(k / (bins - 1))[:3]) for k in range(bins))
 
 
 def boundary_faces_with_tets(tets) -> Tuple[np.ndarray, np.ndarray]:
@@ -87,16 +78,16 @@ class SurfaceColoring:
         values = self.field(mode, positions)[self.face_tets]
         if mode == COLOR_MODES[1]:
             lo, hi = 0.5, 1.5
-            palette = J_PALETTE
+            colors = palette(J_COLORMAP)
             legend = "J: blue < 1 (compressed), light = 1, red > 1 (stretched); range 0.5 .. 1.5"
         else:
             lo = 0.0
             finite = values[np.isfinite(values)]
             hi = float(np.percentile(finite, 98)) if finite.size else 1.0
             hi = hi if hi > 0 else 1.0
-            palette = PSI_PALETTE
+            colors = palette(PSI_COLORMAP)
             legend = f"energy density: dark 0 .. yellow {hi:.3g} J/m³"
         with np.errstate(invalid="ignore"):
             idx = np.clip(((values - lo) / (hi - lo) * NUM_BINS).astype(np.int64), 0, NUM_BINS - 1)
         idx[~np.isfinite(values)] = NUM_BINS - 1
-        return [self.faces[idx == b] for b in range(NUM_BINS)], palette, legend
+        return [self.faces[idx == b] for b in range(NUM_BINS)], colors, legend
