@@ -295,6 +295,7 @@ def _err(msg: str) -> None:
 def _cmd_run(args: argparse.Namespace) -> int:
     from ..report.metrics import RunProblemWarning
     from ..scene import StopRequest, load_scene, run_scene
+    from .progress import progress_bar
 
     if args.resume is not None:
         if args.out is not None and Path(args.out).resolve() != Path(args.resume).resolve():
@@ -309,13 +310,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
         scene = load_scene(args.scene)
         out = args.out if args.out is not None else Path("fepr-out") / Path(args.scene).stem
     projection = False if args.no_projection else None
-    last: list = []  # the time of the last progress line (empty before the header)
+    bars: list = []  # the progress bar, made with the header at the first call
 
     def progress(done: int, total: int, sim) -> None:
         if args.quiet:
             return
-        if not last:  # the first call, before the first step: the header
-            last.append(time.perf_counter())
+        if not bars:  # the first call, before the first step: the header, then the bar (steps, rate, ETA)
             proj = "off" if (args.no_projection or not scene.projection.enabled) else "on"
             bodies = f"{len(scene.bodies)} bodies, " if scene.is_multibody else ""
             what = f"resuming at step {done} of {total}" if args.resume is not None else f"{total} steps"
@@ -324,11 +324,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 f"{scene.integrator.name} dt={scene.integrator.dt:.6g} s, FEPR {proj}, {what} -> {out}",
                 flush=True,
             )
+            bars.append(progress_bar(total, desc=scene.name, unit="step", leave=False))
+            bars[0].update(done)
             return
-        now = time.perf_counter()
-        if now - last[0] >= 1.0 or done == total:
-            last[0] = now
-            print(f"  step {done}/{total}  t={float(sim.time):.4g} s", flush=True)
+        bar = bars[0]
+        bar.set_postfix_str(f"t={float(sim.time):.4g} s", refresh=False)
+        bar.update(done - bar.n)
 
     stop = StopRequest().install()
     try:
@@ -350,6 +351,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
             )
     finally:
         stop.restore()
+        for bar in bars:
+            bar.close()
     if not args.quiet:
         for w in result.warnings:
             _err(f"warning: {w}")

@@ -21,7 +21,10 @@ import numpy as np
 from ..errors import ConfigError, SimulationError
 from .schema import Scene
 
-__all__ = ["RunResult", "StopRequest", "run_scene"]
+__all__ = ["RunResult", "StopRequest", "run_scene", "PROGRESS_S"]
+
+#: Seconds between calls of :func:`run_scene`'s ``progress`` within a tenth of the run.
+PROGRESS_S = 1.0
 
 
 class StopRequest:
@@ -277,8 +280,8 @@ def run_scene(
     projection : bool or fepr.Projection, optional
         Overrides ``[projection]`` (``False``: FEPR off).
     progress : callable, optional
-        Called as ``progress(steps_done, steps_total, sim)`` before the first step and after every tenth
-        of the run.
+        Called as ``progress(steps_done, steps_total, sim)`` before the first step, after every tenth of the
+        run, and in between at most every :data:`PROGRESS_S` seconds (a long run's bar keeps its ETA current).
     export : str or sequence of str, optional
         Export formats (``"vtu,glb"``; :data:`fepr.export.FORMATS`), overriding ``[export] formats``. With
         formats from either and an ``out_dir``, every ``every``-th step (the initial state first) is written
@@ -642,9 +645,14 @@ def _step_and_record(
     next_report = (int(sim.num_steps) - start_steps) // chunk * chunk + chunk
     diagnostics = checkpoints.diagnostics if checkpoints is not None else None
 
+    last_progress = [time.perf_counter()]
+
     def after_batch(_sim) -> bool:
         if diagnostics is not None:
             diagnostics.flush()  # the rows go to the files while the next batch steps
+        if progress is not None and time.perf_counter() - last_progress[0] >= PROGRESS_S:
+            last_progress[0] = time.perf_counter()
+            progress(int(sim.num_steps) - start_steps, n, sim)
         return stop()
 
     def record() -> None:
