@@ -17,7 +17,15 @@ Quick example::
 
 from . import export, meshes
 from ._core import __version__
-from .errors import CheckpointError, ConfigError, FeprError, MeshError, MissingDependencyError, SimulationError
+from .errors import (
+    CheckpointError,
+    ConfigError,
+    FeprError,
+    ImplausibleValueWarning,
+    MeshError,
+    MissingDependencyError,
+    SimulationError,
+)
 from .io import load_mesh
 from .materials import Arap, ConstraintNeoHookean, NeoHookean, StableNeoHookean
 from .mesh import TetMesh
@@ -56,6 +64,7 @@ __all__ = [
     "Energy",
     "FeprError",
     "History",
+    "ImplausibleValueWarning",
     "ImplicitEuler",
     "MeshError",
     "MeshInfo",

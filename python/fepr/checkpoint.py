@@ -155,12 +155,9 @@ def _decode(obj: Any, arrays: Dict[str, np.ndarray], where: str) -> Any:
 
 
 def _write(path: Union[str, Path], meta: dict, arrays: Dict[str, np.ndarray]) -> None:
-    from .io.atomic import atomic_path
+    from .io.npz import save_npz
 
-    payload = {"meta": np.array(json.dumps(meta, allow_nan=True)), **arrays}
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **payload)
+    save_npz(path, {"meta": np.array(json.dumps(meta, allow_nan=True)), **arrays})
 
 
 def _read(path: Union[str, Path]) -> Tuple[dict, Dict[str, np.ndarray]]:

@@ -35,3 +35,14 @@ class MissingDependencyError(FeprError, ImportError):
 class CheckpointError(FeprError, ValueError):
     """A checkpoint cannot be read or does not fit: not a fepr checkpoint, damaged, written by another checkpoint
     version, or for another mesh or settings (the message names the file and what does not match)."""
+
+
+class ImplausibleValueWarning(UserWarning):
+    """A parameter is computable but physically implausible, e.g. a density of 1e7 kg/m^3 or a time step of 10 s:
+    usually a units mistake. The message names the parameter, its value, the plausible range and why.
+
+    ``parameter`` is the parameter's name (``"density"``, ``"youngs_modulus"``, ``"dt"``); the bounds are in
+    :data:`fepr._validate.PLAUSIBLE`. Silence it with ``warnings.simplefilter("ignore", ImplausibleValueWarning)``.
+    """
+
+    parameter: str = ""

@@ -12,19 +12,24 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _core
+from ._validate import check_magnitude, compact_numbers
 from .errors import ConfigError
 
 
 def _set_elastic(material) -> None:
     """Check the material in the core (``_core.check_material``: the messages name the key as
-    ``material.key``) and store its numbers as floats on the frozen dataclass."""
+    ``material.key``) and store its numbers as floats on the frozen dataclass. Young's modulus is also checked for
+    magnitude (:func:`fepr._validate.check_magnitude`): outside 1e-100..1e100 Pa a ConfigError, outside
+    1..1e13 Pa an :class:`~fepr.errors.ImplausibleValueWarning`."""
     try:
         _core.check_material(material._settings())
     except ValueError as exc:
-        raise ConfigError(str(exc)) from None
+        raise ConfigError(compact_numbers(str(exc))) from None
     for name in ("youngs_modulus", "poisson_ratio", "j0"):
         if hasattr(material, name):
             object.__setattr__(material, name, float(getattr(material, name)))
+    # magnitude: an error beyond what double precision can compute with, a warning when implausible
+    check_magnitude(material.youngs_modulus, "youngs_modulus")
 
 
 class _Material:

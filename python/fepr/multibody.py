@@ -35,6 +35,7 @@ from typing import Dict, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .errors import ConfigError, SimulationError
+from ._validate import compact_numbers
 from .simulation import Energy, History, Simulation
 
 __all__ = ["MultiBody", "TOTAL_COLUMNS"]
@@ -386,6 +387,7 @@ class MultiBody:
                 )
             except RuntimeError as exc:
                 k, message = exc.args if len(exc.args) == 2 else (0, str(exc))
+                message = compact_numbers(message)
                 name = self._names[k]
                 # The core numbers the bodies; the user named them.
                 message = re.sub(r"\bbody (\d+)\b", lambda m: f"body {self._names[int(m.group(1))]!r}", message)
@@ -528,18 +530,23 @@ class MultiBody:
 
         Arrays: ``positions``, ``velocities``, ``rest_positions`` (n, 3), ``tets`` (k, 4) and ``masses`` (n,)
         of all bodies concatenated (as the properties of the same names), ``offsets`` (bodies + 1,): body ``b``
-        is rows ``offsets[b]:offsets[b+1]``, ``names`` (bodies,) and ``time`` (s).
+        is rows ``offsets[b]:offsets[b+1]``, ``names`` (bodies,) and ``time`` (s). The archive is written to exactly
+        ``path`` (no ``.npz`` is appended to another suffix), atomically (:func:`fepr.io.npz.save_npz`).
         """
-        np.savez(
+        from .io.npz import save_npz
+
+        save_npz(
             path,
-            positions=self.positions,
-            velocities=self.velocities,
-            rest_positions=self.rest_positions,
-            tets=self.tets,
-            masses=self.masses,
-            offsets=self.offsets,
-            names=np.array(self._names),
-            time=np.float64(self.time),
+            dict(
+                positions=self.positions,
+                velocities=self.velocities,
+                rest_positions=self.rest_positions,
+                tets=self.tets,
+                masses=self.masses,
+                offsets=self.offsets,
+                names=np.array(self._names),
+                time=np.float64(self.time),
+            ),
         )
 
     def __repr__(self) -> str:

@@ -14,7 +14,7 @@ from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple, 
 import numpy as np
 
 from . import _core
-from ._validate import float_array, integer, real
+from ._validate import compact_numbers, float_array, integer, real
 from .errors import ConfigError, SimulationError
 from .history import History, HistoryStore
 from .materials import MATERIAL_TYPES, _Material
@@ -33,7 +33,7 @@ def _checked(check, settings: dict) -> None:
     try:
         check(settings)
     except ValueError as exc:
-        raise ConfigError(str(exc)) from None
+        raise ConfigError(compact_numbers(str(exc))) from None
 
 
 def _fields(obj) -> dict:
@@ -438,9 +438,15 @@ class Simulation:
                 raise ConfigError(f"kinematic_pins[{k}] must be fepr.KinematicPins(vertices, motion), got {kp!r}")
             groups.append(kp.indices(m))
         seen: set = set()
+        static = set(pinned_idx)
         for k, g in enumerate(groups):
             if seen & set(g):
                 raise ConfigError(f"kinematic_pins[{k}]: vertex {min(seen & set(g))} is in more than one group")
+            if static & set(g):
+                raise ConfigError(
+                    f"kinematic_pins[{k}]: vertex {min(static & set(g))} is also in pinned: a vertex cannot both stay "
+                    "fixed (pinned) and follow a path (a kinematic pin); remove it from one of the two"
+                )
             seen |= set(g)
         pinned_idx = sorted(set(pinned_idx) | seen)
         air_damping = real(air_damping, "air_damping", lo=0)
@@ -461,14 +467,14 @@ class Simulation:
                 threads=threads,
             )
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise ConfigError(compact_numbers(str(exc))) from None
         try:
             self._sim.set_obstacles([ob._core() for ob in obstacles])
             self._sim.set_kinematic_pins([(g, *kp.motion._core()) for g, kp in zip(groups, kinematic)])
             self._sim.set_damping(float(air_damping), float(rayleigh_damping))
             self._sim.set_self_contact(_self_contact(self_contact))
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise ConfigError(compact_numbers(str(exc))) from None
         self.self_contact = _self_contact(self_contact)
         self.obstacles: tuple = tuple(obstacles)
         self.kinematic_pins: tuple = tuple(kinematic)
@@ -550,7 +556,7 @@ class Simulation:
         try:
             setattr(self._sim, name, a)
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise ConfigError(compact_numbers(str(exc))) from None
         if self.num_steps == 0:
             self._history.clear()  # row 0 describes the state the run starts from: taken again at the first step
 
@@ -626,7 +632,7 @@ class Simulation:
             try:
                 remaining -= self._sim.step(remaining, self.BATCH_SECONDS)
             except RuntimeError as exc:
-                err = SimulationError(str(exc))
+                err = SimulationError(compact_numbers(str(exc)))
                 err.step = self.num_steps + 1  # the step that failed
                 raise err from None
             finally:
@@ -732,7 +738,7 @@ class Simulation:
         try:
             self._sim.set_external_forces(np.ascontiguousarray(f))
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise ConfigError(compact_numbers(str(exc))) from None
 
     def set_drag(self, vertex: int, target, stiffness: float) -> None:
         """Pull ``vertex`` towards ``target`` ((3,) m) with a spring of ``stiffness`` N/m (the viewer's mouse
@@ -743,7 +749,7 @@ class Simulation:
         try:
             self._sim.set_drag((vertex, target, float(stiffness)))
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise ConfigError(compact_numbers(str(exc))) from None
 
     def clear_drag(self) -> None:
         """Release the drag spring."""
@@ -777,7 +783,7 @@ class Simulation:
         try:
             return self._sim.elastic_energy_gradient(x)
         except ValueError as exc:
-            raise ConfigError(str(exc)) from None
+            raise ConfigError(compact_numbers(str(exc))) from None
 
     @property
     def last_projection(self) -> Optional[ProjectionReport]:
@@ -839,15 +845,20 @@ class Simulation:
         return load_simulation(path, threads=threads)
 
     def save_state(self, path: Union[str, Path]) -> None:
-        """Write ``positions, velocities, rest_positions, tets, masses, time`` to a NumPy ``.npz`` file."""
-        np.savez(
+        """Write ``positions, velocities, rest_positions, tets, masses, time`` to a NumPy ``.npz`` archive at exactly
+        ``path`` (no ``.npz`` is appended to another suffix), atomically (:func:`fepr.io.npz.save_npz`)."""
+        from .io.npz import save_npz
+
+        save_npz(
             path,
-            positions=self.positions,
-            velocities=self.velocities,
-            rest_positions=self.rest_positions,
-            tets=self.tets,
-            masses=self.masses,
-            time=np.float64(self.time),
+            dict(
+                positions=self.positions,
+                velocities=self.velocities,
+                rest_positions=self.rest_positions,
+                tets=self.tets,
+                masses=self.masses,
+                time=np.float64(self.time),
+            ),
         )
 
     def __repr__(self) -> str:

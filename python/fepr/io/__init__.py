@@ -28,6 +28,10 @@ Example
 
 Every failure is a :class:`~fepr.errors.MeshError` that names the file (and, for line-based formats, the
 line); invalid load options are :class:`~fepr.errors.ConfigError` naming the option.
+
+Compressed data (zlib/lzma ``.vtu`` arrays, deflated ``.npz`` members) is checked before it is inflated: against the
+counts the file declares and against a cap on the decompressed bytes of one file, 1 GiB by default, set with the
+environment variable ``FEPR_MAX_MESH_BYTES`` (e.g. ``FEPR_MAX_MESH_BYTES=8GiB``; see :mod:`fepr.io._limits`).
 """
 
 from __future__ import annotations
@@ -150,9 +154,11 @@ def load_mesh(
     ------
     MeshError
         The file is missing, unsupported or malformed, or the mesh is invalid (the message names the file
-        and the problem).
+        and the problem); or its compressed data (``.vtu``, ``.npz``) would inflate beyond the counts it
+        declares or beyond the cap on decompressed mesh data: 1 GiB per file unless the environment variable
+        ``FEPR_MAX_MESH_BYTES`` sets another number of bytes (``FEPR_MAX_MESH_BYTES=8GiB`` for a trusted file).
     ConfigError
-        A load option is invalid (the message names it).
+        A load option is invalid (the message names it), or ``FEPR_MAX_MESH_BYTES`` is not a number of bytes.
     """
     options = check_load_options(
         scale=scale, translate=translate, fit=fit, rotate=rotate, up_axis=up_axis, center=center

@@ -16,7 +16,7 @@ import re
 
 from ..errors import ConfigError
 
-__all__ = ["DEFAULT_MAX_MESH_BYTES", "ENV_VAR", "describe_bytes", "limit_hint", "max_mesh_bytes"]
+__all__ = ["DEFAULT_MAX_MESH_BYTES", "ENV_VAR", "describe_bytes", "max_mesh_bytes", "over_limit"]
 
 #: The environment variable that sets the cap (bytes).
 ENV_VAR = "FEPR_MAX_MESH_BYTES"
@@ -57,9 +57,10 @@ def describe_bytes(n: int) -> str:
     return f"{n} bytes"  # pragma: no cover
 
 
-def limit_hint(cap: int) -> str:
-    """The end of a message about the cap: its value and how to raise it."""
+def over_limit(cap: int) -> str:
+    """The end of a message about the cap: ``more than the limit ..., N bytes; ... raise it with ...``."""
+    example = f"{max(2 * cap, 8 << 30) >> 30}GiB"
     return (
-        f"the limit on decompressed mesh data is {describe_bytes(cap)}; if the file is trusted, raise it with the "
-        f"environment variable {ENV_VAR} (e.g. {ENV_VAR}={max(2 * cap, 8 << 30) >> 30}GiB)"
+        f"more than the limit on decompressed mesh data, {describe_bytes(cap)}; if the file is trusted, raise the "
+        f"limit with the environment variable {ENV_VAR} (e.g. {ENV_VAR}={example})"
     )

@@ -3,8 +3,9 @@
 meshio allocates arrays from the counts a file declares (``$Nodes``, ``POINTS``, ``Vertices``, ...) before it
 reads the data. A damaged or hostile file that declares 10^12 nodes would make it try to allocate terabytes.
 :func:`prescan` reads only the headers (the file is memory-mapped, not loaded) and rejects every count that
-cannot fit in the file: each item needs at least a known number of bytes. What it cannot check it leaves to
-meshio, whose errors are turned into :class:`~fepr.errors.MeshError` by the caller.
+cannot fit in the file: each item needs at least a known number of bytes. Compressed ``.vtu`` arrays, which can
+inflate far beyond the file, are checked against the file's counts and a cap (:mod:`fepr.io._vtu_prescan`). What it
+cannot check it leaves to meshio, whose errors are turned into :class:`~fepr.errors.MeshError` by the caller.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import struct
 from pathlib import Path
 from typing import List, Tuple
 
-from ..errors import MeshError
+from ..errors import ConfigError, MeshError
 
 __all__ = ["prescan"]
 
@@ -23,8 +24,10 @@ __all__ = ["prescan"]
 def prescan(p: Path, fmt: str) -> None:
     """Raise :class:`MeshError` naming the file (and the line) if a header count cannot fit in the file.
 
-    ``fmt`` is ``"gmsh"``, ``"vtk"``, ``"medit"`` (ASCII ``.mesh``), ``"meshb"``, ``"stl"`` or ``"ply"``;
-    other formats are not checked.
+    ``fmt`` is ``"gmsh"``, ``"vtk"``, ``"vtu"``, ``"medit"`` (ASCII ``.mesh``), ``"meshb"``, ``"stl"`` or ``"ply"``;
+    other formats are not checked. For ``"vtu"``, compressed data arrays are inflated (bounded, the output discarded)
+    and checked against the counts the file declares and the cap on decompressed mesh data
+    (:mod:`fepr.io._vtu_prescan`, :mod:`fepr.io._limits`).
     """
     try:
         size = p.stat().st_size
@@ -38,6 +41,12 @@ def prescan(p: Path, fmt: str) -> None:
     try:
         with open(p, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
             check(p, mm, size)
+    except ConfigError:  # FEPR_MAX_MESH_BYTES is invalid: the message names it
+        raise
+    except MeshError as exc:
+        if fmt == "vtu":  # names the file, line and array already
+            raise
+        raise MeshError(f"{p}: cannot read file: {exc}") from None
     except (OSError, ValueError) as exc:
         raise MeshError(f"{p}: cannot read file: {exc}") from None
 
@@ -366,4 +375,10 @@ def _ply(p: Path, mm, size: int) -> None:
             )
 
 
-_CHECKS = {"gmsh": _gmsh, "vtk": _vtk, "medit": _medit, "meshb": _meshb, "stl": _stl, "ply": _ply}
+def _vtu(p: Path, mm, size: int) -> None:
+    from ._vtu_prescan import check_vtu
+
+    check_vtu(p, mm, size)
+
+
+_CHECKS = {"gmsh": _gmsh, "vtk": _vtk, "vtu": _vtu, "medit": _medit, "meshb": _meshb, "stl": _stl, "ply": _ply}

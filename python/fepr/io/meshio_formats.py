@@ -6,7 +6,10 @@ vertices, ...) are dropped, and a :class:`UserWarning` lists the dropped cell ty
 points are kept, in file order, so indices stay those of the file.
 
 Before meshio sees the file, the counts in its headers are checked against the file size
-(:mod:`fepr.io._prescan`), so a corrupt header cannot make meshio allocate a giant array.
+(:mod:`fepr.io._prescan`), so a corrupt header cannot make meshio allocate a giant array, and the compressed
+arrays of a ``.vtu`` file are inflated (bounded, the output discarded) and checked against the file's counts and the
+cap on decompressed mesh data, ``FEPR_MAX_MESH_BYTES`` (default 1 GiB; :mod:`fepr.io._vtu_prescan`), so a
+decompression bomb cannot make meshio inflate gigabytes.
 """
 
 from __future__ import annotations
@@ -54,7 +57,11 @@ def read_meshio(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
     MeshError
         If the file is missing, empty, declares counts that cannot fit in it, or cannot be parsed (the message
         names the file and meshio's error), the points do not have 3 coordinates, there are no tetrahedra (the
-        message lists the cell types present), or two tets use the same four vertices.
+        message lists the cell types present), or two tets use the same four vertices; or a compressed ``.vtu``
+        array inflates beyond what its ``<Piece>`` counts allow or beyond the cap on decompressed mesh data
+        (environment variable ``FEPR_MAX_MESH_BYTES``, default 1 GiB; the message names the line and the array).
+    ConfigError
+        If ``FEPR_MAX_MESH_BYTES`` is set to something other than a number of bytes.
 
     Warns
     -----

@@ -25,7 +25,7 @@ from typing import Optional, Union
 
 import numpy as np
 
-from .._validate import real
+from .._validate import real, shown
 from ..errors import ConfigError
 
 __all__ = ["LoadOptions", "apply_load_options", "check_load_options", "rotation_matrix"]
@@ -65,28 +65,28 @@ def rotation_matrix(angles_deg) -> np.ndarray:
 
 def _vector(value, name: str) -> np.ndarray:
     if isinstance(value, (str, bytes)):
-        raise ConfigError(f"{name} must be 3 numbers (metres), got {value!r}")
+        raise ConfigError(f"{name} must be 3 numbers (metres), got {shown(value)}")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ConfigError(f"{name} must be 3 numbers (metres), got {value!r}") from None
+        raise ConfigError(f"{name} must be 3 numbers (metres), got {shown(value)}") from None
     if arr.shape != (3,):
         raise ConfigError(f"{name} must be 3 numbers (metres), got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
-        raise ConfigError(f"{name} must be finite, got {value!r}")
+        raise ConfigError(f"{name} must be finite, got {shown(value)}")
     return arr
 
 
 def _rotation(value) -> np.ndarray:
     msg = "rotate must be 3 angles in degrees (about x, y, z) or a 3x3 rotation matrix"
     if isinstance(value, (str, bytes, bool, numbers.Number)):
-        raise ConfigError(f"{msg}, got {value!r}")
+        raise ConfigError(f"{msg}, got {shown(value)}")
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ConfigError(f"{msg}, got {value!r}") from None
+        raise ConfigError(f"{msg}, got {shown(value)}") from None
     if arr.dtype == object or not np.all(np.isfinite(arr)):
-        raise ConfigError(f"{msg} of finite numbers, got {value!r}")
+        raise ConfigError(f"{msg} of finite numbers, got {shown(value)}")
     if arr.shape == (3,):
         return rotation_matrix(arr)
     if arr.shape == (3, 3):
@@ -116,7 +116,7 @@ def check_load_options(
     t = None if translate is None else _vector(translate, "translate")
     r = None if rotate is None else _rotation(rotate)
     if up_axis is not None and (not isinstance(up_axis, str) or up_axis.lower() not in ("y", "z")):
-        raise ConfigError(f'up_axis must be "y" or "z" (the file\'s up direction), got {up_axis!r}')
+        raise ConfigError(f'up_axis must be "y" or "z" (the file\'s up direction), got {shown(up_axis)}')
     up = None if up_axis is None else up_axis.lower()
     c: Optional[str]
     if center is None or center is False:
@@ -126,7 +126,7 @@ def check_load_options(
     elif isinstance(center, str) and center in CENTER_MODES:
         c = center
     else:
-        raise ConfigError(f'center must be "bbox", "centroid", true or false, got {center!r}')
+        raise ConfigError(f'center must be "bbox", "centroid", true or false, got {shown(center)}')
     return LoadOptions(scale=s, translate=t, fit=f, rotate=r, up_axis=up, center=c)
 
 

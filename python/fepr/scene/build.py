@@ -8,12 +8,15 @@ plain data that any module can import. Every error names the scene file and the 
 
 from __future__ import annotations
 
+import contextlib
+import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Any, Dict, Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..errors import ConfigError, MeshError
+from .._validate import _user_stacklevel
+from ..errors import ConfigError, ImplausibleValueWarning, MeshError
 
 if TYPE_CHECKING:
     from .schema import (
@@ -203,9 +206,35 @@ def make_body_material(scene: Scene, body: BodySettings):
         if mat.j0 is not None:
             kw["j0"] = mat.j0
         cls = fepr.materials.MATERIAL_TYPES[mat.model]
-        return cls(youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio, **kw)
+        with located_warnings(scene, body):
+            return cls(youngs_modulus=mat.youngs_modulus, poisson_ratio=mat.poisson_ratio, **kw)
     except ConfigError as exc:
         raise ConfigError(f"{scene._where()}{body.section('material')} {exc}") from None
+
+
+@contextlib.contextmanager
+def located_warnings(scene: Scene, body: BodySettings) -> Iterator[None]:
+    """Re-issue the :class:`~fepr.errors.ImplausibleValueWarning` of the block with the scene file and the section of
+    the parameter in front (``scene.toml: [mass] density = 1e+07 kg/m^3 is implausible ...``); other warnings pass
+    through unchanged."""
+    sections = {
+        "density": body.section("mass"),
+        "node_mass": body.section("mass"),
+        "youngs_modulus": body.section("material"),
+        "dt": "[integrator]",
+    }
+    with warnings.catch_warnings(record=True) as caught:
+        yield
+    for w in caught:
+        if issubclass(w.category, ImplausibleValueWarning):
+            parameter = getattr(w.message, "parameter", "")
+            section = sections.get(parameter)
+            label = f"{section} " if section else ""
+            again = ImplausibleValueWarning(f"{scene._where()}{label}{w.message}")
+            again.parameter = parameter
+            warnings.warn(again, stacklevel=_user_stacklevel())
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
 
 
 def body_pinned(scene: Scene, body: BodySettings, rest_vertices: np.ndarray) -> Optional[np.ndarray]:
@@ -223,6 +252,58 @@ def body_pinned(scene: Scene, body: BodySettings, rest_vertices: np.ndarray) -> 
     if not idx:
         return None
     return np.unique(np.asarray(idx, dtype=np.int64))
+
+
+def check_pin_overlap(scene: Scene, body: BodySettings, rest_vertices: np.ndarray) -> None:
+    """Raise a ConfigError naming both keys if a vertex is held by a static pin (``pinned``, ``pin_below``) and
+    moved by a kinematic pin, or moved by two kinematic pins: a vertex cannot both stay where it is and follow a
+    path (before, the kinematic pin silently won)."""
+    if not body.kinematic_pins:
+        return
+    where = scene._where()
+    label = body.pins_label()
+    m = len(rest_vertices)
+    static: List[Tuple[str, np.ndarray]] = []
+    if body.pinned:
+        static.append(("pinned", np.unique(np.asarray([i for i in body.pinned if 0 <= i < m], dtype=np.int64))))
+    if body.pin_below is not None:
+        pb = body.pin_below
+        static.append(
+            (f"pin_below ({pb.axis} <= {pb.value:g})", vertices_below(rest_vertices, pb, f"{where}{label} pin_below"))
+        )
+    groups: List[Tuple[str, np.ndarray]] = []
+    for kp in body.kinematic_pins:
+        try:
+            idx = kinematic_pin_indices(kp, rest_vertices)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}{exc}") from None
+        for key, other in static:
+            both = np.intersect1d(idx, other)
+            if both.size:
+                raise ConfigError(
+                    f"{where}{kp.label}: {_vertices_text(both)} also held by {label} {key}: a vertex cannot both stay "
+                    f"fixed (a static pin) and follow a path (a kinematic pin); remove {_it(both)} from one of the two"
+                )
+        for other_label, other in groups:
+            both = np.intersect1d(idx, other)
+            if both.size:
+                raise ConfigError(
+                    f"{where}{kp.label}: {_vertices_text(both)} also moved by {other_label}: a vertex can follow "
+                    f"only one path; remove {_it(both)} from one of the two"
+                )
+        groups.append((kp.label, idx))
+
+
+def _it(idx: np.ndarray) -> str:
+    return "it" if idx.size == 1 else "them"
+
+
+def _vertices_text(idx: np.ndarray) -> str:
+    """``vertex 3 is`` or ``4 vertices (3, 7, 8, 9) are`` (at most 5 listed)."""
+    if idx.size == 1:
+        return f"vertex {int(idx[0])} is"
+    shown = ", ".join(str(int(i)) for i in idx[:5]) + (", ..." if idx.size > 5 else "")
+    return f"{idx.size} vertices ({shown}) are"
 
 
 def vertices_below(rest_vertices: np.ndarray, pb: PinBelow, label: str) -> np.ndarray:
@@ -291,15 +372,22 @@ def _centre_of_mass(x: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _load_velocities(path: Path, m: int, where: str) -> np.ndarray:
+    # Memory-mapped first: the shape in the .npy header is checked (against the file's size by numpy, then against
+    # the mesh here) before anything is read, so a header declaring 1e10 rows cannot allocate 224 GiB.
     try:
-        arr = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
+        arr = np.load(path, allow_pickle=False, mmap_mode="r")
+    except (OSError, ValueError, MemoryError) as exc:
         raise ConfigError(f"{where} velocities: cannot read {path}: {exc}") from None
+    if isinstance(arr, np.lib.npyio.NpzFile):
+        arr.close()
     if not isinstance(arr, np.ndarray):
         raise ConfigError(f"{where} velocities: {path} must hold one array (a .npy file)")
     if arr.shape != (m, 3):
         raise ConfigError(f"{where} velocities: {path} has shape {arr.shape}, expected ({m}, 3)")
-    arr = arr.astype(np.float64)
+    try:
+        arr = np.array(arr, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where} velocities: {path} must hold numbers, got dtype {arr.dtype}: {exc}") from None
     if not np.all(np.isfinite(arr)):
         raise ConfigError(f"{where} velocities: {path} contains NaN or infinite values")
     return arr
@@ -360,6 +448,7 @@ def _build_body(scene: Scene, body: BodySettings, projection, obstacles: list) -
     material = make_body_material(scene, body)
     rest = np.asarray(mesh.vertices, dtype=np.float64)
     pinned = body_pinned(scene, body, rest)
+    check_pin_overlap(scene, body, rest)
     kin = []
     for kp in body.kinematic_pins:
         try:
@@ -385,17 +474,18 @@ def _build_body(scene: Scene, body: BodySettings, projection, obstacles: list) -
     if body.self_contact is not None:
         kwargs["self_contact"] = body.self_contact
     try:
-        sim = fepr.Simulation(
-            mesh,
-            material=material,
-            integrator=scene.integrator.make(),
-            dt=scene.integrator.dt,
-            projection=projection,
-            gravity=world.gravity,
-            pinned=pinned,
-            damping=world.damping,
-            **kwargs,
-        )
+        with located_warnings(scene, body):
+            sim = fepr.Simulation(
+                mesh,
+                material=material,
+                integrator=scene.integrator.make(),
+                dt=scene.integrator.dt,
+                projection=projection,
+                gravity=world.gravity,
+                pinned=pinned,
+                damping=world.damping,
+                **kwargs,
+            )
     except ConfigError as exc:
         label = f"{body.label}: " if body.label else ""
         raise ConfigError(f"{where}{label}{exc}") from None

@@ -178,10 +178,10 @@ class RunFolder:
         """The exported frames of steps ``first..last`` (for the animation files written at the end) as one block
         file; returns its name."""
         self.checkpoint_dir.mkdir(exist_ok=True)
+        from ..io.npz import save_npz
+
         name = f"frames_{first:012d}_{last:012d}.npz"
-        with atomic_path(self.checkpoint_dir / name) as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, **arrays)
+        save_npz(self.checkpoint_dir / name, arrays)
         return name
 
     def read_blocks(self, names: Sequence[str]) -> Dict[str, List[np.ndarray]]:

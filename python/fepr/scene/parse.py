@@ -17,6 +17,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .._validate import PLAUSIBLE, check_magnitude, shown
 from ..errors import ConfigError
 from .schema import (
     _AXES,
@@ -27,9 +28,9 @@ from .schema import (
     MATERIAL_MODELS,
     METRICS,
     MOTIONS,
-    OBSTACLE_MOTION_KEYS,
     OBSTACLE_COMMON_KEYS,
     OBSTACLE_KEYS,
+    OBSTACLE_MOTION_KEYS,
     PROJECTION_ROWS,
     SCENE_KEYS,
     SELF_CONTACT_KEYS,
@@ -112,16 +113,21 @@ class _Table:
         if key not in self.data:
             return value
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.error(f"{key} must be a number, got {value!r}")
+            raise self.error(f"{key} must be a number, got {shown(value)}")
         value = float(value)
         if not math.isfinite(value):
-            raise self.error(f"{key} must be finite, got {value!r}")
+            raise self.error(f"{key} must be finite, got {shown(value)}")
         if positive and value <= 0:
-            raise self.error(f"{key} must be > 0, got {value!r}")
+            raise self.error(f"{key} must be > 0, got {shown(value)}")
         if nonnegative and value < 0:
-            raise self.error(f"{key} must be >= 0, got {value!r}")
+            raise self.error(f"{key} must be >= 0, got {shown(value)}")
         if lo is not None and hi is not None and not lo < value < hi:
-            raise self.error(f"{key} must be in ({lo}, {hi}), got {value!r}")
+            raise self.error(f"{key} must be in ({lo}, {hi}), got {shown(value)}")
+        if key in PLAUSIBLE:  # density, node_mass, youngs_modulus, dt: an error beyond what can be computed
+            try:  # (the warning for implausible values comes when the scene is built, from the API)
+                check_magnitude(value, key, warn=False)
+            except ConfigError as exc:
+                raise self.error(str(exc)) from None
         return value
 
     def integer(self, key: str, default: Any = _MISSING, *, minimum: Optional[int] = None) -> Any:
@@ -129,15 +135,15 @@ class _Table:
         if key not in self.data:
             return value
         if isinstance(value, bool) or not isinstance(value, int):
-            raise self.error(f"{key} must be an integer, got {value!r}")
+            raise self.error(f"{key} must be an integer, got {shown(value)}")
         if minimum is not None and value < minimum:
-            raise self.error(f"{key} must be >= {minimum}, got {value!r}")
+            raise self.error(f"{key} must be >= {minimum}, got {shown(value)}")
         return value
 
     def boolean(self, key: str, default: Any = _MISSING) -> Any:
         value = self._get(key, default)
         if key in self.data and not isinstance(value, bool):
-            raise self.error(f"{key} must be true or false, got {value!r}")
+            raise self.error(f"{key} must be true or false, got {shown(value)}")
         return value
 
     def string(self, key: str, default: Any = _MISSING, *, choices: Optional[Sequence[str]] = None) -> Any:
@@ -145,16 +151,16 @@ class _Table:
         if key not in self.data:
             return value
         if not isinstance(value, str):
-            raise self.error(f"{key} must be a string, got {value!r}")
+            raise self.error(f"{key} must be a string, got {shown(value)}")
         if choices is not None and value not in choices:
-            raise self.error(f"{key} must be one of {', '.join(repr(c) for c in choices)}; got {value!r}")
+            raise self.error(f"{key} must be one of {', '.join(repr(c) for c in choices)}; got {shown(value)}")
         return value
 
     def vec3(self, key: str, default: Any = _MISSING) -> Any:
         value = self._get(key, default)
         if key not in self.data:
             return value
-        return _as_vec3(value, lambda: self.error(f"{key} must be a list of 3 numbers, got {value!r}"))
+        return _as_vec3(value, lambda: self.error(f"{key} must be a list of 3 numbers, got {shown(value)}"))
 
     def path(self, key: str, base_dir: Path, default: Any = _MISSING) -> Any:
         value = self.string(key, default)
@@ -208,7 +214,9 @@ def _parse_mesh(t: _Table, base_dir: Path) -> MeshSettings:
             ok = ok and all(_is_number(c) for c in raw)
             value = tuple(float(c) for c in raw) if ok else None
         if not ok:
-            raise t.error(f"rotate must be [ax, ay, az] (degrees about x, y, z) or a 3x3 rotation matrix, got {raw!r}")
+            raise t.error(
+                f"rotate must be [ax, ay, az] (degrees about x, y, z) or a 3x3 rotation matrix, got {shown(raw)}"
+            )
         ms.rotate = value
     center_point = t.has("center") and isinstance(t.data["center"], list)
     if t.has("center") and not center_point:
@@ -218,7 +226,7 @@ def _parse_mesh(t: _Table, base_dir: Path) -> MeshSettings:
         if raw is False:
             raw = None
         if raw is not None and raw not in ("bbox", "centroid"):
-            raise t.error(f'center must be "bbox", "centroid", true, false or (builtins) [x, y, z], got {raw!r}')
+            raise t.error(f'center must be "bbox", "centroid", true, false or (builtins) [x, y, z], got {shown(raw)}')
         ms.center = raw
     from ..io.transform import check_load_options
 
@@ -266,7 +274,7 @@ def _parse_builtin_options(t: _Table, name: str, center_point: bool) -> Dict[str
             if name == "box" and isinstance(raw, (list, tuple)):
                 ok = len(raw) == 3 and all(isinstance(r, int) and not isinstance(r, bool) for r in raw)
                 if not ok or min(raw) < 1:
-                    raise t.error(f"resolution must be an integer >= 1 or 3 of them, got {raw!r}")
+                    raise t.error(f"resolution must be an integer >= 1 or 3 of them, got {shown(raw)}")
                 opts[opt] = tuple(raw)
             else:
                 opts[opt] = t.integer(opt, minimum=1)
@@ -277,7 +285,7 @@ def _parse_builtin_options(t: _Table, name: str, center_point: bool) -> Dict[str
             if name == "box" and isinstance(raw, (list, tuple)):
                 size = t.vec3(opt)
                 if min(size) <= 0:
-                    raise t.error(f"size must be > 0, got {raw!r}")
+                    raise t.error(f"size must be > 0, got {shown(raw)}")
                 opts[opt] = size
             else:
                 s = t.number(opt, positive=True)
@@ -318,11 +326,11 @@ def _parse_initial(t: _Table, base_dir: Path) -> InitialSettings:
         raw = t.data["scale_about"]
         if isinstance(raw, str):
             if raw != "centroid":
-                raise t.error(f'scale_about must be [x, y, z] or "centroid", got {raw!r}')
+                raise t.error(f'scale_about must be [x, y, z] or "centroid", got {shown(raw)}')
             ini.scale_about = "centroid"
         else:
             ini.scale_about = _as_vec3(
-                raw, lambda: t.error(f'scale_about must be [x, y, z] or "centroid", got {raw!r}')
+                raw, lambda: t.error(f'scale_about must be [x, y, z] or "centroid", got {shown(raw)}')
             )
     if t.has("velocities"):
         p = t.path("velocities", base_dir)
@@ -354,33 +362,33 @@ def _parse_pinned(t: _Table, key: str = "pinned") -> Tuple[int, ...]:
     raw = t.data[key]
     ok = isinstance(raw, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in raw)
     if not ok:
-        raise t.error(f"{key} must be a list of vertex indices (integers), got {raw!r}")
+        raise t.error(f"{key} must be a list of vertex indices (integers), got {shown(raw)}")
     if any(i < 0 for i in raw):
-        raise t.error(f"{key}: vertex indices must be >= 0, got {raw!r}")
+        raise t.error(f"{key}: vertex indices must be >= 0, got {shown(raw)}")
     return tuple(raw)
 
 
 def _parse_pin_below(t: _Table, key: str = "pin_below") -> PinBelow:
     raw = t.data[key]
     if not isinstance(raw, Mapping):
-        raise t.error(f'{key} must be a table {{axis = "z", value = 0.0}}, got {raw!r}')
+        raise t.error(f'{key} must be a table {{axis = "z", value = 0.0}}, got {shown(raw)}')
     unknown = [k for k in raw if k not in ("axis", "value")]
     if unknown:
         raise t.error(f"{key}: unknown key {unknown[0]!r} (known: axis, value)")
     axis = raw.get("axis", "z")
     if axis not in _AXES:
-        raise t.error(f'{key}.axis must be "x", "y" or "z", got {axis!r}')
+        raise t.error(f'{key}.axis must be "x", "y" or "z", got {shown(axis)}')
     if "value" not in raw:
         raise t.error(f"{key}: missing required key 'value'")
     value = raw["value"]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise t.error(f"{key}.value must be a number, got {value!r}")
+        raise t.error(f"{key}.value must be a number, got {shown(value)}")
     return PinBelow(axis=axis, value=float(value))
 
 
 def _list_of_tables(raw: Any, owner: str, key: str, toml_name: str) -> List[Mapping[str, Any]]:
     if not isinstance(raw, list) or not all(isinstance(item, Mapping) for item in raw):
-        raise ConfigError(f"{owner} {key} must be a list of tables ([[{toml_name}]] entries), got {raw!r}")
+        raise ConfigError(f"{owner} {key} must be a list of tables ([[{toml_name}]] entries), got {shown(raw)}")
     return list(raw)
 
 
@@ -398,7 +406,7 @@ def _parse_obstacles(raw: Any, where: str, base_dir: Path) -> Tuple[ObstacleSett
         t = _Table(item, "obstacle", where, known=OBSTACLE_COMMON_KEYS + OBSTACLE_KEYS[kind], label=f"{label}:")
         restitution = t.number("restitution", 1.0)
         if not 0.0 <= restitution <= 1.0:
-            raise t.error(f"restitution must be in [0, 1], got {restitution!r}")
+            raise t.error(f"restitution must be in [0, 1], got {shown(restitution)}")
         friction = t.number("friction", 0.0, nonnegative=True)
         geometry: Dict[str, Any] = {}
         if kind == "plane":
@@ -440,7 +448,7 @@ def _parse_obstacles(raw: Any, where: str, base_dir: Path) -> Tuple[ObstacleSett
             else:
                 terrain = t.data["terrain"]
                 if not isinstance(terrain, dict):
-                    raise t.error(f"terrain must be a table (keys: {', '.join(TERRAIN_KEYS)}), got {terrain!r}")
+                    raise t.error(f"terrain must be a table (keys: {', '.join(TERRAIN_KEYS)}), got {shown(terrain)}")
                 unknown = sorted(set(terrain) - set(TERRAIN_KEYS))
                 if unknown:
                     raise t.error(f"terrain: unknown key {unknown[0]!r} (known: {', '.join(TERRAIN_KEYS)})")
@@ -484,19 +492,19 @@ def _parse_path(t: _Table, kind: str, kind_key: str) -> Dict[str, Any]:
     if times is _MISSING:
         raise t.error("missing required key 'times'")
     if not isinstance(times, list) or not times or not all(_is_number(c) for c in times):
-        raise t.error(f"times must be a non-empty list of numbers (s), got {times!r}")
+        raise t.error(f"times must be a non-empty list of numbers (s), got {shown(times)}")
     if any(b <= a for a, b in zip(times, times[1:])):
-        raise t.error(f"times must be strictly increasing, got {times!r}")
+        raise t.error(f"times must be strictly increasing, got {shown(times)}")
     offsets = t.data.get("offsets", _MISSING)
     if offsets is _MISSING:
         raise t.error("missing required key 'offsets'")
     if not isinstance(offsets, list):
-        raise t.error(f"offsets must be a list of [x, y, z] vectors (m), got {offsets!r}")
+        raise t.error(f"offsets must be a list of [x, y, z] vectors (m), got {shown(offsets)}")
     if len(offsets) != len(times):
         raise t.error(f"offsets has {len(offsets)} entries but times has {len(times)}")
     vecs = []
     for j, o in enumerate(offsets, 1):
-        bad = t.error(f"offsets #{j} must be a list of 3 numbers (m), got {o!r}")
+        bad = t.error(f"offsets #{j} must be a list of 3 numbers (m), got {shown(o)}")
         vecs.append(_as_vec3(o, lambda bad=bad: bad))
     return {"times": tuple(float(c) for c in times), "offsets": tuple(vecs)}
 
@@ -507,7 +515,7 @@ def _parse_obstacle_motion(raw: Any, where: str, label: str) -> Dict[str, Any]:
     and ``pivot`` (m)."""
     if not isinstance(raw, dict):
         raise ConfigError(
-            f"{where}{label} motion must be a table (keys: {', '.join(OBSTACLE_MOTION_KEYS)}), got {raw!r}"
+            f"{where}{label} motion must be a table (keys: {', '.join(OBSTACLE_MOTION_KEYS)}), got {shown(raw)}"
         )
     t = _Table(raw, "obstacle_motion", where, known=OBSTACLE_MOTION_KEYS, label=f"{label} motion:")
     stray = [k for keys in MOTIONS.values() for k in keys if t.has(k)]
@@ -527,14 +535,14 @@ def _parse_obstacle_motion(raw: Any, where: str, label: str) -> Dict[str, Any]:
         raise t.error("give 'orientations' (rotation vectors, rad) and 'orientation_times' (s) together")
     times, turns = t.data.get("orientation_times", []), t.data.get("orientations", [])
     if not isinstance(times, list) or not all(_is_number(c) for c in times):
-        raise t.error(f"orientation_times must be a list of numbers (s), got {times!r}")
+        raise t.error(f"orientation_times must be a list of numbers (s), got {shown(times)}")
     if any(b <= a for a, b in zip(times, times[1:])):
-        raise t.error(f"orientation_times must be strictly increasing, got {times!r}")
+        raise t.error(f"orientation_times must be strictly increasing, got {shown(times)}")
     if not isinstance(turns, list) or len(turns) != len(times):
         raise t.error("orientations must be a list of as many [x, y, z] rotation vectors (rad) as orientation_times")
     vecs = []
     for j, r in enumerate(turns, 1):
-        bad = t.error(f"orientations #{j} must be a list of 3 numbers (rad), got {r!r}")
+        bad = t.error(f"orientations #{j} must be a list of 3 numbers (rad), got {shown(r)}")
         vecs.append(_as_vec3(r, lambda bad=bad: bad))
     motion["orientation_times"] = tuple(float(c) for c in times)
     motion["orientations"] = tuple(vecs)
@@ -605,11 +613,13 @@ def _parse_self_contact(t: _Table) -> Optional[Tuple[float, float]]:
     if isinstance(raw, bool):
         return (1.0, 0.0) if raw else None
     if not isinstance(raw, Mapping):
-        raise t.error(f"self_contact must be true, false or a table {{ restitution = ..., friction = ... }}, got {raw!r}")
+        raise t.error(
+            f"self_contact must be true, false or a table {{ restitution = ..., friction = ... }}, got {shown(raw)}"
+        )
     c = _Table(raw, "self_contact", t.where, known=SELF_CONTACT_KEYS, label=f"{t.label} self_contact:")
     restitution = c.number("restitution", 1.0)
     if not 0.0 <= restitution <= 1.0:
-        raise c.error(f"restitution must be in [0, 1], got {restitution!r}")
+        raise c.error(f"restitution must be in [0, 1], got {shown(restitution)}")
     return (restitution, c.number("friction", 0.0, nonnegative=True))
 
 
@@ -618,7 +628,7 @@ def _parse_export(t: _Table) -> ExportSettings:
     if t.has("formats"):
         raw = t.data["formats"]
         if not isinstance(raw, list) or not all(isinstance(f, str) for f in raw):
-            raise t.error(f'formats must be a list of format names such as ["vtu", "glb"], got {raw!r}')
+            raise t.error(f'formats must be a list of format names such as ["vtu", "glb"], got {shown(raw)}')
         from ..export import parse_formats
 
         try:
@@ -634,7 +644,7 @@ _NAME_RE = re.compile(r"[A-Za-z0-9_.\-]+")
 
 def _parse_bodies(raw: Any, where: str, base: Path) -> Tuple[BodySettings, ...]:
     if not isinstance(raw, list) or not raw or not all(isinstance(item, Mapping) for item in raw):
-        raise ConfigError(f"{where}bodies must be a non-empty list of tables ([[bodies]] entries), got {raw!r}")
+        raise ConfigError(f"{where}bodies must be a non-empty list of tables ([[bodies]] entries), got {shown(raw)}")
     items: List[Mapping[str, Any]] = list(raw)
     out = []
     seen: Dict[str, int] = {}
@@ -646,14 +656,14 @@ def _parse_bodies(raw: Any, where: str, base: Path) -> Tuple[BodySettings, ...]:
                 raise bt.error(f"missing required table {sec!r} (e.g. {sec} = {{ ... }} or [bodies.{sec}])")
         for sec in _BODY_SECTIONS:
             if sec in item and not isinstance(item[sec], Mapping):
-                raise bt.error(f"{sec} must be a table of keys, got {item[sec]!r}")
+                raise bt.error(f"{sec} must be a table of keys, got {shown(item[sec])}")
 
         def sub(sec: str, label: str = label, item: Mapping[str, Any] = item) -> _Table:
             return _Table(item.get(sec, {}), sec, where, label=f"{label} [{sec}]")
 
         name = bt.string("name", f"body{k}")
         if not _NAME_RE.fullmatch(name) or name in (".", ".."):
-            raise bt.error(f"name must be letters, digits, '_', '-' or '.' (it names output files), got {name!r}")
+            raise bt.error(f"name must be letters, digits, '_', '-' or '.' (it names output files), got {shown(name)}")
         if name in seen:
             raise bt.error(f"name {name!r} is already used by [[bodies]] #{seen[name]}")
         seen[name] = k
@@ -667,7 +677,7 @@ def _parse_bodies(raw: Any, where: str, base: Path) -> Tuple[BodySettings, ...]:
         )
         body.restitution = bt.number("restitution", 1.0)
         if not 0.0 <= body.restitution <= 1.0:
-            raise bt.error(f"restitution must be in [0, 1], got {body.restitution!r}")
+            raise bt.error(f"restitution must be in [0, 1], got {shown(body.restitution)}")
         body.friction = bt.number("friction", 0.0, nonnegative=True)
         if bt.has("pinned"):
             body.pinned = _parse_pinned(bt)
@@ -715,7 +725,7 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
             known = ", ".join(list(SCENE_KEYS) + ["[bodies]"])
             raise ConfigError(f"{where}unknown section [{name}] (known: {known})")
         if not isinstance(value, Mapping):
-            raise ConfigError(f"{where}[{name}] must be a section (a table of keys), got {value!r}")
+            raise ConfigError(f"{where}[{name}] must be a section (a table of keys), got {shown(value)}")
     multibody = "bodies" in d
     if multibody:
         for sec in _BODY_SECTIONS:
@@ -774,22 +784,57 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
 def load_scene(path: Union[str, Path]) -> Scene:
     """Read and validate a scene file (TOML). Relative paths inside it are relative to the file.
 
+    The file must be UTF-8 (as TOML requires); a UTF-8 byte order mark at its start (as some Windows editors
+    write) is skipped.
+
     Raises
     ------
     ConfigError
-        If the file does not exist, is not valid TOML, or any entry is invalid (see :func:`scene_from_dict`).
+        If the file does not exist, is not UTF-8 text (the message names the byte offset, line and column of the
+        first byte that is not), is not valid TOML, or any entry is invalid (see :func:`scene_from_dict`).
     """
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"scene file not found: {p}")
     try:
-        with open(p, "rb") as fh:
-            data = _toml.load(fh)
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read scene file: {exc.strerror or exc}") from None
+    try:
+        data = _toml.loads(_scene_text(raw, p))
     except _toml.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: invalid TOML: {exc}") from None
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read scene file: {exc}") from None
     return scene_from_dict(data, p.resolve().parent, source=str(path))
+
+
+_UTF8_BOM = b"\xef\xbb\xbf"
+
+
+def _scene_text(raw: bytes, p: Path) -> str:
+    """The text of a scene file: UTF-8 without a leading byte order mark; a ConfigError naming the first byte
+    that is not UTF-8 (offset, line, column)."""
+    if raw.startswith(_UTF8_BOM):
+        raw = raw[len(_UTF8_BOM) :]
+    elif raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise ConfigError(
+            f"{p}: the file is UTF-16 text (it starts with a UTF-16 byte order mark); scene files must be UTF-8: "
+            "save it as UTF-8"
+        )
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        at = exc.start
+        line = raw.count(b"\n", 0, at) + 1
+        column = at - (raw.rfind(b"\n", 0, at) + 1) + 1
+        bad = raw[at : min(exc.end, at + 4)]
+        shown = " ".join(f"0x{b:02x}" for b in bad)
+        text = raw[raw.rfind(b"\n", 0, at) + 1 : at].decode("utf-8", "replace")[-40:]
+        after = f" after {text!r}" if text.strip() else ""
+        raise ConfigError(
+            f"{p} line {line}, column {column} (byte offset {at}): not UTF-8 text: byte {shown}{after} "
+            f"({exc.reason}); scene files must be UTF-8 (TOML requires it): save the file as UTF-8 (a file saved as "
+            "Latin-1 or Windows-1252 shows this for accented letters)"
+        ) from None
 
 
 # --------------------------------------------------------------------------------------------------------

@@ -698,16 +698,10 @@ def _write_outputs(result: RunResult, scene: Scene, sim, folder, diagnostics: "_
     diagnostics.finish()
     result.diagnostics_path = out / "diagnostics.csv"
     result.state_path = out / "final_state.npz"
-    _save_state(sim, result.state_path)
+    sim.save_state(result.state_path)  # atomic (fepr.io.npz.save_npz)
     folder.note_hash(result.state_path)
     if scene.is_multibody:
         for name in sim.names:
             result.body_diagnostics_paths[name] = out / f"diagnostics_{name}.csv"
 
 
-def _save_state(sim, path: Path) -> None:
-    """``sim.save_state`` through a temporary name."""
-    from ..io.atomic import atomic_path
-
-    with atomic_path(path, suffix=".npz") as tmp:
-        sim.save_state(tmp)
