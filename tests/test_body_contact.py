@@ -237,7 +237,7 @@ def test_coulomb_friction_between_bodies_stops_a_sliding_block(integrator):
     speeds = {}
     for friction in (0.0, 0.5):
         slab, block, system = _slab_and_block(friction, integrator=integrator)
-        v = block.velocities
+        v = block.velocities.copy()
         v[:, 0] += 1.0
         block.velocities = v
         history = []

@@ -413,7 +413,8 @@ def test_history_rows_and_columns():
     for c in REQUIRED_COLUMNS:
         assert c in h.columns
         col = h[c]
-        assert col.shape == (8,) and col.dtype == np.float64
+        expected = np.int64 if c in fepr.History.INTEGER_COLUMNS else np.float64
+        assert col.shape == (8,) and col.dtype == expected, c
     with pytest.raises(KeyError, match="nope"):
         h["nope"]
     rows = list(h)
@@ -686,3 +687,27 @@ def test_step_releases_the_gil():
     # Only stamps well inside the call count: a thread could squeeze in at the boundaries even with the GIL held.
     inside = [s for s in stamps if t_start + 0.1 * span < s < t_end - 0.1 * span]
     assert len(inside) >= 1, f"no progress of another Python thread during a {span * 1e3:.0f} ms step({n})"
+
+
+def test_state_arrays_are_read_only_copies_and_edits_go_through_assignment():
+    """``sim.positions[:, 2] += 1`` used to edit a copy silently: now it raises; assigning a copy works."""
+    sim = make_sim()
+    for name in ("positions", "velocities", "rest_positions", "masses", "pinned"):
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(sim, name)[0] = 0
+    with pytest.raises(ValueError, match="read-only"):
+        sim.positions[:, 2] += 1.0
+    x = sim.positions.copy()
+    x[:, 2] += 1.0
+    sim.positions = x
+    assert np.array_equal(sim.positions, x)
+
+
+def test_count_and_flag_columns_are_integers():
+    sim = make_sim()
+    sim.step(3)
+    h = sim.history
+    for c in ("step", "inverted", "proj_iterations", "proj_converged", "contacts", "runaway"):
+        assert h[c].dtype == np.int64, c
+        assert h.as_dict()[c].dtype == np.int64, c
+    assert h["total"].dtype == np.float64 and list(h["step"]) == [0, 1, 2, 3]

@@ -116,7 +116,7 @@ def test_per_vertex_arrays_are_in_the_users_numbering():
 def test_errors_name_the_users_rows_and_vertices():
     mesh, _ = _shuffled(fepr.meshes.box(size=1.0, resolution=3), seed=4)
     sim = fepr.Simulation(mesh, material=fepr.NeoHookean(youngs_modulus=1e4, poisson_ratio=0.3), node_mass=0.1, dt=1e-3)
-    x = sim.positions
+    x = sim.positions.copy()
     x[11, 2] = np.nan
     with pytest.raises(ValueError, match="row 11"):
         sim._sim.positions = x  # the core's own check (the Python layer checks first)

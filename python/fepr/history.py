@@ -154,8 +154,9 @@ class History:
     ``h["total"]`` is a column as a (rows,) float64 array; ``h.columns`` lists the names; ``h.as_dict()``
     gives all columns; ``h.last`` the last row as a dict. Energies in J, momenta in kg m/s, angular momenta
     (about the centre of mass) in kg m^2/s, times in s, wall times in ms. Every column is described in
-    ``docs/concepts.md`` (Diagnostics). The counts and 0/1 flags (:attr:`INTEGER_COLUMNS`) are integer-valued
-    floats in memory and integers in the CSV that :meth:`to_csv` writes.
+    ``docs/concepts.md`` (Diagnostics). The counts and 0/1 flags (:attr:`INTEGER_COLUMNS`) are int64 arrays
+    (``h["inverted"]``, ``h["proj_converged"]``; the other columns float64) and integers in the CSV that
+    :meth:`to_csv` writes.
 
     A history taken from a simulation is a snapshot: later steps do not change it. Reading a column reads only
     that column's rows (older rows may come back from the simulation's temporary folder, see
@@ -187,11 +188,12 @@ class History:
         return self._data[:, i]
 
     def __getitem__(self, name: str) -> np.ndarray:
+        """Column ``name``, (rows,): int64 for the counts and flags (:attr:`INTEGER_COLUMNS`), float64 else."""
         try:
             i = self._index[name]
         except KeyError:
             raise KeyError(f"no history column {name!r} (columns: {', '.join(self.columns)})") from None
-        return self._col(i)
+        return _typed(name, self._col(i))
 
     def _slice(self, name: str, start: int, stop: int) -> np.ndarray:
         """Column ``name`` over rows ``[start, stop)`` (reading only those rows)."""
@@ -232,8 +234,8 @@ class History:
             idx = [self._index[c] for c in names]
             parts = [np.asarray(c)[:, idx] for c in self._store._chunks(self._rows)]
             table = np.concatenate(parts) if parts else np.zeros((0, len(idx)))
-            return {c: np.array(table[:, k]) for k, c in enumerate(names)}
-        return {c: np.array(self._data[:, self._index[c]]) for c in names}
+            return {c: _typed(c, np.array(table[:, k])) for k, c in enumerate(names)}
+        return {c: _typed(c, np.array(self._data[:, self._index[c]])) for c in names}
 
     def to_csv(self, path: Union[str, Path], *, start: int = 0, header: bool = True, append: bool = False) -> None:
         """Write the history as CSV: a header of column names, then one row per step. The counts and flags
@@ -252,6 +254,13 @@ class History:
 
     def __repr__(self) -> str:
         return f"History({len(self)} rows, columns={self.columns})"
+
+
+def _typed(name: str, column: np.ndarray) -> np.ndarray:
+    """A count or flag column as int64 (when every value is finite, as in a simulation's history)."""
+    if name in History.INTEGER_COLUMNS and np.all(np.isfinite(column)):
+        return column.astype(np.int64)
+    return column
 
 
 def write_csv_rows(fh, columns: Optional[Sequence[str]], ints: Sequence[bool], batches) -> None:

@@ -36,7 +36,7 @@ import numpy as np
 
 from .errors import ConfigError, SimulationError
 from ._validate import compact_numbers
-from .simulation import Energy, History, Simulation
+from .simulation import Energy, History, Simulation, _read_only
 
 __all__ = ["MultiBody", "TOTAL_COLUMNS"]
 
@@ -229,9 +229,10 @@ class MultiBody:
 
     @property
     def positions(self) -> np.ndarray:
-        """Positions of all bodies concatenated in order, (n, 3) float64, m (a copy). Setting it sets every
-        body's positions from its rows (each body re-measures its references, as :attr:`Simulation.positions`)."""
-        return np.concatenate([np.asarray(b.positions) for b in self._bodies])
+        """Positions of all bodies concatenated in order, (n, 3) float64, m (a read-only copy). Setting it sets
+        every body's positions from its rows (each body re-measures its references, as
+        :attr:`Simulation.positions`)."""
+        return _read_only(np.concatenate([np.asarray(b.positions) for b in self._bodies]))
 
     @positions.setter
     def positions(self, x) -> None:
@@ -240,9 +241,9 @@ class MultiBody:
 
     @property
     def velocities(self) -> np.ndarray:
-        """Velocities of all bodies concatenated in order, (n, 3) float64, m/s (a copy); settable as
+        """Velocities of all bodies concatenated in order, (n, 3) float64, m/s (a read-only copy); settable as
         :attr:`positions`."""
-        return np.concatenate([np.asarray(b.velocities) for b in self._bodies])
+        return _read_only(np.concatenate([np.asarray(b.velocities) for b in self._bodies]))
 
     @velocities.setter
     def velocities(self, v) -> None:

@@ -290,6 +290,12 @@ _STEP_COLUMN = list(_core.Simulation.history_columns()).index("step")
 XPBD_WARM_START = _core.XPBD_WARM_START
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a`` (a fresh copy from the core) marked read-only: editing it in place could only edit the copy."""
+    a.flags.writeable = False
+    return a
+
+
 def _as_float3(value, name: str) -> tuple:
     try:
         a = np.asarray(value, dtype=np.float64).reshape(-1)
@@ -532,8 +538,11 @@ class Simulation:
     # --- state -------------------------------------------------------------------------------------------
     @property
     def positions(self) -> np.ndarray:
-        """Current positions, (m, 3) float64, m (a copy; assign to change; assigning resets the references)."""
-        return self._sim.positions
+        """Current positions, (m, 3) float64, m: a read-only copy (an in-place edit such as
+        ``sim.positions[:, 2] += 1`` raises instead of silently editing a copy). To change the state, assign:
+        ``x = sim.positions.copy(); x[:, 2] += 1; sim.positions = x`` (assigning resets the projection's
+        references)."""
+        return _read_only(self._sim.positions)
 
     @positions.setter
     def positions(self, x) -> None:
@@ -541,8 +550,9 @@ class Simulation:
 
     @property
     def velocities(self) -> np.ndarray:
-        """Current velocities, (m, 3) float64, m/s (a copy; assign to change; pinned rows stay zero)."""
-        return self._sim.velocities
+        """Current velocities, (m, 3) float64, m/s: a read-only copy, as :attr:`positions` (assign to change;
+        pinned rows stay zero)."""
+        return _read_only(self._sim.velocities)
 
     @velocities.setter
     def velocities(self, v) -> None:
@@ -562,8 +572,8 @@ class Simulation:
 
     @property
     def rest_positions(self) -> np.ndarray:
-        """Rest positions, (m, 3) float64, m."""
-        return self._sim.rest_positions
+        """Rest positions, (m, 3) float64, m (read-only)."""
+        return _read_only(self._sim.rest_positions)
 
     @property
     def tets(self) -> np.ndarray:
@@ -572,8 +582,8 @@ class Simulation:
 
     @property
     def masses(self) -> np.ndarray:
-        """Lumped vertex masses, (m,) float64, kg."""
-        return self._sim.masses
+        """Lumped vertex masses, (m,) float64, kg (read-only)."""
+        return _read_only(self._sim.masses)
 
     @property
     def total_mass(self) -> float:
@@ -581,8 +591,8 @@ class Simulation:
 
     @property
     def pinned(self) -> np.ndarray:
-        """Pinned-vertex mask, (m,) bool."""
-        return self._sim.pinned
+        """Pinned-vertex mask, (m,) bool (read-only)."""
+        return _read_only(self._sim.pinned)
 
     @property
     def time(self) -> float:
