@@ -170,11 +170,6 @@ def _gmsh4_binary(p: Path, mm, body: int, nodes: bool, size: int, st: str, dsize
     nblocks, total, _, _ = (struct.unpack_from(st, head, i * dsize)[0] for i in range(4))
     _check_count(p, mm, body, nblocks, "entity blocks", 12 + dsize, size)
     _check_count(p, mm, body, total, what, dsize + 24 if nodes else 2 * dsize, size)
-    try:
-        from meshio._common import num_nodes_per_cell
-        from meshio.gmsh.common import _gmsh_to_meshio_type
-    except ImportError:  # pragma: no cover - private meshio tables moved
-        return
     pos = body + 4 * dsize
     seen = 0
     for _ in range(nblocks):
@@ -194,10 +189,10 @@ def _gmsh4_binary(p: Path, mm, body: int, nodes: bool, size: int, st: str, dsize
                 return  # parametric nodes: meshio refuses them
             nbytes = count * (dsize + 24)
         else:
-            cell = _gmsh_to_meshio_type.get(kind)
-            if cell is None:
+            per = GMSH_NODES_PER_ELEMENT.get(kind)
+            if per is None:
                 return  # unknown element type: meshio reports it
-            nbytes = count * (1 + num_nodes_per_cell[cell]) * dsize
+            nbytes = count * (1 + per) * dsize
         pos += 12 + dsize + nbytes
         if pos > size:
             raise _too_many(p, mm, 0, count, f"{what} in one entity block", nbytes, size)
@@ -261,12 +256,50 @@ def _medit(p: Path, mm, size: int) -> None:
             _check_count(p, mm, m.start(2), int(m.group(2)), m.group(1).decode().lower(), 2 * width - 1, size + 1)
 
 
+#: Nodes per element of the Gmsh element types (the ``elm-type`` codes of the Gmsh file format, section "MSH file
+#: format" of the Gmsh reference manual). The scan's own table: meshio keeps its copy private, and a scan that
+#: imported it would break on a meshio upgrade. A type not listed stops the scan (meshio reads or reports it).
+GMSH_NODES_PER_ELEMENT = {
+    1: 2, 2: 3, 3: 4, 4: 4, 5: 8, 6: 6, 7: 5, 8: 3, 9: 6, 10: 9, 11: 10, 12: 27, 13: 18, 14: 14, 15: 1, 16: 8,
+    17: 20, 18: 15, 19: 13, 20: 9, 21: 10, 22: 12, 23: 15, 24: 15, 25: 21, 26: 4, 27: 5, 28: 6, 29: 20, 30: 35,
+    31: 56, 92: 64, 93: 125,
+}  # fmt: skip
+
+#: The binary Medit (``.meshb``) keywords the scan walks, by code (libMeshb's ``GmfKwdCod``): name, whether a count
+#: follows, and the item layout (``i`` an integer, ``r`` a real, ``d`` the next letter repeated once per space
+#: dimension). The common element and vertex keywords; at any other the scan stops and leaves the file to meshio.
+MESHB_KEYWORDS = {
+    1: ("GmfMeshVersionFormatted", "", "i"),
+    2: ("GmfReserved", "", ""),
+    3: ("GmfDimension", "", "i"),
+    4: ("GmfVertices", "i", "dri"),
+    5: ("GmfEdges", "i", "iii"),
+    6: ("GmfTriangles", "i", "iiii"),
+    7: ("GmfQuadrilaterals", "i", "iiiii"),
+    8: ("GmfTetrahedra", "i", "iiiii"),
+    9: ("GmfPrisms", "i", "iiiiiii"),
+    10: ("GmfHexahedra", "i", "iiiiiiiii"),
+    12: ("GmfReserved", "", ""),
+    13: ("GmfCorners", "i", "i"),
+    14: ("GmfRidges", "i", "i"),
+    15: ("GmfRequiredVertices", "i", "i"),
+    54: ("GmfEnd", "", ""),
+}
+
+
+def _meshb_item_bytes(layout: str, dim: int, int_bytes: int, real_bytes: int) -> int:
+    """Bytes of one item of a ``.meshb`` keyword with ``layout`` (see :data:`MESHB_KEYWORDS`)."""
+    total, repeat = 0, 1
+    for c in layout:
+        if c == "d":
+            repeat = dim
+            continue
+        total += repeat * (int_bytes if c == "i" else real_bytes)
+        repeat = 1
+    return total
+
+
 def _meshb(p: Path, mm, size: int) -> None:
-    try:
-        from meshio.medit._medit import _produce_dtype
-        from meshio.medit._medit_internal import medit_codes
-    except ImportError:  # pragma: no cover - private meshio tables moved
-        return
     import numpy as np
 
     if size < 8:
@@ -279,9 +312,9 @@ def _meshb(p: Path, mm, size: int) -> None:
     dim = 3
     while pos + 4 <= size:
         (field,) = struct.unpack_from("<i", mm, pos)
-        info = medit_codes.get(field)
+        info = MESHB_KEYWORDS.get(field)
         if info is None or info[0] == "GmfEnd":
-            return
+            return  # a keyword this scan does not know: meshio reads (or reports) the rest
         pos += 4
         if info[0] == "GmfReserved":
             continue
@@ -301,10 +334,7 @@ def _meshb(p: Path, mm, size: int) -> None:
                 return
             pos += 4
             continue
-        try:
-            item = np.dtype(_produce_dtype(info[2], dim, itype, ftype)).itemsize
-        except Exception:  # unknown template: meshio reports it
-            return
+        item = _meshb_item_bytes(info[2], dim, np.dtype(itype).itemsize, np.dtype(ftype).itemsize)
         if nitems < 0 or pos + nitems * item > size:
             raise MeshError(
                 f"{p}: keyword {info[0][3:]} at byte {pos} declares {nitems} items of {item} bytes, but the file "
