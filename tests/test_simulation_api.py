@@ -10,6 +10,7 @@ import re
 import threading
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -711,3 +712,50 @@ def test_count_and_flag_columns_are_integers():
         assert h[c].dtype == np.int64, c
         assert h.as_dict()[c].dtype == np.int64, c
     assert h["total"].dtype == np.float64 and list(h["step"]) == [0, 1, 2, 3]
+
+
+def test_from_scene_round_trips_a_file_a_dict_and_a_scene(tmp_path):
+    from fepr.scene import load_scene
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "hanging_bar.toml"
+    built = load_scene(path).build()
+    try:
+        import tomllib as toml
+    except ImportError:  # Python < 3.11
+        import tomli as toml
+    d = toml.loads(path.read_text())
+    for source in (path, str(path), d, load_scene(path)):
+        sim = fepr.Simulation.from_scene(source)
+        assert np.array_equal(sim.positions, built.positions) and sim.dt == built.dt
+        assert sim.integrator == "implicit_euler" and len(sim.kinematic_pins) == 1
+    assert fepr.Simulation.from_scene(d, projection=False).projection is None
+    with pytest.raises(fepr.ConfigError, match="a scene must be"):
+        fepr.Simulation.from_scene(42)
+    multi = Path(__file__).resolve().parent.parent / "examples" / "collide.toml"
+    system = fepr.MultiBody.from_scene(multi)
+    assert len(system) == 2
+    with pytest.raises(fepr.ConfigError, match="build_multibody"):
+        fepr.Simulation.from_scene(multi)
+
+
+def test_to_meshio_and_to_pyvista_carry_the_state_and_its_fields(tmp_path):
+    import meshio
+
+    sim = make_sim()
+    sim.step(5)
+    m = sim.to_meshio()
+    assert np.array_equal(m.points, sim.positions) and np.array_equal(m.cells_dict["tetra"], sim.tets)
+    assert np.array_equal(m.point_data["velocity"], sim.velocities)
+    assert np.allclose(m.point_data["displacement"], sim.positions - sim.rest_positions)
+    j = m.cell_data["J"][0]
+    assert j.shape == (len(sim.tets),) and np.isclose(j.min(), sim.history["min_j"][-1])
+    psi = m.cell_data["energy_density"][0]
+    assert psi.shape == (len(sim.tets),) and np.all(psi >= 0)
+    meshio.write(tmp_path / "state.vtu", m)
+    back = fepr.load_mesh(tmp_path / "state.vtu")
+    assert np.allclose(back.vertices, sim.positions)
+    pv = pytest.importorskip("pyvista", reason='to_pyvista needs PyVista: pip install "fepr[pyvista]"')
+    grid = sim.to_pyvista()
+    assert isinstance(grid, pv.UnstructuredGrid) and grid.n_cells == len(sim.tets)
+    assert np.allclose(grid.points, sim.positions)
+    assert np.allclose(grid.cell_data["J"], j) and np.allclose(grid.point_data["velocity"], sim.velocities)

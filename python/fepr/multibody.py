@@ -526,6 +526,27 @@ class MultiBody:
             return self.history.last
         return self._totals([lambda name, r=r: np.array([r[name]]) for r in rows], [list(r) for r in rows], 1).last
 
+    @classmethod
+    def from_scene(cls, scene, *, projection=None, base_dir: Union[str, Path, None] = None) -> "MultiBody":
+        """The system a scene with ``[[bodies]]`` describes (a path, a dict of sections or a
+        :class:`fepr.scene.Scene`), as :meth:`fepr.Simulation.from_scene`."""
+        from .scene import load_scene_from
+
+        return load_scene_from(scene, base_dir).build_multibody(projection=projection)
+
+    def to_meshio(self):
+        """The bodies' current states concatenated as one ``meshio.Mesh`` (see :meth:`fepr.Simulation.to_meshio`;
+        body ``b`` is points ``offsets[b]:offsets[b+1]``)."""
+        from .interop import to_meshio
+
+        return to_meshio(self)
+
+    def to_pyvista(self):
+        """:meth:`to_meshio` as a ``pyvista.UnstructuredGrid`` (needs ``pip install pyvista``)."""
+        from .interop import to_pyvista
+
+        return to_pyvista(self)
+
     def save_state(self, path: Union[str, Path]) -> None:
         """Write the system to a NumPy ``.npz`` file.
 

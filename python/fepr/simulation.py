@@ -854,6 +854,37 @@ class Simulation:
 
         return load_simulation(path, threads=threads)
 
+    @classmethod
+    def from_scene(cls, scene, *, projection=None, base_dir: Union[str, Path, None] = None) -> "Simulation":
+        """The simulation a one-body scene describes, in its initial state: ``scene`` a scene file (path), a dict
+        of its sections (as the parsed TOML; relative paths against ``base_dir``, default the working folder), or
+        a :class:`fepr.scene.Scene`. ``projection`` overrides ``[projection]`` (``False``: FEPR off).
+
+        Raises
+        ------
+        ConfigError
+            For an invalid scene (the message names the file, section and key), or a multi-body scene (use
+            :meth:`fepr.MultiBody.from_scene`).
+        """
+        from .scene import load_scene_from
+
+        return load_scene_from(scene, base_dir).build(projection=projection)
+
+    def to_meshio(self):
+        """The current state as a ``meshio.Mesh``: points at the current positions, ``tetra`` cells, point data
+        ``velocity`` (m/s) and ``displacement`` (m), cell data ``J`` and ``energy_density`` (J/m^3)
+        (:func:`fepr.interop.to_meshio`); ``meshio.write(path, sim.to_meshio())`` writes any format meshio knows."""
+        from .interop import to_meshio
+
+        return to_meshio(self)
+
+    def to_pyvista(self):
+        """The current state as a ``pyvista.UnstructuredGrid`` with the fields of :meth:`to_meshio` (needs
+        ``pip install pyvista``)."""
+        from .interop import to_pyvista
+
+        return to_pyvista(self)
+
     def save_state(self, path: Union[str, Path]) -> None:
         """Write ``positions, velocities, rest_positions, tets, masses, time`` to a NumPy ``.npz`` archive at exactly
         ``path`` (no ``.npz`` is appended to another suffix), atomically (:func:`fepr.io.npz.save_npz`)."""

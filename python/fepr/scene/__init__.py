@@ -41,7 +41,7 @@ defaults and docs), :mod:`~fepr.scene.parse` (TOML -> validated settings, errors
 (running a scene, its outputs). The names below are the public API; import them from ``fepr.scene``.
 """
 
-from .parse import load_scene, scene_from_dict
+from .parse import load_scene, load_scene_from, scene_from_dict
 from .run import RunResult, StopRequest, run_scene
 from .schema import (
     BODY_KEYS,
@@ -88,6 +88,7 @@ __all__ = [
     "WorldSettings",
     "load_scene",
     "run_scene",
+    "load_scene_from",
     "StopRequest",
     "scene_from_dict",
     # also public in the single module

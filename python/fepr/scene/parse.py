@@ -781,6 +781,18 @@ def scene_from_dict(d: Mapping[str, Any], base_dir: Union[str, Path] = ".", *, s
     )
 
 
+def load_scene_from(source, base_dir: Union[str, Path, None] = None) -> Scene:
+    """A :class:`Scene` from a scene file (``str`` or path), a dict of sections (relative paths against
+    ``base_dir``, default the working folder) or a ``Scene`` (returned as it is)."""
+    if isinstance(source, Scene):
+        return source
+    if isinstance(source, Mapping):
+        return scene_from_dict(source, "." if base_dir is None else base_dir)
+    if isinstance(source, (str, Path)) or hasattr(source, "__fspath__"):
+        return load_scene(source)
+    raise ConfigError(f"a scene must be a scene file path, a dict of sections or a fepr.scene.Scene, got {source!r}")
+
+
 def load_scene(path: Union[str, Path]) -> Scene:
     """Read and validate a scene file (TOML). Relative paths inside it are relative to the file.
 
