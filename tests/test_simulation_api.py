@@ -759,3 +759,43 @@ def test_to_meshio_and_to_pyvista_carry_the_state_and_its_fields(tmp_path):
     assert isinstance(grid, pv.UnstructuredGrid) and grid.n_cells == len(sim.tets)
     assert np.allclose(grid.points, sim.positions)
     assert np.allclose(grid.cell_data["J"], j) and np.allclose(grid.point_data["velocity"], sim.velocities)
+
+
+def test_names_are_case_insensitive_in_python_and_in_scene_files():
+    from fepr.scene import scene_from_dict
+
+    mat = fepr.NeoHookean(youngs_modulus=1e4, poisson_ratio=0.3)
+    sim = fepr.Simulation(fepr.meshes.box(), material=mat, density=100.0, dt=0.01, integrator="Implicit_Euler",
+                          projection=fepr.Projection(rows="ALL", metric="Mass", slack="Auto", warm_start="OFF"))  # fmt: skip
+    assert sim.integrator == "implicit_euler"
+    assert (sim.projection.rows, sim.projection.metric, sim.projection.warm_start) == ("all", "mass", "off")
+    scene = scene_from_dict(
+        {
+            "mesh": {"builtin": "box", "up_axis": "Y"},
+            "material": {"model": "Stable_Neo_Hookean", "youngs_modulus": 1e4, "poisson_ratio": 0.3},
+            "mass": {"density": 100.0},
+            "integrator": {"name": "Projective_Dynamics", "dt": 0.01},
+            "projection": {"rows": "Energy", "metric": "AUTO"},
+            "world": {"obstacles": [{"type": "Plane", "point": [0, 0, -1], "normal": [0, 0, 1]}]},
+        }
+    )
+    assert scene.mesh.up_axis == "y" and scene.integrator.name == "projective_dynamics"
+    assert scene.material.model == "stable_neo_hookean" and scene.projection.rows == "energy"
+    assert scene.world.obstacles[0].type == "plane"
+    scene.build().step(2)
+
+
+def test_the_simulation_docstring_lists_every_material_integrator_and_parameter():
+    import inspect
+
+    from fepr.materials import MATERIAL_TYPES
+
+    doc = fepr.Simulation.__doc__
+    for cls in MATERIAL_TYPES.values():
+        assert cls.__name__ in doc, cls.__name__
+    for name in fepr._core.INTEGRATORS:
+        assert f'"{name}"' in doc, name
+    for cls in (fepr.SymplecticEuler, fepr.ImplicitEuler, fepr.ProjectiveDynamics, fepr.Xpbd):
+        assert cls.__name__ in doc, cls.__name__
+    for p in inspect.signature(fepr.Simulation).parameters:
+        assert f"\n    {p} :" in doc, f"parameter {p} is not documented"

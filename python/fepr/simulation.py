@@ -117,6 +117,11 @@ class Projection:
     quality_margin: float = 0.05
 
     def __post_init__(self):
+        # The names are case-insensitive ("ALL", "Mass", "Auto"), as everywhere in fepr.
+        for name in ("rows", "slack", "metric", "warm_start"):
+            value = getattr(self, name)
+            if isinstance(value, str):
+                object.__setattr__(self, name, value.strip().lower())
         _checked(_core.check_projection, self._settings())
 
     def _settings(self) -> dict:
@@ -317,16 +322,20 @@ class Simulation:
     ----------
     mesh : TetMesh
         The rest shape (metres).
-    material : NeoHookean or StableNeoHookean
-        Material, SI units.
+    material : NeoHookean, StableNeoHookean, Arap or ConstraintNeoHookean
+        Material, SI units (Young's modulus in Pa, Poisson ratio). Projective Dynamics conserves the ARAP energy
+        and XPBD the constraint Neo-Hookean energy: with those integrators the material is converted to that
+        model with the same moduli (``sim.material`` shows the one in use).
     node_mass : float or array_like (m,), optional
         Mass per vertex, kg (as the seed used). Exactly one of ``node_mass`` and ``density``.
     density : float, optional
         Density, kg/m^3, lumped: a quarter of each tet's mass to each of its vertices.
-    integrator : str or SymplecticEuler or ImplicitEuler
-        Base integrator: a name (``"symplectic_euler"``, ``"implicit_euler"``, ``"projective_dynamics"``) or an
-        integrator object with settings, e.g. ``fepr.ImplicitEuler(tolerance=1e-8)``. Projective Dynamics uses
-        the ARAP energy built from the material's Young's modulus and Poisson ratio (see ``sim.material``).
+    integrator : str or SymplecticEuler, ImplicitEuler, ProjectiveDynamics or Xpbd
+        Base integrator: a name (``"symplectic_euler"``, ``"implicit_euler"``, ``"projective_dynamics"``,
+        ``"xpbd"``; case-insensitive) or an integrator object with settings, e.g.
+        ``fepr.ImplicitEuler(tolerance=1e-8)``, ``fepr.ProjectiveDynamics(iterations=20)``,
+        ``fepr.Xpbd(substeps=20)``. Projective Dynamics uses the ARAP energy and XPBD the constraint Neo-Hookean
+        energy built from the material's Young's modulus and Poisson ratio (see ``sim.material``).
     dt : float
         Time step, s (> 0).
     projection : bool or Projection
@@ -411,6 +420,7 @@ class Simulation:
             mass_kind, mass_value = "node_mass", 0.0
         dt = _positive(dt, "dt", "seconds")
         if isinstance(integrator, str):
+            integrator = integrator.strip().lower()  # names are case-insensitive
             if integrator not in _core.INTEGRATORS or integrator not in INTEGRATOR_TYPES:
                 raise ConfigError(f"unknown integrator {integrator!r} (known: {', '.join(_core.INTEGRATORS)})")
             integrator = INTEGRATOR_TYPES[integrator]()

@@ -152,8 +152,12 @@ class _Table:
             return value
         if not isinstance(value, str):
             raise self.error(f"{key} must be a string, got {shown(value)}")
-        if choices is not None and value not in choices:
-            raise self.error(f"{key} must be one of {', '.join(repr(c) for c in choices)}; got {shown(value)}")
+        if choices is not None:
+            # Names are case-insensitive, as in the Python API: "Y" is "y", "Implicit_Euler" is "implicit_euler".
+            canonical = {c.lower(): c for c in choices}.get(value.strip().lower())
+            if canonical is None:
+                raise self.error(f"{key} must be one of {', '.join(repr(c) for c in choices)}; got {shown(value)}")
+            return canonical
         return value
 
     def vec3(self, key: str, default: Any = _MISSING) -> Any:
@@ -400,7 +404,7 @@ def _parse_obstacles(raw: Any, where: str, base_dir: Path) -> Tuple[ObstacleSett
         types = ", ".join(repr(n) for n in OBSTACLE_KEYS)
         if "type" not in item:
             raise ConfigError(f"{where}{label}: missing required key 'type' (one of {types})")
-        kind = item["type"]
+        kind = item["type"].strip().lower() if isinstance(item["type"], str) else item["type"]
         if kind not in OBSTACLE_KEYS:
             raise ConfigError(f"{where}{label}: unknown obstacle type {kind!r} (known: {types})")
         t = _Table(item, "obstacle", where, known=OBSTACLE_COMMON_KEYS + OBSTACLE_KEYS[kind], label=f"{label}:")
