@@ -3,14 +3,14 @@
 Commands::
 
     fepr run SCENE.toml [--steps N] [--out DIR] [--no-projection] [--export FORMATS] [--export-every K]
-                        [--checkpoint-every K] [--overwrite] [--strict] [--quiet]
+             [--checkpoint-every K] [--overwrite] [--strict] [--quiet]
     fepr run [SCENE.toml] --resume DIR [--steps N] [--quiet]
     fepr demo [--steps N] [--out DIR] [--frames F] [--size WxH] [--no-video] [--strict] [--quiet]
-    fepr compare SCENE.toml --out DIR [--integrators a,b] [--steps N] [--frames F] [--size WxH] [--no-video]
-                            [--strict] [--quiet]
-    fepr view SCENE.toml | MESH [--host ADDR] [--port P] [--integrator NAME] [--dt S] [--no-browser-hint]
+    fepr compare SCENE.toml --out DIR [--integrators A,B] [--steps N] [--frames F] [--size WxH] [--fps FPS]
+                 [--no-video] [--strict] [--quiet]
+    fepr view SCENE.toml | MESH [--host ADDR] [--port P] [--integrator NAME] [--dt S] [--paused]
     fepr mesh INPUT [-o OUTPUT] [--max-volume V | --edge-length L] [--quality Q] [--mesher M] [--info]
-    fepr bench [--quick] [--json PATH] [--scenes LIST] [--threads N] [--meshes DIR]
+    fepr bench [--quick] [--json PATH] [--scenes LIST] [--threads N] [--meshes DIR] [--quiet]
     fepr --version | --help
 
 Exit status: 0 success; 1 an output file could not be written; 2 invalid command line, scene or mesh;
