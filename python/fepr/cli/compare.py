@@ -232,7 +232,7 @@ def compare(
         _write_plots(result, sc.name)
     t_render = time.perf_counter()
     if video:
-        _write_video(result, sc.name, len(at), size=size, fps=fps, gif=gif, quiet=quiet)
+        _write_video(result, sc.name, len(at), size=size, fps=fps, gif=gif, quiet=quiet, ground=_ground_height(sc))
     result.render_s = time.perf_counter() - t_render
     _write_summary_json(result, sc, n, at, fps)
     if html_report:
@@ -257,8 +257,27 @@ def _write_plots(result: CompareResult, name: str) -> None:
         result.plot_error = str(exc)
 
 
+def _ground_height(scene) -> Optional[float]:
+    """The height (m) of the scene's ground, a plane obstacle facing up (+z), or None: the video draws a floor
+    only where the scene has one."""
+    for ob in scene.world.obstacles:
+        if ob.type == "plane" and ob.motion is None:
+            n = np.asarray(ob.geometry.get("normal", (0.0, 0.0, 1.0)), dtype=np.float64)
+            if np.linalg.norm(n) > 0 and n[2] / np.linalg.norm(n) > 1.0 - 1e-9:
+                return float(np.asarray(ob.geometry.get("point", (0.0, 0.0, 0.0)), dtype=np.float64)[2])
+    return None
+
+
 def _write_video(
-    result: CompareResult, name: str, frames: int, *, size: Tuple[int, int], fps: float, gif: bool, quiet: bool
+    result: CompareResult,
+    name: str,
+    frames: int,
+    *,
+    size: Tuple[int, int],
+    fps: float,
+    gif: bool,
+    quiet: bool,
+    ground: Optional[float] = None,
 ) -> None:
     """``side_by_side.mp4`` (and ``.gif``) of the recorded frames; where it cannot be rendered (no polyscope or
     no EGL), ``video_error`` says why."""
@@ -266,7 +285,9 @@ def _write_video(
 
     try:
         with progress_bar(frames, desc=f"{name}: render", unit="frame", quiet=quiet) as bar:
-            v = render_video(result.runs, result.out_dir, size=size, fps=fps, gif=gif, on_frame=bar.update)
+            v = render_video(
+                result.runs, result.out_dir, size=size, fps=fps, gif=gif, on_frame=bar.update, ground=ground
+            )
         result.files["side_by_side.mp4"] = v.mp4
         if gif:
             result.files["side_by_side.gif"] = v.gif

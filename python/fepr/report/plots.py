@@ -134,8 +134,15 @@ def energy_plot(runs: Sequence[RecordedRun], path, *, title: str = "") -> Path:
     return _finish(fig, axes, Path(path), title or "energy")
 
 
+#: A momentum panel whose every run stays within this share of its scale of its initial value shows a line saying
+#: so instead of a curve (a curve would only draw round-off, on an axis scaled to it).
+CONSERVED = 1e-9
+
+
 def momentum_plot(runs: Sequence[RecordedRun], path, *, title: str = "") -> Path:
-    """Write ``momentum.png``: |P(t)| and |L(t)| (about the centre of mass), one curve per run."""
+    """Write ``momentum.png``: |P(t)| and |L(t)| (about the centre of mass), one curve per run. A quantity that no
+    run changes beyond round-off (within :data:`CONSERVED` of its scale: the largest |P| of the runs, and that times
+    the body's size for |L|) is not drawn: its panel says that it is conserved, and to how much."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.4))
 
@@ -145,10 +152,28 @@ def momentum_plot(runs: Sequence[RecordedRun], path, *, title: str = "") -> Path
     def ang(r: RecordedRun) -> np.ndarray:
         return np.linalg.norm(np.stack([r.history[c] for c in ("lx", "ly", "lz")], axis=1), axis=1)
 
-    _panel(axes[0], runs, p, log=False, min_span=_span(runs, p))
-    _style(axes[0], "linear momentum |P|", "|P| (kg m/s)")
-    _panel(axes[1], runs, ang, log=False, min_span=_span(runs, ang))
-    _style(axes[1], "angular momentum |L| (about the centre of mass)", "|L| (kg m²/s)")
+    sane = [r for r in runs if r.runaway_step is None] or list(runs)
+    p_scale = max(max(float(np.nanmax(p(r))) for r in sane), 1e-300)
+    size = max(length_scale(r.rest_positions) for r in runs)
+    panels = (
+        (axes[0], p, "linear momentum |P|", "|P| (kg m/s)", "kg m/s", p_scale),
+        (axes[1], ang, "angular momentum |L| (about the centre of mass)", "|L| (kg m²/s)", "kg m²/s", size * p_scale),
+    )
+    for ax, series, name, ylabel, unit, scale in panels:
+        drift = max(float(np.nanmax(np.abs(series(r) - series(r)[0]))) for r in sane)
+        if drift <= CONSERVED * scale:
+            for r in runs:  # the legend still lists every run
+                ax.plot([], [], "-" if r.spec.projection else "--", color=r.spec.color, linewidth=2.0, label=_label(r))
+            ax.text(0.5, 0.5, f"conserved in every run:\nchanges by at most {drift:.1e} {unit}\n(round-off)",
+                    ha="center", va="center", transform=ax.transAxes, fontsize=11, color="0.3")  # fmt: skip
+            ax.set_yticks([])
+            ax.set_xticks([])
+            _style(ax, name, "")
+            continue
+        _panel(ax, runs, series, log=False, min_span=_span(runs, series))
+        if ax.get_ylim()[0] < 0:  # a magnitude: the axis starts at 0
+            ax.set_ylim(bottom=0.0)
+        _style(ax, name, ylabel)
     pinned = any(r.pinned for r in runs)
     note = " (pinned: the supports exchange momentum with the body)" if pinned else ""
     return _finish(fig, axes, Path(path), (title or "momentum") + note)

@@ -1,8 +1,9 @@
 """Off-screen side-by-side video of a comparison: polyscope on EGL (Mesa's software renderer works), no display.
 
-Each run is one panel: rows are integrators, columns are FEPR on / off; every panel uses the same camera and
-ground grid, and carries the run's label, a frame counter and an energy readout (the energy error against the
-books, :func:`fepr.report.metrics.energy_error_series`, and H/H0). Frames go to
+Each run is one panel: rows are integrators, columns are FEPR on / off; every panel uses the same camera (framing
+every frame inside the band the overlays leave free), a ground grid only where the scene has a floor, and carries
+the run's label, a frame counter and an energy readout (the energy error against the books,
+:func:`fepr.report.metrics.energy_error_series`, and H/H0). Frames go to
 ``side_by_side.mp4`` (H.264 via imageio-ffmpeg) and ``side_by_side.gif`` (Pillow, scaled to at most
 :data:`GIF_MAX_WIDTH` pixels wide).
 
@@ -61,7 +62,6 @@ def _polyscope():
             raise RenderUnavailable(_PS_STATE["error"]) from None
         ps.set_up_dir("z_up")
         ps.set_front_dir("neg_y_front")
-        ps.set_ground_plane_mode("tile")
         ps.set_ground_plane_height_mode("manual")
         ps.set_shadow_darkness(0.35)
         ps.set_background_color((1.0, 1.0, 1.0))
@@ -105,6 +105,26 @@ def grid_layout(runs: Sequence[RecordedRun]) -> List[List[Optional[RecordedRun]]
             row.append(match[0] if match else None)
         grid.append(row)
     return grid
+
+
+#: Polyscope's default vertical field of view, degrees.
+FOV_DEG = 45.0
+#: The share of the panel's height the body may fill (the overlays take the rest) and where its middle lies,
+#: as a share of the height below the panel's centre.
+FREE_BAND = 0.70
+BAND_CENTRE_BELOW = 0.06
+
+
+def _camera(center: np.ndarray, radius: float) -> Tuple[np.ndarray, np.ndarray]:
+    """Eye and target that show a sphere of ``radius`` about ``center`` inside the free band of the panel."""
+    half = np.radians(0.5 * FOV_DEG)
+    distance = radius / np.sin(half) / FREE_BAND
+    direction = np.array([0.5, -1.0, 0.35])
+    direction /= np.linalg.norm(direction)
+    # Aiming above the centre moves the body down in the image (away from the labels at the top).
+    shift = 2.0 * BAND_CENTRE_BELOW * distance * np.tan(half)
+    target = center + np.array([0.0, 0.0, shift])
+    return target + direction * distance, target
 
 
 def _sane_box(runs: Sequence[RecordedRun]) -> Tuple[np.ndarray, np.ndarray]:
@@ -187,6 +207,7 @@ def render_video(
     fps: float = 24.0,
     gif: bool = True,
     on_frame: Optional[Callable[[int], None]] = None,
+    ground: Optional[float] = None,
 ) -> VideoResult:
     """Render the runs side by side into ``out_dir/side_by_side.mp4`` (and ``.gif``).
 
@@ -200,6 +221,8 @@ def render_video(
         Frames per second of the videos.
     on_frame : callable, optional
         Called with 1 after each composite frame (progress).
+    ground : float, optional
+        The height (m) of the scene's floor, drawn as a grid; None (default): no floor.
 
     Raises
     ------
@@ -220,11 +243,16 @@ def render_video(
     radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-6)
     ps.remove_all_structures()
     ps.set_window_size(pw, ph)
-    ps.set_ground_plane_height(float(lo[2]) - 0.002 * radius)
-    direction = np.array([0.5, -1.0, 0.35])
-    direction /= np.linalg.norm(direction)
-    eye = center + direction * radius * 2.6
-    ps.look_at(tuple(eye), tuple(center))
+    # A floor only where the scene has one (a body falling in space over a grid looks as if it landed on it).
+    if ground is None:
+        ps.set_ground_plane_mode("none")
+    else:
+        ps.set_ground_plane_mode("tile")
+        ps.set_ground_plane_height(float(ground))
+    # Framing: the bounding sphere of every frame inside the band the overlays leave free (the labels take the
+    # top sixth of the panel, the frame counter the bottom line), with polyscope's 45 degree vertical field of view.
+    eye, target = _camera(center, radius)
+    ps.look_at(tuple(eye), tuple(target))
     mesh = ps.register_surface_mesh("body", runs[0].frames[0], surf.faces, smooth_shade=False)
     mesh.set_edge_width(0.8)
     mesh.set_edge_color((0.15, 0.15, 0.15))
