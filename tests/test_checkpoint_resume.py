@@ -69,7 +69,7 @@ def test_every_example_scene_resumes_bit_for_bit(path, tmp_path):
     _assert_same(a, b, path.stem)
 
 
-def _scene_with(path: Path, integrator: str, dt: float) -> "fepr.scene.Scene":
+def _scene_with(path: Path, integrator: str, dt: float) -> fepr.scene.Scene:
     d = _toml.loads(path.read_text())
     d = copy.deepcopy(d)
     d["integrator"] = {"name": integrator, "dt": dt}

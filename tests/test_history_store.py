@@ -4,12 +4,9 @@ the columns read, the last row costs nothing, and a long ``step(n)`` stops at a 
 from __future__ import annotations
 
 import gc
-import os
-import signal
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import numpy as np
 import pytest

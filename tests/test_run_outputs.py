@@ -72,7 +72,7 @@ def _check_valid(out: Path, *, status: str) -> dict:
         import fepr
         from fepr.export import read_pvd
 
-        for t, vtu in read_pvd(next(export.glob("*.pvd"))):
+        for _t, vtu in read_pvd(next(export.glob("*.pvd"))):
             assert vtu.is_file()
             fepr.load_mesh(vtu)
         for glb in export.glob("*.glb"):

@@ -765,8 +765,10 @@ def test_names_are_case_insensitive_in_python_and_in_scene_files():
     from fepr.scene import scene_from_dict
 
     mat = fepr.NeoHookean(youngs_modulus=1e4, poisson_ratio=0.3)
-    sim = fepr.Simulation(fepr.meshes.box(), material=mat, density=100.0, dt=0.01, integrator="Implicit_Euler",
-                          projection=fepr.Projection(rows="ALL", metric="Mass", slack="Auto", warm_start="OFF"))  # fmt: skip
+    projection = fepr.Projection(rows="ALL", metric="Mass", slack="Auto", warm_start="OFF")
+    sim = fepr.Simulation(
+        fepr.meshes.box(), material=mat, density=100.0, dt=0.01, integrator="Implicit_Euler", projection=projection
+    )
     assert sim.integrator == "implicit_euler"
     assert (sim.projection.rows, sim.projection.metric, sim.projection.warm_start) == ("all", "mass", "off")
     scene = scene_from_dict(

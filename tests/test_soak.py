@@ -18,7 +18,6 @@ import pytest
 
 from fepr.cli import main
 from fepr.cli.commands import EXIT_OK
-
 from test_run_outputs import EXAMPLES, _check_valid, _fepr, _table
 
 pytestmark = pytest.mark.soak

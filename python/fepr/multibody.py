@@ -34,8 +34,8 @@ from typing import Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .errors import ConfigError, SimulationError
 from ._validate import compact_numbers
+from .errors import ConfigError, SimulationError
 from .simulation import Energy, History, Simulation, _read_only
 
 __all__ = ["MultiBody", "TOTAL_COLUMNS"]
@@ -510,7 +510,7 @@ class MultiBody:
         save_multibody(self, path, history=history)
 
     @classmethod
-    def load_checkpoint(cls, path: Union[str, Path], *, threads: Optional[int] = None) -> "MultiBody":
+    def load_checkpoint(cls, path: Union[str, Path], *, threads: Optional[int] = None) -> MultiBody:
         """A system resumed from :meth:`save_checkpoint`'s file (its next steps are the saved system's, bit for
         bit). Raises :class:`fepr.errors.CheckpointError` for a file that is not a multi-body checkpoint."""
         from .checkpoint import load_multibody
@@ -527,7 +527,7 @@ class MultiBody:
         return self._totals([lambda name, r=r: np.array([r[name]]) for r in rows], [list(r) for r in rows], 1).last
 
     @classmethod
-    def from_scene(cls, scene, *, projection=None, base_dir: Union[str, Path, None] = None) -> "MultiBody":
+    def from_scene(cls, scene, *, projection=None, base_dir: Union[str, Path, None] = None) -> MultiBody:
         """The system a scene with ``[[bodies]]`` describes (a path, a dict of sections or a
         :class:`fepr.scene.Scene`), as :meth:`fepr.Simulation.from_scene`."""
         from .scene import load_scene_from

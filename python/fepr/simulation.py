@@ -627,7 +627,7 @@ class Simulation:
     #: there, and the history rows are taken from the core): a run stops within this plus one step.
     BATCH_SECONDS = 0.05
 
-    def step(self, n: int = 1, callback: Optional[Callable[["Simulation"], Optional[bool]]] = None) -> int:
+    def step(self, n: int = 1, callback: Optional[Callable[[Simulation], Optional[bool]]] = None) -> int:
         """Advance ``n`` steps (the GIL is released while stepping); returns the steps taken.
 
         The steps run in batches of at most :attr:`BATCH_SECONDS` of wall time; between batches Python handles
@@ -855,7 +855,7 @@ class Simulation:
         save_simulation(self, path, history=history)
 
     @classmethod
-    def load_checkpoint(cls, path: Union[str, Path], *, threads: Optional[int] = None) -> "Simulation":
+    def load_checkpoint(cls, path: Union[str, Path], *, threads: Optional[int] = None) -> Simulation:
         """A simulation resumed from a checkpoint written by :meth:`save_checkpoint`: its next steps are the
         saved simulation's, bit for bit (any ``threads``). Raises :class:`fepr.errors.CheckpointError` for a file
         that is not a fepr checkpoint, is damaged, comes from another checkpoint version, or holds a multi-body
@@ -865,7 +865,7 @@ class Simulation:
         return load_simulation(path, threads=threads)
 
     @classmethod
-    def from_scene(cls, scene, *, projection=None, base_dir: Union[str, Path, None] = None) -> "Simulation":
+    def from_scene(cls, scene, *, projection=None, base_dir: Union[str, Path, None] = None) -> Simulation:
         """The simulation a one-body scene describes, in its initial state: ``scene`` a scene file (path), a dict
         of its sections (as the parsed TOML; relative paths against ``base_dir``, default the working folder), or
         a :class:`fepr.scene.Scene`. ``projection`` overrides ``[projection]`` (``False``: FEPR off).

@@ -216,7 +216,7 @@ class OutputWorker:
     :meth:`submit`, :meth:`drain` or :meth:`close`."""
 
     def __init__(self, backlog: int = 8):
-        self._jobs: "queue.Queue[Optional[Callable[[], None]]]" = queue.Queue(maxsize=backlog)
+        self._jobs: queue.Queue[Optional[Callable[[], None]]] = queue.Queue(maxsize=backlog)
         self._error: Optional[BaseException] = None
         self._thread = threading.Thread(target=self._run, name="fepr-outputs", daemon=True)
         self._thread.start()
@@ -264,7 +264,7 @@ class CsvStream:
     of an earlier part of the run again, cut at such a mark.
     """
 
-    def __init__(self, folder: "RunFolder", name: str, columns: Sequence[str], ints: Sequence[bool]):
+    def __init__(self, folder: RunFolder, name: str, columns: Sequence[str], ints: Sequence[bool]):
         self.folder, self.name = folder, name
         self.columns, self.ints = list(columns), list(ints)
         self.path = folder.path / name

@@ -50,7 +50,7 @@ class StopRequest:
             raise KeyboardInterrupt
         self.signum = signum
 
-    def install(self) -> "StopRequest":
+    def install(self) -> StopRequest:
         """Handle SIGINT and SIGTERM by requesting the stop (no-op outside the main thread)."""
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -309,7 +309,6 @@ def run_scene(
         and timing. A runaway (:class:`fepr.SimulationError` from ``step``) does not raise: the files are written
         with the steps completed so far and the result says where it stopped.
     """
-    from ..multibody import MultiBody
     from .._validate import integer
     from .outputs import RunFolder
 
@@ -691,7 +690,7 @@ def _step_and_record(
             rec.close()
 
 
-def _write_outputs(result: RunResult, scene: Scene, sim, folder, diagnostics: "_Diagnostics") -> None:
+def _write_outputs(result: RunResult, scene: Scene, sim, folder, diagnostics: _Diagnostics) -> None:
     """The diagnostics files finished (renamed from their temporary names) and ``final_state.npz`` (through a
     temporary name) in the run's folder; their paths go into ``result``."""
     out = folder.path

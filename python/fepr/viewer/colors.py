@@ -27,7 +27,7 @@ J_COLORMAP = "RdBu_r"
 PSI_COLORMAP = "viridis"
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def palette(name: str, bins: int = NUM_BINS) -> Tuple[Tuple[int, int, int], ...]:
     """``bins`` colours sampled evenly from matplotlib's colour map ``name``, RGB 0..255 (matplotlib is imported
     when a field is first coloured, so the viewer starts without it)."""
