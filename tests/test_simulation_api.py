@@ -801,3 +801,20 @@ def test_the_simulation_docstring_lists_every_material_integrator_and_parameter(
         assert cls.__name__ in doc, cls.__name__
     for p in inspect.signature(fepr.Simulation).parameters:
         assert f"\n    {p} :" in doc, f"parameter {p} is not documented"
+
+
+def test_step_calls_back_after_every_batch_and_stops_when_asked():
+    sim = make_sim()
+    seen = []
+
+    def progress(s):
+        seen.append(s.num_steps)
+        return s.num_steps >= 40
+
+    sim.BATCH_SECONDS = 0.0  # one step per batch, so that the callback sees every step
+    taken = sim.step(1000, callback=progress)
+    assert taken == 40 and sim.num_steps == 40 and seen == list(range(1, 41))
+    assert len(sim.history) == 41
+    assert sim.step(5, callback=lambda s: None) == 5  # None does not stop
+    with pytest.raises(fepr.ConfigError, match="callback must be callable"):
+        sim.step(1, callback=3)
