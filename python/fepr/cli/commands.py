@@ -9,7 +9,8 @@ Commands::
     fepr compare SCENE.toml --out DIR [--integrators A,B] [--steps N] [--frames F] [--size WxH] [--fps FPS]
                  [--no-video] [--strict] [--quiet]
     fepr view SCENE.toml | MESH [--host ADDR] [--port P] [--integrator NAME] [--dt S] [--paused]
-    fepr mesh INPUT [-o OUTPUT] [--max-volume V | --edge-length L] [--quality Q] [--mesher M] [--info]
+    fepr mesh INPUT [-o OUTPUT] [--max-volume V | --edge-length L | --target-tets N] [--max-tets M]
+              [--quality Q] [--mesher M] [--info]
     fepr bench [--quick] [--json PATH] [--scenes LIST] [--threads N] [--meshes DIR] [--quiet]
     fepr --version | --help
 
@@ -275,6 +276,22 @@ def _add_mesh_parser(sub) -> None:
     size.add_argument(
         "--edge-length", type=_positive_float, default=None, metavar="L", help="target edge length (input units)"
     )
+    size.add_argument(
+        "--target-tets",
+        type=_whole_number("tets", "--target-tets", 1),
+        default=None,
+        metavar="N",
+        help="aim at about N tets (within 10%%): decimate the surface first (quadric, fast-simplification), then "
+        "choose TetGen's volume bound by measuring",
+    )
+    mesh.add_argument(
+        "--max-tets",
+        type=_whole_number("tets", "--max-tets", 1),
+        default=None,
+        metavar="M",
+        help="hard upper bound on the tet count: never written above it (with --target-tets the passes retry "
+        "below it; without, a larger mesh is refused)",
+    )
     mesh.add_argument(
         "--quality",
         type=_positive_float,
@@ -417,28 +434,55 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
 
     src = Path(args.input)
     surface = src.suffix.lower() in SURFACE_EXTENSIONS
-    sizing = args.max_volume is not None or args.edge_length is not None or args.quality is not None
+    options = "--max-volume, --edge-length, --target-tets, --max-tets and --quality"
+    sizing = any(
+        x is not None for x in (args.max_volume, args.edge_length, args.target_tets, args.max_tets, args.quality)
+    )
     if args.output is None:
         if not args.info:
             raise ConfigError("fepr mesh: give -o OUTPUT (a file to write) and/or --info (print a report)")
         if sizing:
-            raise ConfigError("fepr mesh: --max-volume, --edge-length and --quality need -o OUTPUT")
+            raise ConfigError(f"fepr mesh: {options} need -o OUTPUT")
         print(mesh_info(src), flush=True)
         return EXIT_OK
+    # Before any reading or meshing (which can take a while on a dense scan): a wrong -o fails at once.
+    _check_mesh_output(args.output)
+    if args.target_tets is not None and args.max_tets is not None and args.max_tets < args.target_tets:
+        raise ConfigError(f"fepr mesh: --max-tets ({args.max_tets}) must be >= --target-tets ({args.target_tets})")
+    if args.target_tets is not None and args.mesher != "tetgen":
+        raise ConfigError(f"fepr mesh: --target-tets works with --mesher tetgen only, not {args.mesher}")
     if surface:
-        from ..mesher import tetrahedralize
+        from ..mesher import tetrahedralize, tetrahedralize_to_size
 
         start = time.perf_counter()
-        mesh = tetrahedralize(
-            src, max_volume=args.max_volume, edge_length=args.edge_length, quality=args.quality, mesher=args.mesher
-        )
+        sized = None
+        caught: list = []
+        if args.target_tets is not None:
+            with warnings.catch_warnings(record=True) as caught:  # printed as fepr's own warnings below
+                warnings.simplefilter("always", UserWarning)
+                sized = tetrahedralize_to_size(
+                    src, target_tets=args.target_tets, max_tets=args.max_tets, quality=args.quality
+                )
+            mesh = sized.mesh
+        else:
+            mesh = tetrahedralize(
+                src,
+                max_volume=args.max_volume,
+                edge_length=args.edge_length,
+                quality=args.quality,
+                mesher=args.mesher,
+                max_tets=args.max_tets,
+            )
         elapsed = time.perf_counter() - start
         print(f"{src}: {mesh.num_vertices} vertices, {mesh.num_tets} tets ({args.mesher}, {elapsed:.2f} s)", flush=True)
+        if sized is not None:
+            print(f"{src}: {sized}", flush=True)
+        for w in caught:
+            _err(f"warning: {w.message}")
     else:
         if sizing:
             raise ConfigError(
-                f"fepr mesh: {src} is a tet mesh; --max-volume, --edge-length and --quality apply to surfaces "
-                f"({', '.join(SURFACE_EXTENSIONS)})"
+                f"fepr mesh: {src} is a tet mesh; {options} apply to surfaces ({', '.join(SURFACE_EXTENSIONS)})"
             )
         mesh = load_mesh(src)
     written = write_mesh(mesh, args.output)
@@ -446,6 +490,21 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
     if args.info:
         print(mesh_info(written[0]), flush=True)
     return EXIT_OK
+
+
+def _check_mesh_output(out: Path) -> None:
+    """Refuse an OUTPUT that :func:`fepr.io.write_mesh` could not write (extension, missing folder)."""
+    from ..errors import ConfigError
+    from ..io import WRITE_EXTENSIONS
+
+    if out.suffix.lower() not in WRITE_EXTENSIONS:
+        what = f"extension {out.suffix!r}" if out.suffix else "no extension"
+        raise ConfigError(
+            f"fepr mesh: cannot write {out}: {what} is not a tet mesh format; supported: {', '.join(WRITE_EXTENSIONS)}"
+        )
+    folder = out.parent
+    if not folder.is_dir():
+        raise ConfigError(f"fepr mesh: cannot write {out}: the folder {folder} does not exist")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
