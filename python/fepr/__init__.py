@@ -15,7 +15,7 @@ Quick example::
     print(sim.energy().total, sim.last_projection)
 """
 
-from . import export, meshes
+from . import export, meshes, sweep
 from ._core import __version__
 from .errors import (
     CheckpointError,
@@ -81,6 +81,7 @@ __all__ = [
     "Xpbd",
     "__version__",
     "export",
+    "sweep",
     "load_mesh",
     "mesh_info",
     "meshes",

@@ -12,6 +12,8 @@ Commands::
     fepr mesh INPUT [-o OUTPUT] [--max-volume V | --edge-length L | --target-tets N] [--max-tets M]
               [--quality Q] [--mesher M] [--info]
     fepr bench [--quick] [--json PATH] [--scenes LIST] [--threads N] [--meshes DIR] [--quiet]
+    fepr sweep SWEEP.toml [--out DIR] [--address ADDR] [--backend auto|ray|pool|serial] [--workers N] [--dataset]
+               [--strict] [--quiet]
     fepr --version | --help
 
 Exit status: 0 success; 1 an output file could not be written; 2 invalid command line, scene or mesh;
@@ -35,6 +37,8 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from ..errors import ConfigError, FeprError
+from ..sweep.cli import add_sweep_parser as _add_sweep_parser
+from ..sweep.cli import cmd_sweep
 
 __all__ = ["EXIT_ERROR", "EXIT_INVALID", "EXIT_OK", "EXIT_RUNAWAY", "EXIT_STRICT", "build_parser", "main"]
 
@@ -197,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mesh_parser(sub)
     _add_compare_parser(sub)
     _add_view_parser(sub)
+    _add_sweep_parser(sub)
     # Imported here, not at the top: `python -m fepr.cli.bench` (the bench's worker subprocess) imports this
     # package first, and a bench module already imported would run twice (runpy warns).
     from .bench import add_bench_parser
@@ -594,6 +599,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _cmd_compare(args)
         if args.command == "view":
             return _cmd_view(args)
+        if args.command == "sweep":
+            return cmd_sweep(args)
         if args.command == "bench":
             from .bench import cmd_bench
 
