@@ -90,50 +90,26 @@ class ObjSequence(_SurfaceSequence):
 
 
 class PlySequence(_SurfaceSequence):
-    """Binary little-endian PLY surface sequence ``directory/name_00000.ply``, ... (float32 vertices,
-    ``uchar``-counted ``int`` face lists; with ``normals``, ``nx ny nz`` per vertex)."""
+    """Binary little-endian PLY surface sequence ``directory/name_00000.ply``, ... (written by meshio: float64
+    vertices, triangle faces; with ``normals``, ``nx ny nz`` per vertex)."""
 
     format = "ply"
     suffix = ".ply"
 
     def _write_file(self, path: Path, frame: Frame, pts: np.ndarray, nrm) -> None:
-        faces = self.surface.local_faces
-        props = ["property float x", "property float y", "property float z"]
-        cols = [pts]
-        if nrm is not None:
-            props += ["property float nx", "property float ny", "property float nz"]
-            cols.append(nrm)
-        header = "\n".join(
-            [
-                "ply",
-                "format binary_little_endian 1.0",
-                f"comment fepr boundary surface: frame {frame.index}, step {frame.step}, time {frame.time!r} s",
-                f"element vertex {len(pts)}",
-                *props,
-                f"element face {len(faces)}",
-                "property list uchar int vertex_indices",
-                "end_header",
-                "",
-            ]
+        import meshio
+
+        point_data = {} if nrm is None else {"nx": nrm[:, 0], "ny": nrm[:, 1], "nz": nrm[:, 2]}
+        mesh = meshio.Mesh(
+            np.asarray(pts, dtype=np.float64), [("triangle", self.surface.local_faces)], point_data=point_data
         )
-        verts = np.ascontiguousarray(np.hstack(cols), dtype="<f4")
-        rec = np.zeros(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
-        rec["n"] = 3
-        rec["v"] = faces
-        with open(path, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(verts.tobytes())
-            fh.write(rec.tobytes())
+        meshio.write(str(path), mesh, file_format="ply", binary=True)
 
 
 def read_ply(path: PathLike):
-    """Read a PLY written by :class:`PlySequence`: ``(points (n, 3) float32, faces (f, 3) int32)``."""
-    data = Path(path).read_bytes()
-    head_len = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:head_len].decode("ascii").splitlines()
-    nv = int(next(h for h in header if h.startswith("element vertex")).split()[-1])
-    nf = int(next(h for h in header if h.startswith("element face")).split()[-1])
-    nprops = sum(1 for h in header if h.startswith("property float"))
-    verts = np.frombuffer(data, dtype="<f4", count=nv * nprops, offset=head_len).reshape(nv, nprops)
-    rec = np.frombuffer(data, dtype=[("n", "u1"), ("v", "<i4", (3,))], count=nf, offset=head_len + 4 * nv * nprops)
-    return verts[:, :3], rec["v"]
+    """Read a surface PLY (as :class:`PlySequence` writes them, through meshio): ``(points (n, 3) float64,
+    faces (f, 3) int64)``."""
+    import meshio
+
+    mesh = meshio.read(str(path), file_format="ply")
+    return np.asarray(mesh.points, dtype=np.float64), np.asarray(mesh.cells_dict["triangle"], dtype=np.int64)
