@@ -47,7 +47,8 @@ CHECKPOINT_DIR = "checkpoint"
 _RUN_NAMES = ("diagnostics.csv", "final_state.npz", CHECKPOINT_DIR, "export", MANIFEST)
 
 
-def _sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's bytes, hex (read in 1 MiB blocks)."""
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
@@ -146,7 +147,7 @@ class RunFolder:
         """Hash ``path`` now (or record the ``sha256`` its writer computed), for :meth:`file_entries`."""
         path = Path(path)
         st = path.stat()
-        digest = sha256 if sha256 is not None else _sha256(path)
+        digest = sha256 if sha256 is not None else file_sha256(path)
         with self._hash_lock:
             self.hashes[path] = (st.st_size, st.st_mtime_ns, digest)
 
@@ -161,7 +162,7 @@ class RunFolder:
             st = p.stat()
             with self._hash_lock:
                 known = self.hashes.get(p)
-            digest = known[2] if known and known[:2] == (st.st_size, st.st_mtime_ns) else _sha256(p)
+            digest = known[2] if known and known[:2] == (st.st_size, st.st_mtime_ns) else file_sha256(p)
             out.append({"path": p.relative_to(self.path).as_posix(), "size": st.st_size, "sha256": digest})
         return out
 

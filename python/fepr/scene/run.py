@@ -42,9 +42,6 @@ class StopRequest:
     def __call__(self, *_args) -> bool:
         return self.signum is not None
 
-    def request(self, signum: int = signal.SIGINT) -> None:
-        self.signum = signum
-
     def _handler(self, signum, frame) -> None:
         if self.signum is not None:
             raise KeyboardInterrupt

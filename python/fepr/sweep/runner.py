@@ -41,6 +41,7 @@ import numpy as np
 
 from ..errors import CheckpointError, ConfigError, FeprError, SimulationError
 from ..io.atomic import atomic_path
+from ..scene.outputs import file_sha256
 from .frames import FrameStore, frame_count
 
 __all__ = ["STATUS", "RunTask", "read_status", "result_digest", "run_one", "verify_files"]
@@ -89,16 +90,8 @@ def _write_status(folder: Path, status: Dict[str, Any]) -> None:
         Path(tmp).write_text(json.dumps(status, indent=1, allow_nan=True) + "\n", encoding="utf-8")
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _file_entries(folder: Path, paths: List[Path]) -> List[Dict[str, Any]]:
-    return [{"path": p.name, "size": p.stat().st_size, "sha256": _sha256(p)} for p in paths]
+    return [{"path": p.name, "size": p.stat().st_size, "sha256": file_sha256(p)} for p in paths]
 
 
 def verify_files(folder: Path, status: Dict[str, Any]) -> bool:
@@ -108,7 +101,7 @@ def verify_files(folder: Path, status: Dict[str, Any]) -> bool:
         return False
     for f in files:
         p = Path(folder) / f["path"]
-        if not p.is_file() or p.stat().st_size != f["size"] or _sha256(p) != f["sha256"]:
+        if not p.is_file() or p.stat().st_size != f["size"] or file_sha256(p) != f["sha256"]:
             return False
     return True
 

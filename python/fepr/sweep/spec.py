@@ -46,7 +46,6 @@ In ``[grid]``, ``[random]`` and ``[[cases]]`` a path is written as dotted TOML k
 from __future__ import annotations
 
 import copy
-import hashlib
 import math
 import sys
 from dataclasses import dataclass, field
@@ -56,6 +55,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple, Union
 from .._validate import shown
 from ..errors import ConfigError
 from ..scene import scene_from_dict
+from ..scene.outputs import file_sha256
 from .params import ParamPath, check_path, parse_path, path_text
 from .sampling import DISTRIBUTIONS, Distribution, parse_distribution
 
@@ -186,10 +186,6 @@ def _integer(t: Mapping[str, Any], key: str, default: Any, err, minimum: int) ->
     return v
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def _read_toml(path: Path, what: str) -> Dict[str, Any]:
     if not path.is_file():
         raise ConfigError(f"{what} not found: {path}")
@@ -246,7 +242,7 @@ def load_sweep(path: Union[str, Path]) -> SweepSpec:
     p = Path(path)
     data = _read_toml(p, "sweep file")
     spec = sweep_from_dict(data, p.resolve().parent, source=str(path), default_name=p.stem)
-    spec.sha256 = _sha256(p)
+    spec.sha256 = file_sha256(p)
     return spec
 
 
@@ -377,7 +373,7 @@ def _read_base(spec: SweepSpec, t: Mapping[str, Any], d: Mapping[str, Any], w: _
         if not p.is_file():
             raise w.error("sweep", f"scene: file not found: {p}")
         base = _read_toml(p, "scene file")
-        spec.base_dir, spec.base_source, spec.base_sha256 = p.resolve().parent, str(p.resolve()), _sha256(p)
+        spec.base_dir, spec.base_source, spec.base_sha256 = p.resolve().parent, str(p.resolve()), file_sha256(p)
         scene_from_dict(base, spec.base_dir, source=str(p))  # errors name the scene file, section and key
     else:
         base = copy.deepcopy(dict(d["base"]))
