@@ -38,9 +38,6 @@ __all__ = ["MeshInfo", "boundary_faces", "mesh_info", "tet_quality"]
 DEGENERATE_RELATIVE_VOLUME = 1e-10
 DEGENERATE_RELATIVE_SIZE = 1e-9
 
-# The 4 faces of tet (a, b, c, d), each ordered so that its normal points out of a positive tet.
-_OUTWARD_FACES = ((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))
-
 
 @dataclass
 class MeshInfo:
@@ -136,37 +133,14 @@ def tet_quality(vertices, tets) -> np.ndarray:
     return np.where(lmax > 0, q, 0.0)
 
 
-def _row_keys(rows: np.ndarray, n: int) -> np.ndarray:
-    """One int64 key per sorted row (3 columns) when it fits, else a structured view for np.unique."""
-    if n <= 2_000_000:
-        r = rows.astype(np.int64)
-        return (r[:, 0] * n + r[:, 1]) * n + r[:, 2]
-    return np.ascontiguousarray(rows).view([("a", rows.dtype), ("b", rows.dtype), ("c", rows.dtype)]).ravel()
-
-
 def boundary_faces(tets, num_vertices: Optional[int] = None) -> Tuple[np.ndarray, int]:
-    """Faces used by exactly one tet (outward oriented for positive tets), shape (b, 3), and the number of
-    faces shared by three or more tets."""
-    t = np.asarray(tets, dtype=np.int64)
-    n = int(num_vertices if num_vertices is not None else (t.max() + 1 if t.size else 0))
-    faces = np.concatenate([t[:, list(f)] for f in _OUTWARD_FACES], axis=0)
-    if len(faces) == 0:
-        return faces.reshape(0, 3), 0
-    keys = _row_keys(np.sort(faces, axis=1), max(n, 1))
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    return faces[counts[inverse] == 1], int(np.sum(counts > 2))
+    """Faces used by exactly one tet (outward oriented for positive tets, in tet order), shape (b, 3), and the
+    number of faces shared by three or more tets (:func:`fepr.export.surface.face_use`; ``num_vertices`` is not
+    needed and ignored)."""
+    from .export.surface import face_use
 
-
-def _edge_counts(triangles: np.ndarray, n: int) -> np.ndarray:
-    t = np.asarray(triangles, dtype=np.int64)
-    if len(t) == 0:
-        return np.zeros(0, dtype=np.int64)
-    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]], axis=0)
-    e.sort(axis=1)
-    keys = e[:, 0] * max(n, 1) + e[:, 1]
-    _, counts = np.unique(keys, return_counts=True)
-    return counts
+    faces, use, nonmanifold = face_use(tets)
+    return faces[use == 1], nonmanifold
 
 
 def _read(path: Path):
@@ -233,10 +207,10 @@ def mesh_info(mesh_or_path) -> MeshInfo:
     lo, hi = v.min(axis=0), v.max(axis=0)
     unreferenced = n - len(np.unique(t)) if t.size else n
     notes = []
-    if kind == "surface":
-        from .io.surface import surface_volume
+    from .io.surface import edge_use, surface_volume
 
-        counts = _edge_counts(t, n)
+    if kind == "surface":
+        counts = edge_use(t)[1]
         open_e, nonman_e = int(np.sum(counts == 1)), int(np.sum(counts > 2))
         return MeshInfo(
             source=source,
@@ -273,7 +247,7 @@ def mesh_info(mesh_or_path) -> MeshInfo:
     with np.errstate(divide="ignore", invalid="ignore"):
         q = np.where(lmax > 0, math.sqrt(2.0) * np.abs(v6) / lmax**3, 0.0)
     faces, nonman_faces = boundary_faces(t, n)
-    counts = _edge_counts(faces, n)
+    counts = edge_use(faces)[1]
     open_e, nonman_e = int(np.sum(counts == 1)), int(np.sum(counts > 2))
     return MeshInfo(
         source=source,

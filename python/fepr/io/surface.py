@@ -260,14 +260,18 @@ def _read_meshio_surface(p: Path, fmt: str, description: str) -> Tuple[np.ndarra
 
 
 def edge_use(triangles: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """Undirected edges of ``triangles`` (e, 2) (sorted pairs) and how many triangles use each, (e,)."""
+    """Undirected edges of ``triangles`` (e, 2) (sorted pairs, ascending) and how many triangles use each, (e,).
+
+    Indices must be non-negative (callers check the range first).
+    """
     t = np.asarray(triangles, dtype=np.int64)
     edges = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]], axis=0)
     edges.sort(axis=1)
     if len(edges) == 0:
         return edges.reshape(0, 2), np.zeros(0, dtype=np.int64)
-    unique, counts = np.unique(edges, axis=0, return_counts=True)
-    return unique, counts
+    n = int(edges[:, 1].max()) + 1  # one int64 key per edge, a n + b < n^2: far faster than np.unique(axis=0)
+    keys, counts = np.unique(edges[:, 0] * n + edges[:, 1], return_counts=True)
+    return np.stack([keys // n, keys % n], axis=1), counts
 
 
 def surface_problems(vertices: np.ndarray, triangles: np.ndarray) -> List[str]:

@@ -13,7 +13,7 @@ from typing import List, Tuple
 import numpy as np
 
 from ..export.fields import TetKinematics
-from ..export.surface import TET_FACES
+from ..export.surface import face_use
 
 __all__ = ["COLOR_MODES", "NUM_BINS", "SurfaceColoring", "boundary_faces_with_tets"]
 
@@ -39,13 +39,9 @@ def palette(name: str, bins: int = NUM_BINS) -> Tuple[Tuple[int, int, int], ...]
 
 def boundary_faces_with_tets(tets) -> Tuple[np.ndarray, np.ndarray]:
     """Boundary triangles (f, 3) with outward normals and the index (f,) of the tet each belongs to."""
-    t = np.asarray(tets, dtype=np.int64)
-    faces = t[:, TET_FACES].reshape(-1, 3)  # (4k, 3)
-    owner = np.repeat(np.arange(len(t)), 4)
-    key = np.sort(faces, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    once = counts[inverse.reshape(-1)] == 1
-    return faces[once], owner[once]
+    faces, use, _ = face_use(tets)  # face j of tet e at row 4e + j
+    once = np.flatnonzero(use == 1)
+    return faces[once], once // 4
 
 
 class SurfaceColoring:
