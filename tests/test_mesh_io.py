@@ -14,7 +14,7 @@ import pytest
 
 from conftest import shared_meshes_dir
 from fepr.errors import ConfigError, MeshError
-from fepr.io import SUPPORTED_EXTENSIONS, load_mesh, read_meshio, read_npz, read_tetgen
+from fepr.io import SUPPORTED_EXTENSIONS, load_mesh, read_meshio, read_npz, read_surface, read_tetgen
 from fepr.mesh import TetMesh
 
 # ----------------------------------------------------------------------------------------------------
@@ -424,6 +424,45 @@ def test_tetgen_degenerate_tet_is_rejected_by_validation_naming_the_source(tmp_p
     assert t.shape == (3, 4)
     with pytest.raises(MeshError, match=str(base).replace(".", r"\.")):
         load_mesh(base)
+
+
+# Files our hand-written readers read that meshio's readers (meshio 5.3) reject or misread: why TetGen, OBJ and
+# OFF are not read through meshio (issue 36). (name, {file: text}, expected vertices, expected cells)
+_QUAD = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+_COMMENTED = NODE0.replace("2 0 1 0\n", "# a comment\n2 0 1 0  # and another\n")
+_GAPS = "5 3 0 0\n" + "".join(f"{10 * i} {x:g} {y:g} {z:g}\n" for i, (x, y, z) in enumerate(V2))
+_COFF = "COFF\n3 1 0\n0 0 0 1 1 1 1\n1 0 0 1 1 1 1\n0 1 0 1 1 1 1\n3 0 1 2 9 9 9\n"
+BEYOND_MESHIO = [
+    ("tetgen-comments", {"m.node": _COMMENTED, "m.ele": ELE0}, V2, T2),
+    ("tetgen-gaps", {"m.node": _GAPS, "m.ele": "2 4 0\n0 0 10 20 30\n1 10 20 30 40\n"}, V2, T2),
+    ("tetgen-10-node", {"m.node": NODE0, "m.ele": "1 10 0\n0 0 1 2 3 4 4 4 4 4 4\n"}, V2, T2[:1]),
+    ("obj-negative-indices", {"m.obj": _QUAD + "f -4 -3 -2\nf -4 -2 -1\n"}, None, [[0, 1, 2], [0, 2, 3]]),
+    ("obj-w-coordinate", {"m.obj": _QUAD.replace("v 0 0 0", "v 0 0 0 1.0") + "f 1 2 3\n"}, None, [[0, 1, 2]]),
+    ("off-quad", {"m.off": "OFF\n4 1 0\n" + _QUAD.replace("v ", "") + "4 0 1 2 3\n"}, None, [[0, 1, 2], [0, 2, 3]]),
+    ("off-colours", {"m.off": _COFF}, None, [[0, 1, 2]]),
+]
+
+
+@pytest.mark.parametrize("case, files, vertices, cells", BEYOND_MESHIO, ids=[c[0] for c in BEYOND_MESHIO])
+def test_native_readers_read_what_meshio_cannot(tmp_path, case, files, vertices, cells):
+    import meshio
+
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    first = tmp_path / next(iter(files))
+    v, c = read_tetgen(first) if case.startswith("tetgen") else read_surface(first)
+    np.testing.assert_array_equal(c, cells)
+    if vertices is not None:
+        np.testing.assert_array_equal(v, vertices)
+    fmt = case.split("-", 1)[0]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mesh = getattr(meshio, fmt).read(str(first))  # meshio.read() would print and sys.exit(1) on failure
+        theirs = np.concatenate([b.data[:, :3] if fmt != "tetgen" else b.data for b in mesh.cells])
+    except (Exception, SystemExit):
+        return
+    assert not np.array_equal(theirs, c), f"meshio now reads {case}: route {fmt} through meshio (issue 36)"
 
 
 # ----------------------------------------------------------------------------------------------------

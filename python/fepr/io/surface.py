@@ -1,5 +1,10 @@
 """Reading triangle surfaces (OBJ, OFF natively; STL, PLY through meshio) and checking that they are closed.
 
+OBJ and OFF are not read by meshio (issue 36): its OBJ reader maps negative (relative) indices and index 0 to
+wrong vertices without an error and fails on a ``w`` coordinate or a trailing comment; its OFF reader takes
+only triangles under a bare ``OFF`` line (no polygons, COFF, colours, counts on the header line, comments in
+the data). Checking its input line by line for our messages would be these readers again.
+
 :func:`read_surface` returns ``(vertices (n, 3) float64, triangles (f, 3) int64)``. Polygons are split into
 triangles as fans around their first corner; lines, points, texture coordinates, normals, groups and
 materials are ignored. Vertices are kept in file order, so indices stay those of the file (0-based).

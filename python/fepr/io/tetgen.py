@@ -18,6 +18,12 @@ line.
 Every problem is reported as a :class:`~fepr.errors.MeshError` naming the file, the line and the problem.
 Header counts are never trusted for allocation: the data lines are collected first and compared with the
 header.
+
+Not meshio's reader (issue 36): ``meshio.tetgen.read`` (5.3) reads only a plain subset. It fails on comments
+after the header, node numbers with gaps, 10-node tets, a short or tab-separated header and ``.NODE``; it
+does not check the values per line (one missing value silently shifts every later number), data beyond the
+counts, finiteness or node references. A pre-scan making it safe would be this reader again.
+``test_native_readers_read_what_meshio_cannot`` (tests/test_mesh_io.py) tells when that changes.
 """
 
 from __future__ import annotations
