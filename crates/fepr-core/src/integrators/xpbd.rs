@@ -21,6 +21,7 @@ use crate::material::{ConstraintNeoHookean, Material};
 use crate::math::{add, cofactor, det, scale, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
 use crate::world::{ContactPotential, Obstacle};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::Relaxed};
 
 /// XPBD settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -44,12 +45,15 @@ impl Default for XpbdSettings {
     }
 }
 
-/// Per-run data: the colouring and the per-tet constants (rebuilt when [`Model::key`] changes).
+/// Per-run data: the colouring and the per-tet constants (rebuilt when [`Model::key`] changes), stored in colour
+/// order so that a sweep over a colour streams through contiguous memory.
 struct Prepared {
     /// The [`Model::key`] this was prepared for (material, masses, pins, mesh).
     key: ModelKey,
-    /// Tets of each colour, in tet order.
-    colours: Vec<Vec<usize>>,
+    /// Tets in colour order: colour `c` is `colour_start[c]..colour_start[c + 1]` of the arrays below.
+    colour_start: Vec<usize>,
+    /// Corner vertices of each tet (colour order).
+    corners: Vec<[usize; 4]>,
     grads: Vec<[Vec3; 4]>,
     /// Compliances `1 / (mu V)` and `1 / (lambda' V)` per tet.
     compliance: Vec<[f64; 2]>,
@@ -61,9 +65,12 @@ struct Prepared {
 pub struct Xpbd {
     pub settings: XpbdSettings,
     pre: Option<Prepared>,
+    /// Multipliers per tet, in the colour order of [`Prepared`].
     lambdas: Vec<[f64; 2]>,
-    /// Per tet of the current colour: corner displacements and new multipliers.
-    updates: Vec<([Vec3; 4], [f64; 2], usize)>,
+    /// The positions while a sweep updates them in place, as `f64` bits: the tets of one colour share no vertex,
+    /// so each position has one writer; atomics (plain loads and stores on the usual targets) say so to the
+    /// compiler without `unsafe`.
+    shared_x: Vec<[AtomicU64; 3]>,
     /// Positions at the start of the substep (reused, no allocation per step).
     x_prev: Vec<Vec3>,
     /// The obstacles as contact constraints (empty: none).
@@ -146,14 +153,16 @@ impl Xpbd {
     }
 
     fn prepare(model: &Model, mat: ConstraintNeoHookean) -> Prepared {
-        let grads = (0..model.num_tets())
-            .map(|e| shape_gradients(model, e))
-            .collect();
-        let compliance = model
-            .rest_volume
+        let colours = colour_tets(model);
+        let mut colour_start = vec![0];
+        let order: Vec<usize> = colours
             .iter()
-            .map(|v| [1.0 / (mat.mu * v), 1.0 / (mat.lambda * v)])
+            .flat_map(|c| {
+                colour_start.push(colour_start.last().expect("starts at 0") + c.len());
+                c.iter().copied()
+            })
             .collect();
+        let tets = model.mesh.tets();
         let inv_mass = (0..model.num_vertices())
             .map(|i| {
                 if model.pinned[i] || model.masses[i] <= 0.0 {
@@ -165,12 +174,84 @@ impl Xpbd {
             .collect();
         Prepared {
             key: model.key(),
-            colours: colour_tets(model),
-            grads,
-            compliance,
+            colour_start,
+            corners: order.iter().map(|&e| tets[e]).collect(),
+            grads: order.iter().map(|&e| shape_gradients(model, e)).collect(),
+            compliance: order
+                .iter()
+                .map(|&e| {
+                    let v = model.rest_volume[e];
+                    [1.0 / (mat.mu * v), 1.0 / (mat.lambda * v)]
+                })
+                .collect(),
             inv_mass,
         }
     }
+}
+
+/// One Gauss-Seidel sweep over the constraints of every tet of `pre`, colour by colour, updating `x` (m) and the
+/// multipliers `lambdas` (colour order); `inv_hs2` = `1 / h_s^2`; `shared` is scratch. Returns the step halvings
+/// of the guarded updates.
+///
+/// Within a colour the tets share no vertex, so they are solved in parallel, each writing its own corners in
+/// place: exactly the sequential sweep over the colour, hence bit-identical for any number of threads.
+fn sweep(
+    pre: &Prepared,
+    lambdas: &mut [[f64; 2]],
+    shared: &mut Vec<[AtomicU64; 3]>,
+    x: &mut [Vec3],
+    alpha: f64,
+    inv_hs2: f64,
+) -> usize {
+    shared.resize_with(x.len(), Default::default);
+    for (s, p) in shared.iter_mut().zip(x.iter()) {
+        for a in 0..3 {
+            *s[a].get_mut() = p[a].to_bits();
+        }
+    }
+    let shared_ref = &*shared;
+    let load = |v: usize| [0, 1, 2].map(|a| f64::from_bits(shared_ref[v][a].load(Relaxed)));
+    let halvings = AtomicUsize::new(0);
+    // Fixed chunks of a colour (`exec::for_each_chunk_mut`, so that `exec::serial` holds).
+    const TETS: usize = 64;
+    for c in 0..pre.colour_start.len() - 1 {
+        let start = pre.colour_start[c];
+        let end = pre.colour_start[c + 1];
+        crate::exec::for_each_chunk_mut(&mut lambdas[start..end], TETS, |k, lambdas| {
+            let mut halved = 0;
+            for (j, lam) in lambdas.iter_mut().enumerate() {
+                let e = start + k * TETS + j;
+                let t = pre.corners[e];
+                let p0 = [load(t[0]), load(t[1]), load(t[2]), load(t[3])];
+                let mut p = p0;
+                let w = [
+                    pre.inv_mass[t[0]],
+                    pre.inv_mass[t[1]],
+                    pre.inv_mass[t[2]],
+                    pre.inv_mass[t[3]],
+                ];
+                let alpha_tilde = [
+                    pre.compliance[e][0] * inv_hs2,
+                    pre.compliance[e][1] * inv_hs2,
+                ];
+                halved += project_tet(&mut p, &w, &pre.grads[e], alpha, alpha_tilde, lam, true);
+                for (i, &v) in t.iter().enumerate() {
+                    for a in 0..3 {
+                        // `x + (p - x)`, not `p`: the bits of the update as applied before.
+                        let moved = p0[i][a] + (p[i][a] - p0[i][a]);
+                        shared_ref[v][a].store(moved.to_bits(), Relaxed);
+                    }
+                }
+            }
+            halvings.fetch_add(halved, Relaxed);
+        });
+    }
+    for (p, s) in x.iter_mut().zip(shared.iter_mut()) {
+        for a in 0..3 {
+            p[a] = f64::from_bits(*s[a].get_mut());
+        }
+    }
+    halvings.into_inner()
 }
 
 /// `F = sum_k x_k g_k^T` of a tet from its four corner positions.
@@ -194,6 +275,15 @@ struct TetConstraints {
     j: f64,
     /// `grad[c][k]`: gradient of constraint `c` with respect to corner `k`, `(dC_c/dF) g_k`.
     grad: [[Vec3; 4]; 2],
+}
+
+/// `(C_D, C_H, J)` of a tet at corner positions `p`: [`tet_constraints`] without the gradients (same bits), for
+/// the guarded update's trial points.
+fn constraint_values(p: &[Vec3; 4], g: &[Vec3; 4], alpha: f64) -> ([f64; 2], f64) {
+    let f = deformation(p, g);
+    let norm = crate::math::ddot(&f, &f).sqrt();
+    let j = det(&f);
+    ([if norm > 1e-12 { norm } else { 0.0 }, j - alpha], j)
 }
 
 fn tet_constraints(p: &[Vec3; 4], g: &[Vec3; 4], alpha: f64) -> TetConstraints {
@@ -234,7 +324,7 @@ fn local_objective(
     alpha_tilde: [f64; 2],
     lambda: &[f64; 2],
 ) -> (f64, f64) {
-    let c = tet_constraints(p, g, alpha);
+    let (c, j) = constraint_values(p, g, alpha);
     let mut kin = 0.0;
     for k in 0..4 {
         if w[k] > 0.0 {
@@ -244,10 +334,10 @@ fn local_objective(
     }
     let mut phi = 0.5 * kin;
     for i in 0..2 {
-        let e = c.c[i] + alpha_tilde[i] * lambda[i];
+        let e = c[i] + alpha_tilde[i] * lambda[i];
         phi += 0.5 * e * e / alpha_tilde[i];
     }
-    (phi, c.j)
+    (phi, j)
 }
 
 /// Step halvings after which a tet's update is skipped for this sweep (its step would be below 2^-30).
@@ -304,10 +394,24 @@ fn project_tet(
     }
     let dl_d = (a22 * -r[0] - a12 * -r[1]) / det2;
     let dl_h = (a11 * -r[1] - a12 * -r[0]) / det2;
-    let dp = [0, 1, 2, 3].map(|k| [0, 1, 2].map(|a| y[0][k][a] * dl_d + y[1][k][a] * dl_h));
+    let mut dp = [[0.0; 3]; 4];
+    for k in 0..4 {
+        for a in 0..3 {
+            dp[k][a] = y[0][k][a] * dl_d + y[1][k][a] * dl_h;
+        }
+    }
     let p0 = *p;
-    let at = |t: f64| [0, 1, 2, 3].map(|k| [0, 1, 2].map(|a| p0[k][a] + t * dp[k][a]));
+    let at = |t: f64| {
+        let mut q = p0;
+        for k in 0..4 {
+            for a in 0..3 {
+                q[k][a] += t * dp[k][a];
+            }
+        }
+        q
+    };
     let mut t = 1.0;
+    let mut trial = at(t);
     let mut halvings = 0;
     if guarded {
         let phi0 = 0.5 * r[0] * r[0] / alpha_tilde[0] + 0.5 * r[1] * r[1] / alpha_tilde[1];
@@ -318,7 +422,7 @@ fn project_tet(
                 + r[1] / alpha_tilde[1] * crate::math::dot(tc.grad[1][k], dp[k]);
         }
         loop {
-            let (phi, j) = local_objective(&at(t), &p0, w, g, alpha, alpha_tilde, lambda);
+            let (phi, j) = local_objective(&trial, &p0, w, g, alpha, alpha_tilde, lambda);
             let descent = phi.is_finite() && phi <= phi0 + 1e-4 * t * slope;
             let upright = tc.j <= 0.0 || j > 0.0;
             if descent && upright {
@@ -329,11 +433,12 @@ fn project_tet(
             if halvings >= MAX_HALVINGS {
                 return halvings;
             }
+            trial = at(t);
         }
     }
     lambda[0] += t * dl_d;
     lambda[1] += t * dl_h;
-    *p = at(t);
+    *p = trial;
     halvings
 }
 
@@ -404,7 +509,6 @@ impl Integrator for Xpbd {
         }
         let inv_hs2 = 1.0 / (hs * hs);
         let g = model.gravity;
-        let tets = model.mesh.tets();
         self.lambdas.resize(model.num_tets(), [0.0; 2]);
         let mut halvings = 0usize;
         let mut x_prev = std::mem::take(&mut self.x_prev);
@@ -427,54 +531,14 @@ impl Integrator for Xpbd {
             }
             self.lambdas.iter_mut().for_each(|l| *l = [0.0; 2]);
             for _ in 0..self.settings.iterations {
-                for colour in &pre.colours {
-                    let x = &state.x;
-                    // Tets of one colour share no vertex: solve them in parallel from the same positions, then
-                    // apply; identical to a sequential sweep over the colour.
-                    let lambdas = &self.lambdas;
-                    self.updates
-                        .resize(colour.len(), ([[0.0; 3]; 4], [0.0; 2], 0));
-                    // Fixed chunks of the colour (`parallel::for_each_chunk_mut`, so that `parallel::serial`
-                    // holds).
-                    const TETS: usize = 64;
-                    let solve = |out: &mut ([Vec3; 4], [f64; 2], usize), e: usize| {
-                        let t = &tets[e];
-                        let p0 = [x[t[0]], x[t[1]], x[t[2]], x[t[3]]];
-                        let mut p = p0;
-                        let w = t.map(|v| pre.inv_mass[v]);
-                        let gr = &pre.grads[e];
-                        let mut lam = lambdas[e];
-                        let halved = project_tet(
-                            &mut p,
-                            &w,
-                            gr,
-                            mat.alpha,
-                            [
-                                pre.compliance[e][0] * inv_hs2,
-                                pre.compliance[e][1] * inv_hs2,
-                            ],
-                            &mut lam,
-                            true,
-                        );
-                        let d = [0, 1, 2, 3]
-                            .map(|k| [p[k][0] - p0[k][0], p[k][1] - p0[k][1], p[k][2] - p0[k][2]]);
-                        *out = (d, lam, halved);
-                    };
-                    crate::exec::for_each_chunk_mut(&mut self.updates, TETS, |c, outs| {
-                        for (k, out) in outs.iter_mut().enumerate() {
-                            solve(out, colour[c * TETS + k]);
-                        }
-                    });
-                    for (&e, (d, lam, halved)) in colour.iter().zip(&self.updates) {
-                        halvings += halved;
-                        self.lambdas[e] = *lam;
-                        for (k, &v) in tets[e].iter().enumerate() {
-                            for a in 0..3 {
-                                state.x[v][a] += d[k][a];
-                            }
-                        }
-                    }
-                }
+                halvings += sweep(
+                    pre,
+                    &mut self.lambdas,
+                    &mut self.shared_x,
+                    &mut state.x,
+                    mat.alpha,
+                    inv_hs2,
+                );
                 self.contact.project_out_recording(
                     model,
                     &mut state.x,
