@@ -1,5 +1,10 @@
 """PBAT (``pip install pbatoolkit``, CPU build): its hyperelastic energy + gradient of a tet mesh (Stable
-Neo-Hookean, the energy it implements; one quadrature point per linear tet) and its VBD and XPBD steps."""
+Neo-Hookean, the energy it implements; one quadrature point per linear tet) and its VBD step.
+
+``vbd.Data().with_volume_mesh(X, T)`` takes the **rest shape** X (the element rest matrices and masses come
+from it): the deformed start is written into the integrator's ``x`` afterwards. ``vbd.Data``'s external
+acceleration defaults to gravity (-9.81 along z); the elastic-only scenes set it to zero with
+``with_acceleration``. (Before round 15 the stretched positions were passed as X, under gravity.)"""
 
 from __future__ import annotations
 
@@ -58,30 +63,89 @@ def time_energy_gradient(rest, tets, mu, lam, x0, budget_s=1.0, min_reps=3):
     return (time.perf_counter() - t0) / n
 
 
-def time_vbd_step(rest, tets, mu, lam, density, x0, dt, iterations=10, budget_s=1.0, min_steps=2):
-    """Seconds per VBD step (``iterations`` iterations, one substep), after a warm-up step."""
-    pbat, fem, element, X, E = _fem(rest, tets)
-    vbd = pbat.pbat.sim.vbd
-    k = E.shape[1]
-    # Boundary faces (for its contact data; no obstacles here).
+def _surface(tets):
+    """Boundary faces (for VBD's contact data; no obstacles here): V (vertex ids) and F (3 x faces)."""
     faces = {}
     for t in np.asarray(tets):
         for f in ((t[1], t[2], t[3]), (t[0], t[3], t[2]), (t[0], t[1], t[3]), (t[0], t[2], t[1])):
             key = tuple(sorted(f))
             faces[key] = None if key in faces else f
     F = np.array([f for f in faces.values() if f is not None], dtype=np.int64).T
-    V = np.unique(F)
+    return np.unique(F), F
+
+
+def vbd_integrator(rest, tets, mu, lam, density, x0, gravity=(0.0, 0.0, 0.0)):
+    """PBAT's VBD integrator built on the rest shape, its state set to x0 (zero velocity)."""
+    pbat, fem, element, X, E = _fem(rest, tets)
+    vbd = pbat.pbat.sim.vbd
+    k = E.shape[1]
+    V, F = _surface(tets)
+    n = np.asarray(rest).shape[0]
     data = (
         vbd.Data()
-        .with_volume_mesh(np.asarray(x0, dtype=np.float64).T.copy(order="F"), E)
+        .with_volume_mesh(np.asarray(rest, dtype=np.float64).T.copy(order="F"), E)  # the REST shape
         .with_surface_mesh(V, F)
         .with_material(np.full(k, density), np.full(k, mu), np.full(k, lam))
+        .with_acceleration(np.repeat(np.asarray(gravity, dtype=np.float64)[:, None], n, axis=1))
         .construct(validate=False)
     )
     integ = vbd.Integrator(data)
+    integ.x = np.asarray(x0, dtype=np.float64).T.copy(order="F")  # the deformed start
+    return integ
+
+
+def time_vbd_step(rest, tets, mu, lam, density, x0, dt, iterations=10, budget_s=1.0, min_steps=2):
+    """Seconds per VBD step (``iterations`` iterations, one substep) from the deformed start, after a warm-up
+    step."""
+    integ = vbd_integrator(rest, tets, mu, lam, density, x0)
     integ.step(dt, iterations)
     n, t0 = 0, time.perf_counter()
     while n < min_steps or time.perf_counter() - t0 < budget_s:
         integ.step(dt, iterations)
         n += 1
     return (time.perf_counter() - t0) / n
+
+
+def simulate(
+    rest,
+    tets,
+    mu,
+    lam,
+    density,
+    x0,
+    dt,
+    duration,
+    iterations=10,
+    frame=None,
+    max_steps=None,
+    wall_budget_s=None,
+    masses=None,
+):
+    """``duration`` seconds of VBD from x0 (no gravity, no obstacle): ms per step (the steps only) and the
+    quality figures of ``quality.Quality`` sampled every ``frame`` seconds of scene time."""
+    from quality import Quality
+
+    integ = vbd_integrator(rest, tets, mu, lam, density, x0)
+    q = Quality(rest, tets, masses, ref=x0)  # masses: for the centre of mass (PBAT lumps rho V / 4 too)
+    steps = int(round(duration / dt))
+    if max_steps is not None:
+        steps = min(steps, max_steps)
+    every = max(1, int(round((frame or dt) / dt)))
+    t_steps, done = 0.0, 0
+    while done < steps:
+        n = min(every, steps - done)
+        t0 = time.perf_counter()
+        for _ in range(n):
+            integ.step(dt, iterations)
+        t_steps += time.perf_counter() - t0
+        done += n
+        x = np.asarray(integ.x).T
+        if done < steps:
+            q.observe(x)
+        if not np.all(np.isfinite(x)):
+            break
+        if wall_budget_s is not None and t_steps > wall_budget_s:
+            break
+    out = q.summary(np.asarray(integ.x).T.copy())
+    out.update(steps=done, steps_planned=steps, dt=dt, ms_per_step=1e3 * t_steps / max(done, 1))
+    return out

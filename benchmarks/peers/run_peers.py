@@ -6,6 +6,12 @@ same run (wall time per step or per evaluation after a warm-up, best of the run'
 
 Peers that are not installed or fail are reported with the reason (never a crash). Scenes: box_10k, the
 bunny (19,379 tets; 0.5 m, E = 1e5 Pa, 1000 kg/m^3), bunny2 (29,548 tets), box_100k.
+
+Issue 38's whole-scene runs (time per step beside min J, inverted tets and whether the body stayed upright, for
+fepr's implicit integrators and each peer; see scenes38.py)::
+
+    python benchmarks/peers/run_peers.py --scenes bunny38,armadillo_drop38 \
+        --json benchmarks/results/peers-issue38.json --table /tmp/w/peers_table.md
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy_baseline  # noqa: E402
+import scenes38  # noqa: E402
 
 import fepr  # noqa: E402
 from fepr.cli.bench import SCENES, load_scene_mesh, shared_meshes_dir, stable_dt  # noqa: E402
@@ -84,12 +91,28 @@ def main(argv=None):
     ap.add_argument("--json", metavar="PATH")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--budget", type=float, default=1.0, help="seconds of timed steps per measurement")
-    ap.add_argument("--skip", default="", help="comma-separated peers to skip: newton,newton_vbd,pbat,pbat_vbd,numpy")
+    ap.add_argument(
+        "--skip",
+        default="",
+        help="comma-separated peers to skip: newton,newton_vbd,pbat,pbat_vbd,numpy (issue-38 scenes: newton_si, "
+        "newton_vbd, newton_xpbd, pbat_vbd, fepr_be, fepr_pd, fepr_xpbd)",
+    )
+    ap.add_argument("--table", metavar="PATH", help="issue-38 scenes: write a markdown table here")
+    ap.add_argument("--table-from", metavar="JSON", help="only write --table from an earlier run's --json")
+    ap.add_argument(
+        "--wall-budget", type=float, default=40.0, help="issue-38 scenes: seconds of stepping at most per peer run"
+    )
     args = ap.parse_args(argv)
+    if args.table_from:
+        Path(args.table).write_text(table38(json.loads(Path(args.table_from).read_text())))
+        return 0
     skip = set(filter(None, args.skip.split(",")))
     meshes_dir = shared_meshes_dir()
     rows = []
     for name in args.scenes.split(","):
+        if name in scenes38.SCENES38:
+            rows.append(run_scene38(name, meshes_dir, skip, args))
+            continue
         scene = SCENES[name]
         mesh, why = load_scene_mesh(scene, meshes_dir)
         if mesh is None:
@@ -179,10 +202,117 @@ def main(argv=None):
         "threads": args.threads,
         "scenes": rows,
     }
+    doc["versions"] = versions()
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(doc, indent=1) + "\n")
+    if args.table:
+        Path(args.table).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.table).write_text(table38(doc))
     return 0
+
+
+def versions():
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for pkg in ("fepr", "newton", "warp-lang", "pbatoolkit", "numpy"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = None
+    return out
+
+
+def run_scene38(name, meshes_dir, skip, args):
+    """One issue-38 scene with every solver; a solver that fails is a row with the reason."""
+    sc = scenes38.scene(name, meshes_dir)
+    row = {"scene": name, "tets": len(sc["mesh"].tets), "vertices": len(sc["rest"]), "dt": sc["dt"],
+           "duration": sc["duration"], "results": []}  # fmt: skip
+    print(f"== {name}: {row['tets']:,} tets, dt = 1/{round(1 / sc['dt'])}, {sc['duration']} s", flush=True)
+    runs = []
+    for tag, integ in (("fepr_be", "implicit_euler"), ("fepr_pd", "projective_dynamics"), ("fepr_xpbd", "xpbd")):
+        if tag not in skip:
+            for proj in (False, True):
+                runs.append(
+                    (f"fepr {integ}" + (" + FEPR" if proj else ""), scenes38.run_fepr, (sc, integ, proj, args.threads))
+                )
+    for tag, solver in (("newton_vbd", "vbd"), ("newton_si", "semi_implicit"), ("newton_xpbd", "xpbd")):
+        if tag not in skip:
+            runs.append((f"newton {solver}", scenes38.run_newton, (sc, solver, args.wall_budget)))
+    if "pbat_vbd" not in skip:
+        runs.append(("pbat vbd", scenes38.run_pbat, (sc, args.wall_budget)))
+    for label, fn, fargs in runs:
+        t0 = time.perf_counter()
+        r, err = guarded(fn, *fargs)
+        if r is None:
+            r = {"solver": label, "error": err}
+        r["wall_s"] = time.perf_counter() - t0
+        row["results"].append(r)
+        brief = {k: r.get(k) for k in ("ms_per_step", "dt", "steps", "min_j_end", "min_j_worst", "inverted_end",
+                                       "inverted_worst", "com_up_min", "upright", "note", "error")}  # fmt: skip
+        print(f"   {r.get('solver', label)}: {brief} ({r['wall_s']:.0f} s)", flush=True)
+    ref = {r["solver"]: r["ms_per_step"] for r in row["results"] if r.get("ms_per_step")}
+    for r in row["results"]:
+        if r.get("ms_per_step"):
+            # Ratio to fepr's backward Euler without and with FEPR at the scene's dt (per step, not per second of
+            # scene time: a peer at a smaller dt needs dt_scene / dt of its steps per scene step).
+            for base in ("fepr implicit_euler", "fepr implicit_euler + FEPR"):
+                if base in ref:
+                    r[f"ratio_over_{base.replace(' ', '_')}"] = r["ms_per_step"] / ref[base]
+            r["ms_per_scene_second"] = r["ms_per_step"] / r["dt"]
+    return row
+
+
+def _fmt(v, spec):
+    if v is None:
+        return "-"
+    return format(v, ".2e") if spec.endswith("f") and abs(v) >= 1e3 else format(v, spec)
+
+
+def table38(doc):
+    """Markdown table of the issue-38 scenes in ``doc``."""
+    lines = []
+    v = doc.get("versions", {})
+    lines.append(
+        f"Peers on issue 38's scenes, one run ({doc['machine']['cpus']} CPUs, fepr threads {doc['threads']}; "
+        + ", ".join(f"{k} {val}" for k, val in v.items() if val)
+        + "). Times as measured on a shared machine; ratios from the same run. min J: smallest det F over the tets "
+        "(NumPy, rest vs current positions); worst: over the run (fepr every step, peers every scene frame). "
+        "Drop: lowest COM z of the body (fepr backward Euler at dt = 1/960: 0.103 m; start 0.724 m); upright: finite, "
+        "COM never below 0.05 m, nothing through the ground. Bunny: upright = finite and the COM moved < 1 cm.\n"
+    )
+    for row in doc["scenes"]:
+        if "results" not in row:
+            continue
+        lines.append(
+            f"\n**{row['scene']}** ({row['tets']:,} tets, {row['vertices']:,} vertices, scene dt = "
+            f"1/{round(1 / row['dt'])}, {row['duration']:g} s)\n"
+        )
+        lines.append(
+            "| solver | dt | ms/step | steps/s | ms per scene second | / fepr BE (step) | min J end / worst "
+            "| inverted end / worst | lowest COM z | upright | notes |"
+        )
+        lines.append("|---|---|---|---|---|---|---|---|---|---|---|")
+        for r in row["results"]:
+            if r.get("error"):
+                lines.append(f"| {r['solver']} | | | | | | | | | no | {r['error']} |")
+                continue
+            dt = r["dt"]
+            ratio = r.get("ratio_over_fepr_implicit_euler")
+            note = r.get("note", "")
+            if not r.get("finite"):
+                note = (note + "; " if note else "") + "NaN / non-finite"
+            elif (r.get("inverted_worst") or 0) > 0.1 * row["tets"]:
+                note = (note + "; " if note else "") + "diverged (most tets inverted, the body flew apart)"
+            lines.append(
+                f"| {r['solver']} | 1/{round(1 / dt)} | {r['ms_per_step']:.2f} | {1e3 / r['ms_per_step']:.1f} "
+                f"| {r['ms_per_scene_second']:.0f} | {_fmt(ratio, '.3f')} "
+                f"| {_fmt(r.get('min_j_end'), '.3f')} / {_fmt(r.get('min_j_worst'), '.3f')} "
+                f"| {_fmt(r.get('inverted_end'), 'd')} / {_fmt(r.get('inverted_worst'), 'd')} "
+                f"| {_fmt(r.get('com_up_min'), '.3f')} | {'yes' if r.get('upright') else 'no'} | {note} |"
+            )
+    return "\n".join(lines) + "\n"
 
 
 def probe_volume(rest, tets):
