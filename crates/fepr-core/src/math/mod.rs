@@ -4,6 +4,7 @@ mod linalg;
 mod line_search;
 mod ordering;
 mod polar;
+mod preconditioned;
 pub(crate) mod simd;
 mod sparse;
 
@@ -11,6 +12,7 @@ pub use linalg::*;
 pub use line_search::golden_section;
 pub use ordering::*;
 pub use polar::*;
+pub use preconditioned::solve_preconditioned;
 pub use sparse::*;
 
 use crate::exec::all_rows;
