@@ -145,7 +145,7 @@ def simulate(
     with the quality figures of ``quality.Quality`` sampled every ``frame`` seconds of scene time. With
     ``wall_budget_s`` the run stops early once its steps have taken that long (``steps`` < ``steps_planned``)."""
     import warp as wp
-    from quality import Quality
+    from quality import Quality, timed_run
 
     model = build(rest, tets, mu, lam, density, solver=solver, gravity=gravity, ground=ground)
     with wp.ScopedDevice("cpu"):
@@ -158,21 +158,13 @@ def simulate(
         if max_steps is not None:
             steps = min(steps, max_steps)
         every = max(1, int(round((frame or dt) / dt)))
-        t_steps, done = 0.0, 0
-        while done < steps:
-            n = min(every, steps - done)
-            t0 = time.perf_counter()
+        def step(n):
             run.step(dt, n)
             wp.synchronize()
-            t_steps += time.perf_counter() - t0
-            done += n
-            x = run.positions()
-            if done < steps:
-                q.observe(x)
-            if not np.all(np.isfinite(x)):
-                break
-            if wall_budget_s is not None and t_steps > wall_budget_s:
-                break
+
+        t_steps, done = timed_run(
+            step, run.positions, q, steps=steps, every=every, wall_budget_s=wall_budget_s
+        )
         out = q.summary(run.positions())
     out.update(steps=done, steps_planned=steps, dt=dt, ms_per_step=1e3 * t_steps / max(done, 1))
     out["mass"] = float(run.masses().sum())

@@ -123,7 +123,7 @@ def simulate(
 ):
     """``duration`` seconds of VBD from x0 (no gravity, no obstacle): ms per step (the steps only) and the
     quality figures of ``quality.Quality`` sampled every ``frame`` seconds of scene time."""
-    from quality import Quality
+    from quality import Quality, timed_run
 
     integ = vbd_integrator(rest, tets, mu, lam, density, x0)
     q = Quality(rest, tets, masses, ref=x0)  # masses: for the centre of mass (PBAT lumps rho V / 4 too)
@@ -131,21 +131,13 @@ def simulate(
     if max_steps is not None:
         steps = min(steps, max_steps)
     every = max(1, int(round((frame or dt) / dt)))
-    t_steps, done = 0.0, 0
-    while done < steps:
-        n = min(every, steps - done)
-        t0 = time.perf_counter()
+    def step(n):
         for _ in range(n):
             integ.step(dt, iterations)
-        t_steps += time.perf_counter() - t0
-        done += n
-        x = np.asarray(integ.x).T
-        if done < steps:
-            q.observe(x)
-        if not np.all(np.isfinite(x)):
-            break
-        if wall_budget_s is not None and t_steps > wall_budget_s:
-            break
+
+    t_steps, done = timed_run(
+        step, lambda: np.asarray(integ.x).T, q, steps=steps, every=every, wall_budget_s=wall_budget_s
+    )
     out = q.summary(np.asarray(integ.x).T.copy())
     out.update(steps=done, steps_planned=steps, dt=dt, ms_per_step=1e3 * t_steps / max(done, 1))
     return out

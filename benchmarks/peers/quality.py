@@ -4,6 +4,8 @@ and current positions), the smallest J and the number of inverted tets (J <= 0),
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 
@@ -72,3 +74,24 @@ class Quality:
             "quality_samples": self.samples,
             "max_displacement": None if self.ref is None else self.max_disp,
         }
+
+
+def timed_run(step, positions, quality, *, steps, every, wall_budget_s=None):
+    """Time ``steps`` calls of ``step(n)`` (n steps at once, ``every`` between quality samples; the sampling is
+    not timed), sampling ``positions()`` into ``quality``; stops early on non-finite positions or past
+    ``wall_budget_s`` seconds of stepping. Returns (seconds of stepping, steps done)."""
+    t_steps, done = 0.0, 0
+    while done < steps:
+        n = min(every, steps - done)
+        t0 = time.perf_counter()
+        step(n)
+        t_steps += time.perf_counter() - t0
+        done += n
+        x = positions()
+        if done < steps:
+            quality.observe(x)
+        if not np.all(np.isfinite(x)):
+            break
+        if wall_budget_s is not None and t_steps > wall_budget_s:
+            break
+    return t_steps, done

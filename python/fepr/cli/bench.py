@@ -556,6 +556,9 @@ def cmd_bench(args) -> int:
     from .bench_contact import contact_suite, format_contact
 
     contact = contact_suite(quick=args.quick)
+    from .bench_implicit import format_implicit, implicit_suite
+
+    implicit = implicit_suite(quick=args.quick, meshes=Path(args.meshes) if args.meshes else None)
     doc = {
         "fepr_bench": 1,
         "quick": bool(args.quick),
@@ -563,6 +566,7 @@ def cmd_bench(args) -> int:
         "wall_s": time.perf_counter() - t0,
         "scenes": results,
         "contact": contact,
+        "implicit": implicit,
     }
     if args.json:
         text = json.dumps(doc, indent=1)
@@ -574,6 +578,7 @@ def cmd_bench(args) -> int:
         print(format_table(results))
         print(format_sync_floor(machine))
         print(format_contact(contact))
+        print(format_implicit(implicit))
     return 1 if any("error" in r for r in results) else 0
 
 
