@@ -86,9 +86,9 @@ const CG_TOLERANCE: f64 = 1e-8;
 /// The loosest relative residual asked of conjugate gradients (far from the solution).
 const CG_LOOSEST: f64 = 1e-2;
 /// Conjugate gradient iterations after which a Newton system is factorised instead.
-const CG_MAX_ITERATIONS: usize = 30;
+const CG_MAX_ITERATIONS: usize = 10;
 /// Conjugate gradient iterations above which the next Newton iteration factorises (the factor went stale).
-const CG_REFACTOR: usize = 12;
+const CG_REFACTOR: usize = 5;
 
 /// Backward Euler with Newton's method and a reused sparse symbolic factorisation.
 #[derive(Debug, Default)]
@@ -122,6 +122,8 @@ pub struct ImplicitEuler {
     factor_fresh: bool,
     /// The last factorisation was of the projected (positive semi-definite) Hessian.
     projected: bool,
+    /// Conjugate gradients have not failed yet in this step.
+    cg_usable: bool,
     /// A step taken with other bodies ([`CoupledNewton`]): the iterate, the start positions, the step size.
     x_iter: Vec<Vec3>,
     x_n: Vec<Vec3>,
@@ -262,56 +264,89 @@ impl ImplicitEuler {
         if !self.settings.project_psd {
             return false; // not positive definite: keep the current iterate
         }
+        self.assemble_projected(model, x, h);
+        self.projected = true;
+        let chol = self.cholesky.as_mut().expect("checked above");
+        chol.factorize(&self.values).is_ok()
+    }
+
+    /// The Hessian of `Phi` at `x` with the element Hessians projected to positive semi-definite, into
+    /// `self.values`.
+    fn assemble_projected(&mut self, model: &Model, x: &[Vec3], h: f64) {
         let asm = self.assembler.as_mut().expect("prepared by start");
         asm.assemble(model, x, 1.0 / (h * h), true, &mut self.values);
         let values = &mut self.values;
         self.contact
             .hessian_blocks(model, x, h, |i, b| asm.add_vertex_block(values, i, &b));
-        self.projected = true;
-        chol.factorize(&self.values).is_ok()
     }
 
-    /// The Newton direction `H^-1 (-g)` for `self.rhs` (holding `-g` on the free dofs) into `self.rhs`, `H` the
-    /// exact Hessian at `x`. While the step holds a factor of an earlier iterate's exact Hessian
-    /// (`self.factor_fresh`), conjugate gradients preconditioned by it solve the system
-    /// ([`crate::math::solve_preconditioned`], to [`CG_TOLERANCE`]); a factorisation (as
-    /// [`ImplicitEuler::factorise_at`]) and a direct solve when they fail, take more than [`CG_MAX_ITERATIONS`],
-    /// or took more than [`CG_REFACTOR`] last time. False when no factorisation succeeded.
+    /// The Newton direction for `self.rhs` (holding `-g` on the free dofs) into `self.rhs`: `H^-1 (-g)` with `H`
+    /// the exact Hessian at `x` where it gives a descent direction, else the projected Hessian's (as
+    /// [`ImplicitEuler::factorise_at`] chooses). While the step holds a factor of an earlier iterate's Hessian
+    /// (`self.factor_fresh`; exact or projected, `self.projected`), conjugate gradients preconditioned by it
+    /// solve the exact system, and where that fails (negative curvature, no descent) and the factor is a
+    /// projected one, the projected system ([`crate::math::solve_preconditioned`], to `cg_tolerance`). A
+    /// factorisation and a direct solve where they fail, take more than [`CG_MAX_ITERATIONS`], or took more
+    /// than [`CG_REFACTOR`] last time. False when no factorisation succeeded.
     fn newton_direction(&mut self, model: &Model, x: &[Vec3], h: f64, cg_tolerance: f64) -> bool {
         self.assemble_exact(model, x, h);
-        if self.factor_fresh {
-            let chol = self.cholesky.as_mut().expect("factorised");
-            let pattern = &self.assembler.as_ref().expect("prepared by start").pattern;
-            let solved = solve_preconditioned(
-                chol,
-                pattern,
-                &self.values,
-                &mut self.rhs,
-                cg_tolerance,
-                CG_MAX_ITERATIONS,
-            );
-            match solved {
-                Some(k) => {
-                    self.last_cg_iterations += k;
-                    self.factor_fresh = k <= CG_REFACTOR;
+        if self.factor_fresh && self.cg_usable {
+            if self.iterate_direction(cg_tolerance) {
+                return true;
+            }
+            if self.projected {
+                self.assemble_projected(model, x, h);
+                if self.iterate_direction(cg_tolerance) {
                     return true;
                 }
-                None => self.rhs.clone_from(&self.neg_grad),
+                self.assemble_exact(model, x, h);
             }
+            // The Hessians of this step change too fast for an earlier factor (typically contacts coming and
+            // going): the rest of the step factorises, so that at most one attempt per step is lost.
+            self.cg_usable = false;
         }
         if !self.factorise_at(model, x, h) {
             self.factor_fresh = false;
             return false;
         }
         self.last_factorisations += 1;
-        // A projected factor is not the Hessian: conjugate gradients on the exact one would meet its negative
-        // curvature; the next iteration factorises again (as it did before factors were reused).
-        self.factor_fresh = !self.projected;
+        self.factor_fresh = true;
         self.cholesky
             .as_mut()
             .expect("factorised")
             .solve_in_place(&mut self.rhs, 1);
         true
+    }
+
+    /// Conjugate gradients on the system in `self.values`, preconditioned by the held factor; true when they
+    /// converged to a descent direction (then in `self.rhs`), else `self.rhs` holds `-g` again. Marks the factor
+    /// stale when they needed more than [`CG_REFACTOR`] iterations.
+    fn iterate_direction(&mut self, cg_tolerance: f64) -> bool {
+        let chol = self.cholesky.as_mut().expect("factorised");
+        let pattern = &self.assembler.as_ref().expect("prepared by start").pattern;
+        let solved = solve_preconditioned(
+            chol,
+            pattern,
+            &self.values,
+            &mut self.rhs,
+            cg_tolerance,
+            CG_MAX_ITERATIONS,
+        );
+        if let Some(k) = solved {
+            self.last_cg_iterations += k;
+            let descent: f64 = self
+                .neg_grad
+                .iter()
+                .zip(&self.rhs)
+                .map(|(g, d)| g * d)
+                .sum();
+            if descent > 0.0 {
+                self.factor_fresh = k <= CG_REFACTOR;
+                return true;
+            }
+        }
+        self.rhs.clone_from(&self.neg_grad);
+        false
     }
 
     /// Evaluate `Phi` and its gradient (into `self.grad`). Also returns the magnitude scale of `Phi`
@@ -481,7 +516,7 @@ impl Integrator for ImplicitEuler {
         // `elastic_grad` was evaluated at `x` (then handed over to the projection).
         let mut elastic_at_x = false;
         // Each step starts with a factorisation; the iterations after it reuse it while it serves.
-        self.factor_fresh = false;
+        (self.factor_fresh, self.cg_usable) = (false, true);
         for it in 0..self.settings.max_iterations {
             let (phi, phi_magnitude) = self.objective_gradient(model, &x, h);
             elastic_at_x = true;
