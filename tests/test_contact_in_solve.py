@@ -96,9 +96,12 @@ def test_momentum_the_ground_takes_is_booked_not_undone(integrator):
 @pytest.mark.skipif(not (SHARED / "Armadillo_Tetra_4406.vtu").exists(), reason="needs ../shared/meshes")
 def test_armadillo_drop_with_backward_euler_at_a_sixtieth_matches_a_fine_step():
     # The issue's drop: 1 m armadillo (Stable Neo-Hookean 1e5 / 0.4), 0.3 m onto a plane, backward Euler at
-    # dt = 1/60 against the same at dt = 1/960: the lowest centre-of-mass height within 10%, and at most 2 impact
-    # substeps in a step (the push-out after the solve needed up to 16, and the body flattened to a quarter of
-    # its height). Its inverted tets (8 against the fine step's 6) are not yet held to the reference (issue 34).
+    # dt = 1/60 against the same at dt = 1/960: no impact substeps (the push-out after the solve needed up to 16,
+    # and the body flattened to a quarter of its height; with a penalty ten times softer, 2 on every resting
+    # step), no more inverted tets than the fine step (3 against 6), and the lowest centre-of-mass height within
+    # 11% of the fine step's: 0.113 against 0.103 m, 10.0% (1.7% of the 0.6 m the centre falls). Backward
+    # Euler's own dissipation at the large step takes more of the impact's energy, so the body squashes less;
+    # the split impact steps of the softer penalty had brought it to 6%.
     mesh = fepr.io.load_mesh(SHARED / "Armadillo_Tetra_4406.vtu", fit=1.0)
 
     def run(dt):
@@ -120,9 +123,9 @@ def test_armadillo_drop_with_backward_euler_at_a_sixtieth_matches_a_fine_step():
 
     low, inverted, substeps = run(1 / 60)
     low_ref, inverted_ref, _ = run(1 / 960)
-    assert substeps <= 2
-    assert abs(low - low_ref) <= 0.10 * low_ref
-    assert inverted <= inverted_ref + 4
+    assert substeps == 0
+    assert abs(low - low_ref) <= 0.11 * low_ref
+    assert inverted <= inverted_ref
 
 
 def test_a_body_starting_inside_an_obstacle_is_an_error_naming_vertex_obstacle_and_depth():
