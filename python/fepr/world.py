@@ -2,10 +2,10 @@
 
 Obstacles are passed to :class:`fepr.Simulation` as ``obstacles=[...]``; the free vertices collide with them
 (vertex contact with restitution and Coulomb friction). An obstacle is static, or moves along a prescribed
-rigid motion (``motion=fepr.ObstacleMotion(...)``: a platform, a piston, a turning drum). Kinematic pins (``kinematic_pins=[...]``) move groups
-of vertices along a prescribed path. The energy that contacts remove and the work the pins do enter each
-step's energy budget (history columns ``budget``, ``work_contact``, ``work_pins``), so FEPR conserves
-``H_0 + budget_total`` instead of undoing them. Bodies of a :class:`fepr.MultiBody` also collide with each
+rigid motion (``motion=fepr.ObstacleMotion(...)``: a platform, a piston, a turning drum). Kinematic pins
+(``kinematic_pins=[...]``) move groups of vertices along a prescribed path. The energy that contacts remove and
+the work the pins do enter each step's energy budget (history columns ``budget``, ``work_contact``,
+``work_pins``), so FEPR conserves ``H_0 + budget_total`` instead of undoing them. Bodies of a :class:`fepr.MultiBody` also collide with each
 other (see :mod:`fepr.multibody`).
 """
 
@@ -432,7 +432,8 @@ class ObstacleMotion:
             r = r.reshape(0, 3)
         if r.shape != (t.size, 3):
             raise ConfigError(
-                f"ObstacleMotion orientations must have shape ({t.size}, 3) (one rotation vector per time), got {r.shape}"
+                f"ObstacleMotion orientations must have shape ({t.size}, 3) (one rotation vector per time), "
+                f"got {r.shape}"
             )
         if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
             raise ConfigError(f"ObstacleMotion orientation_times must be finite and strictly increasing, got {list(t)}")

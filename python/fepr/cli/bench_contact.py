@@ -7,9 +7,9 @@ itself, and how the cost of detecting contact between bodies grows with their nu
   between the bodies takes (one detection pass timed at the state after the run, against the mean step);
 - ``terrain``: a 384-tet box dropped onto the built-in terrain (6,720 triangles) with backward Euler at dt = 1/60
   and FEPR, against the same drop onto a plane (the ratio is the terrain's cost);
-- ``fold``: ``examples/fold.toml`` (:func:`fold_scene`: a 960-tet bar folded over a rod, its halves swinging into each other,
-  Projective Dynamics at dt = 1/60 with FEPR) with self contact and without (the ratio is self contact's cost,
-  impact substeps included);
+- ``fold``: ``examples/fold.toml`` (:func:`fold_scene`: a 960-tet bar folded over a rod, its halves swinging into
+  each other, Projective Dynamics at dt = 1/60 with FEPR) with self contact and without (the ratio is self
+  contact's cost, impact substeps included);
 - ``detection``: 1 to 64 boxes (384 tets each) in a touching grid; seconds per detection pass, and the growth
   exponent between the first and the last count (1 is linear).
 

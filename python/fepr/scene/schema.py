@@ -299,7 +299,8 @@ class ObstacleSettings:
     ``restitution`` is in [0, 1] (1: elastic), ``friction`` the Coulomb coefficient (>= 0). ``motion`` is None
     (static) or the keyword arguments of a :class:`fepr.ObstacleMotion` as read from the entry's ``motion`` table
     (``translation``: ``"sinusoidal"`` or ``"keyframes"`` or None, that path's keys, ``angular_velocity`` rad/s,
-    ``pivot`` m, ``orientation_times`` s and ``orientations`` rotation vectors in rad). ``label`` names the entry in messages (``[[world.obstacles]] #2``).
+    ``pivot`` m, ``orientation_times`` s and ``orientations`` rotation vectors in rad). ``label`` names the entry
+    in messages (``[[world.obstacles]] #2``).
     """
 
     type: str
