@@ -299,8 +299,8 @@ def test_a_damped_block_on_a_slab_comes_to_rest_and_stays_with_fepr(integrator, 
     add kinetic energy, it gives the base step's state back), and the books close. Before the resting rows' work
     was booked over the step's displacement, Projective Dynamics booked positive contact work at rest (+4 J in
     5 s) that FEPR put back as vibration: the block rocked by 1-2 mm for ever. Before a failed retry gave the base
-    state back, the XPBD block was kicked to 2e-3 J every 16th step and crept 0.25 mm. (Without damping, an energy-conserving run
-    keeps the settling sag's energy as vibration: nothing dissipates it.)"""
+    state back, the XPBD block was kicked to 2e-3 J every 16th step and crept 0.25 mm. (Without damping, an
+    energy-conserving run keeps the settling sag's energy as vibration: nothing dissipates it.)"""
     slab, block, system = _slab_and_block(0.5, projection=True, integrator=integrator, rayleigh_damping=0.01)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

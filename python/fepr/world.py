@@ -5,8 +5,8 @@ Obstacles are passed to :class:`fepr.Simulation` as ``obstacles=[...]``; the fre
 rigid motion (``motion=fepr.ObstacleMotion(...)``: a platform, a piston, a turning drum). Kinematic pins
 (``kinematic_pins=[...]``) move groups of vertices along a prescribed path. The energy that contacts remove and
 the work the pins do enter each step's energy budget (history columns ``budget``, ``work_contact``,
-``work_pins``), so FEPR conserves ``H_0 + budget_total`` instead of undoing them. Bodies of a :class:`fepr.MultiBody` also collide with each
-other (see :mod:`fepr.multibody`).
+``work_pins``), so FEPR conserves ``H_0 + budget_total`` instead of undoing them. Bodies of a
+:class:`fepr.MultiBody` also collide with each other (see :mod:`fepr.multibody`).
 """
 
 from __future__ import annotations
