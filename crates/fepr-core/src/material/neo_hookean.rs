@@ -1,8 +1,9 @@
 //! The seed's log Neo-Hookean with its C2 extension below `j0`.
 
+use super::psd::{project_psd_invariant, InvariantForm};
 use super::{cofactor_derivative, flatten, lame_parameters, ln, Hyperelastic, StressDerivative};
 use crate::error::{invalid, Result};
-use crate::math::{cofactor, ddot, det, matmul, svd3, symmetric_eigen_fixed, transpose, Mat3};
+use crate::math::{cofactor, ddot, det, Mat3};
 
 /// The seed's log Neo-Hookean, `Psi = mu/2 (tr F^T F - 3) - mu l(J) + lambda/2 l(J)^2`, where `l(J) = log J`
 /// for `J >= j0` and its C2 quadratic extension below `j0` (fepr-spec section 4):
@@ -98,71 +99,23 @@ impl Hyperelastic for NeoHookean {
         d
     }
 
-    /// Analytic eigen-system (after Smith, de Goes, Kim 2019). With the rotation-variant SVD
-    /// `F = U diag(s) V^T` and the orthonormal basis `vec(U E_ij V^T)`, `dP/dF = mu I + g'(J) d2J + g''(J) c c^T`
-    /// (`c = cof F`) is block diagonal: for each pair `i < j` (`k` the third index) the twist
-    /// `(E_ij - E_ji)/sqrt 2` and flip `(E_ij + E_ji)/sqrt 2` modes have eigenvalues `mu + g' s_k` and
-    /// `mu - g' s_k`, and the diagonal modes span the 3x3 block
-    /// `mu I + g' [[0, s2, s1], [s2, 0, s0], [s1, s0, 0]] + g'' (s1 s2, s0 s2, s0 s1)(...)^T`.
-    /// The projection subtracts `lambda q q^T` for each negative eigenvalue, so an element that is already
-    /// positive semi-definite is returned unchanged.
+    /// Analytic eigen-system ([`super::psd::project_psd_invariant`]): `dP/dF = mu I + g'(J) d2J + g''(J) c c^T`.
     fn stress_derivative_psd(&self, f: &Mat3) -> StressDerivative {
-        let mut d = self.stress_derivative(f);
         let (_, dg, ddg) = self.volumetric(det(f));
-        let (u, s, v) = svd3(f);
-        // Adds `-lambda vec(U Q V^T) vec(U Q V^T)^T`.
-        let mut remove = |lambda: f64, q: &Mat3| {
-            let uq = matmul(&u, q);
-            let m = matmul(&uq, &transpose(&v));
-            let flat = flatten(&m);
-            for a in 0..9 {
-                let fa = -lambda * flat[a];
-                for b in 0..9 {
-                    d[a][b] += fa * flat[b];
-                }
-            }
+        let form = InvariantForm {
+            identity: self.mu,
+            hessian_j: dg,
+            cofactor: ddg,
+            gradient: 0.0,
         };
-        let h = std::f64::consts::FRAC_1_SQRT_2;
-        for (i, j, k) in [(0, 1, 2), (0, 2, 1), (1, 2, 0)] {
-            for (sign, lambda) in [(-1.0, self.mu + dg * s[k]), (1.0, self.mu - dg * s[k])] {
-                if lambda < 0.0 {
-                    let mut q = [[0.0; 3]; 3];
-                    q[i][j] = h;
-                    q[j][i] = sign * h;
-                    remove(lambda, &q);
-                }
-            }
-        }
-        let c = [s[1] * s[2], s[0] * s[2], s[0] * s[1]];
-        let mut a3 = [
-            [0.0, dg * s[2], dg * s[1]],
-            [dg * s[2], 0.0, dg * s[0]],
-            [dg * s[1], dg * s[0], 0.0],
-        ];
-        for (i, row) in a3.iter_mut().enumerate() {
-            row[i] += self.mu;
-            for (j, x) in row.iter_mut().enumerate() {
-                *x += ddg * c[i] * c[j];
-            }
-        }
-        let (w, vecs) = symmetric_eigen_fixed(&a3);
-        for (n, &lambda) in w.iter().enumerate() {
-            if lambda < 0.0 {
-                let mut q = [[0.0; 3]; 3];
-                for (i, row) in q.iter_mut().enumerate() {
-                    row[i] = vecs[i][n];
-                }
-                remove(lambda, &q);
-            }
-        }
-        d
+        project_psd_invariant(&self.stress_derivative(f), f, form)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::material::tests::samples;
+    use crate::material::psd::tests::assert_analytic_projection_matches;
 
     #[test]
     fn extension_is_c2_at_j0() {
@@ -188,49 +141,12 @@ mod tests {
 
     #[test]
     fn analytic_psd_projection_matches_the_eigen_decomposition() {
-        let mut cases = samples();
-        cases.extend([
-            // repeated singular values (compressed and stretched), a rotation, nearly singular, flat
-            [[0.8, 0.0, 0.0], [0.0, 0.8, 0.0], [0.0, 0.0, 1.3]],
-            [[1.1, 0.0, 0.0], [0.0, 1.1, 0.0], [0.0, 0.0, 1.1]],
-            [[0.0, -0.9, 0.0], [0.9, 0.0, 0.0], [0.0, 0.0, 0.95]],
-            [[1.0, 0.2, 0.0], [0.0, 1.0, 0.1], [0.0, 0.0, 1e-7]],
-            [[1.0, 0.2, 0.0], [0.0, 1.0, 0.1], [0.0, 0.0, 0.0]],
-            [[-0.3, 0.2, 0.1], [0.1, -0.4, 0.1], [0.05, 0.0, -0.2]],
-        ]);
-        for k in 0..40 {
-            let t = k as f64;
-            let (a, b, c) = ((0.7 * t).sin(), (1.3 * t).cos(), (0.4 * t).sin());
-            cases.push([
-                [1.0 + 0.5 * a, 0.3 * b, -0.2 * c],
-                [0.2 * c, 0.9 - 0.6 * b * c, 0.25 * a],
-                [-0.1 * a, 0.3 * c, 1.0 + 0.4 * b],
-            ]);
-        }
         for m in [
             NeoHookean::new(1e3, 0.3).unwrap(),
             NeoHookean::with_j0(5e4, 0.45, 0.3).unwrap(),
             NeoHookean::new(1e5, -0.5).unwrap(),
         ] {
-            for f in &cases {
-                let analytic = m.stress_derivative_psd(f);
-                let reference = crate::material::project_psd(&m.stress_derivative(f));
-                let scale = reference
-                    .iter()
-                    .flatten()
-                    .fold(0.0f64, |s, v| s.max(v.abs()));
-                for r in 0..9 {
-                    for c in 0..9 {
-                        let err = (analytic[r][c] - reference[r][c]).abs();
-                        assert!(
-                            err <= 1e-11 * scale,
-                            "{m:?} F = {f:?}: [{r}][{c}] {} vs {} (err {err:e})",
-                            analytic[r][c],
-                            reference[r][c]
-                        );
-                    }
-                }
-            }
+            assert_analytic_projection_matches(&m, 1e-11);
         }
     }
 }

@@ -1,8 +1,9 @@
 //! Stable Neo-Hookean (Smith, de Goes, Kim 2018).
 
+use super::psd::{project_psd_invariant, InvariantForm};
 use super::{cofactor_derivative, flatten, lame_parameters, Hyperelastic, StressDerivative};
 use crate::error::Result;
-use crate::math::{cofactor, ddot, det, matmul, svd3, symmetric_eigen_fixed, transpose, Mat3};
+use crate::math::{cofactor, ddot, det, Mat3};
 
 /// Stable Neo-Hookean (Smith, de Goes, Kim 2018):
 /// `Psi = mu'/2 (I_C - 3) + lambda'/2 (J - alpha)^2 - mu'/2 log(I_C + 1) - Psi0`, with
@@ -84,123 +85,33 @@ impl Hyperelastic for StableNeoHookean {
         d
     }
 
-    /// Analytic eigen-system (Smith, de Goes, Kim 2018 and 2019), as [`super::NeoHookean`]'s: with the
-    /// rotation-variant SVD `F = U diag(s) V^T` and the orthonormal basis `vec(U E_ij V^T)`,
-    /// `dP/dF = a I + b d2J + lambda' c c^T + (2 mu' / (I_C + 1)^2) f f^T` (`a = mu' (1 - 1/(I_C + 1))`,
-    /// `b = lambda' (J - alpha)`, `c = cof F`, `f = vec F`) is block diagonal: for each pair `i < j` (`k` the third
-    /// index) the twist and flip modes have eigenvalues `a + b s_k` and `a - b s_k`, and the diagonal modes span
-    /// the 3x3 block `a I + b [[0, s2, s1], [s2, 0, s0], [s1, s0, 0]] + lambda' c c^T + (2 mu' / (I_C + 1)^2) s s^T`
-    /// (here `c = (s1 s2, s0 s2, s0 s1)`). Each negative eigenvalue's `lambda q q^T` is subtracted, so an element
-    /// that is already positive semi-definite is returned unchanged. Why analytic: near rest the flip modes'
-    /// eigenvalues are zero by construction (the rest-stability offset alpha), so the generic test (a Cholesky
-    /// factorisation, then a 9 x 9 Jacobi eigen-decomposition) sent most elements through the eigen-decomposition,
-    /// which took over half of a backward Euler contact step on the armadillo.
+    /// Analytic eigen-system ([`super::psd::project_psd_invariant`]): `dP/dF = a I + b d2J + lambda' c c^T +
+    /// (2 mu' / (I_C + 1)^2) f f^T` with `a = mu' (1 - 1/(I_C + 1))`, `b = lambda' (J - alpha)`.
     fn stress_derivative_psd(&self, f: &Mat3) -> StressDerivative {
-        let mut d = self.stress_derivative(f);
         let ic = ddot(f, f);
-        let a = self.mu * (1.0 - 1.0 / (ic + 1.0));
-        let bf = 2.0 * self.mu / ((ic + 1.0) * (ic + 1.0));
-        let b = self.lambda * (det(f) - self.alpha);
-        let (u, s, v) = svd3(f);
-        // Adds `-lambda vec(U Q V^T) vec(U Q V^T)^T`.
-        let mut remove = |lambda: f64, q: &Mat3| {
-            let m = matmul(&matmul(&u, q), &transpose(&v));
-            let flat = flatten(&m);
-            for r in 0..9 {
-                let fr = -lambda * flat[r];
-                for c in 0..9 {
-                    d[r][c] += fr * flat[c];
-                }
-            }
+        let form = InvariantForm {
+            identity: self.mu * (1.0 - 1.0 / (ic + 1.0)),
+            hessian_j: self.lambda * (det(f) - self.alpha),
+            cofactor: self.lambda,
+            gradient: 2.0 * self.mu / ((ic + 1.0) * (ic + 1.0)),
         };
-        let h = std::f64::consts::FRAC_1_SQRT_2;
-        for (i, j, k) in [(0, 1, 2), (0, 2, 1), (1, 2, 0)] {
-            for (sign, lambda) in [(-1.0, a + b * s[k]), (1.0, a - b * s[k])] {
-                if lambda < 0.0 {
-                    let mut q = [[0.0; 3]; 3];
-                    q[i][j] = h;
-                    q[j][i] = sign * h;
-                    remove(lambda, &q);
-                }
-            }
-        }
-        let c = [s[1] * s[2], s[0] * s[2], s[0] * s[1]];
-        let mut a3 = [
-            [0.0, b * s[2], b * s[1]],
-            [b * s[2], 0.0, b * s[0]],
-            [b * s[1], b * s[0], 0.0],
-        ];
-        for (i, row) in a3.iter_mut().enumerate() {
-            row[i] += a;
-            for (j, x) in row.iter_mut().enumerate() {
-                *x += self.lambda * c[i] * c[j] + bf * s[i] * s[j];
-            }
-        }
-        let (w, vecs) = symmetric_eigen_fixed(&a3);
-        for (n, &lambda) in w.iter().enumerate() {
-            if lambda < 0.0 {
-                let mut q = [[0.0; 3]; 3];
-                for (i, row) in q.iter_mut().enumerate() {
-                    row[i] = vecs[i][n];
-                }
-                remove(lambda, &q);
-            }
-        }
-        d
+        project_psd_invariant(&self.stress_derivative(f), f, form)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::material::tests::samples;
+    use crate::material::psd::tests::assert_analytic_projection_matches;
 
     #[test]
     fn analytic_psd_projection_matches_the_eigen_decomposition() {
-        let mut cases = samples();
-        cases.extend([
-            // rest (zero flip eigenvalues), repeated singular values, a rotation, nearly singular, flat, inverted
-            [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-            [[0.8, 0.0, 0.0], [0.0, 0.8, 0.0], [0.0, 0.0, 1.3]],
-            [[1.1, 0.0, 0.0], [0.0, 1.1, 0.0], [0.0, 0.0, 1.1]],
-            [[0.0, -0.9, 0.0], [0.9, 0.0, 0.0], [0.0, 0.0, 0.95]],
-            [[1.0, 0.2, 0.0], [0.0, 1.0, 0.1], [0.0, 0.0, 1e-7]],
-            [[1.0, 0.2, 0.0], [0.0, 1.0, 0.1], [0.0, 0.0, 0.0]],
-            [[-0.3, 0.2, 0.1], [0.1, -0.4, 0.1], [0.05, 0.0, -0.2]],
-        ]);
-        for k in 0..40 {
-            let t = k as f64;
-            let (a, b, c) = ((0.7 * t).sin(), (1.3 * t).cos(), (0.4 * t).sin());
-            cases.push([
-                [1.0 + 0.5 * a, 0.3 * b, -0.2 * c],
-                [0.2 * c, 0.9 - 0.6 * b * c, 0.25 * a],
-                [-0.1 * a, 0.3 * c, 1.0 + 0.4 * b],
-            ]);
-        }
         for m in [
             StableNeoHookean::new(1e3, 0.3).unwrap(),
             StableNeoHookean::new(1e5, 0.4).unwrap(),
             StableNeoHookean::new(5e4, 0.49).unwrap(),
         ] {
-            for f in &cases {
-                let analytic = m.stress_derivative_psd(f);
-                let reference = crate::material::project_psd(&m.stress_derivative(f));
-                let scale = reference
-                    .iter()
-                    .flatten()
-                    .fold(0.0f64, |s, v| s.max(v.abs()));
-                for r in 0..9 {
-                    for c in 0..9 {
-                        let err = (analytic[r][c] - reference[r][c]).abs();
-                        assert!(
-                            err <= 1e-9 * scale,
-                            "{m:?} F = {f:?}: [{r}][{c}] {} vs {} (err {err:e})",
-                            analytic[r][c],
-                            reference[r][c]
-                        );
-                    }
-                }
-            }
+            assert_analytic_projection_matches(&m, 1e-9);
         }
     }
 }
