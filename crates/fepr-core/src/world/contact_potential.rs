@@ -19,8 +19,8 @@
 //!
 //! so a lone vertex arriving at speed v stops within `v h / (1 + STIFFNESS_RATIO)` of the layer `phi = d` (4 um
 //! for the example above); a vertex carrying the load of the body above it sinks in proportion to that load (the
-//! feet of a 1 m armadillo standing on a plane at dt = 1/60: under a millimetre, inside the impact limit, so
-//! that its resting steps take no impact substeps; the push-out after the step repairs that depth).
+//! feet of a 1 m armadillo standing on a plane at dt = 1/60 stay inside the impact limit, so that its resting
+//! steps take no impact substeps; the push-out after the step repairs that depth).
 //! The solve only stops a vertex; restitution and friction are applied after it to each vertex the solve held
 //! ([`ContactPotential::apply_impacts`]): the impact's energy loss and friction are booked as contact work, and the
 //! contact force's impulse goes to the momentum targets, so that the projection neither undoes the contact's
