@@ -89,6 +89,12 @@ const CG_LOOSEST: f64 = 1e-2;
 const CG_MAX_ITERATIONS: usize = 10;
 /// Conjugate gradient iterations above which the next Newton iteration factorises (the factor went stale).
 const CG_REFACTOR: usize = 5;
+/// A vertex the solve leaves deeper than this share of the mean rest edge inside an obstacle gets a stiffer penalty
+/// and the solve continues ([`ContactPotential::stiffen_deep`]): the depth a test of contact allows.
+const DEEP_CONTACT_FRACTION: f64 = 0.01;
+/// How many times a step may stiffen its deep vertices' penalty, each time by [`DEEP_CONTACT_STIFFENING`].
+const DEEP_CONTACT_ROUNDS: usize = 3;
+const DEEP_CONTACT_STIFFENING: f64 = 10.0;
 
 /// Backward Euler with Newton's method and a reused sparse symbolic factorisation.
 #[derive(Debug, Default)]
@@ -124,6 +130,9 @@ pub struct ImplicitEuler {
     projected: bool,
     /// Conjugate gradients have not failed yet in this step.
     cg_usable: bool,
+    /// Depth inside an obstacle past which a vertex's penalty is stiffened after the solve, m
+    /// ([`DEEP_CONTACT_FRACTION`] of the mean rest edge).
+    deep_limit: f64,
     /// A step taken with other bodies ([`CoupledNewton`]): the iterate, the start positions, the step size.
     x_iter: Vec<Vec3>,
     x_n: Vec<Vec3>,
@@ -166,8 +175,8 @@ impl ImplicitEuler {
     ) -> ContactReport {
         let (contact, y) = (&self.contact, &self.y);
         let v_start = |i: usize| [0, 1, 2].map(|a| (y[i][a] - x_n[i][a]) / h);
-        let mut report = contact.apply_impacts(model, state, h, v_start, |_, x| {
-            contact.penalty_velocity_change(model, x, h)
+        let mut report = contact.apply_impacts(model, state, h, v_start, |i, x| {
+            contact.penalty_velocity_change(model, i, x, h)
         });
         if report.contacts > 0 {
             // The contact's linear impulse (friction's included) is the step's momentum change less gravity's
@@ -190,6 +199,7 @@ impl ImplicitEuler {
     /// inertial prediction `y`; returns the first iterate.
     fn start(&mut self, model: &Model, state: &State, h: f64) -> Vec<Vec3> {
         let m = model.num_vertices();
+        self.contact.reset_stiffening();
         // The pattern and the symbolic analysis depend on the mesh and the pin set only (masses and material
         // are read at every assembly): rebuild them when either changed since they were built.
         let structure = model.structure_key();
@@ -201,6 +211,7 @@ impl ImplicitEuler {
                 Err(_) => self.cholesky = None,
             }
             self.symbolic_analyses += 1;
+            self.deep_limit = DEEP_CONTACT_FRACTION * model.mean_rest_edge();
             self.assembler = Some(asm);
         }
         self.grad.resize(m, [0.0; 3]);
@@ -510,105 +521,120 @@ impl Integrator for ImplicitEuler {
             impulse: scale(model.gravity, h * model.free_mass()),
             ..Default::default()
         };
-        self.last_decrements.clear();
         (self.last_factorisations, self.last_cg_iterations) = (0, 0);
-        let mut dec0 = 0.0;
         // `elastic_grad` was evaluated at `x` (then handed over to the projection).
         let mut elastic_at_x = false;
-        // Each step starts with a factorisation; the iterations after it reuse it while it serves.
-        (self.factor_fresh, self.cg_usable) = (false, true);
-        for it in 0..self.settings.max_iterations {
-            let (phi, phi_magnitude) = self.objective_gradient(model, &x, h);
-            elastic_at_x = true;
-            let asm = self.assembler.as_ref().expect("prepared by start");
-            let n = asm.ndof();
-            self.rhs.clear();
-            self.rhs.resize(n, 0.0);
-            for (i, &fi) in asm.free_index.iter().enumerate() {
-                if fi != usize::MAX {
-                    for a in 0..3 {
-                        self.rhs[3 * fi + a] = -self.grad[i][a];
-                    }
-                }
-            }
-            self.neg_grad.clone_from(&self.rhs);
-            // Inexact Newton (Eisenstat and Walker): early iterations, far from the solution, need only a rough
-            // direction; the tolerance tightens with the square of the relative decrement, which keeps Newton's
-            // quadratic convergence (in that regime the next decrement is about the square of the last), so the
-            // direction and the decrement are accurate where convergence is decided.
-            let cg_tolerance = match self.last_decrements.last() {
-                Some(&lambda) if dec0 > 0.0 => (lambda / dec0).clamp(CG_TOLERANCE, CG_LOOSEST),
-                _ => CG_TOLERANCE,
-            };
-            if !self.newton_direction(model, &x, h, cg_tolerance) {
-                break;
-            }
-            let asm = self.assembler.as_ref().expect("prepared by start");
-            // Newton decrement squared: g^T H^-1 g = -g . dx.
-            let dec: f64 = self
-                .neg_grad
-                .iter()
-                .zip(&self.rhs)
-                .map(|(g, d)| g * d)
-                .sum::<f64>()
-                .max(0.0);
-            let lambda = dec.sqrt();
-            self.last_decrements.push(lambda);
-            if it == 0 {
-                dec0 = lambda;
-            }
-            report.iterations = it + 1;
-            report.residual = if dec0 > 0.0 { lambda / dec0 } else { 0.0 };
-            // Converged: the decrement fell by the relative tolerance, or the Newton step moves no vertex by
-            // more than 1e-12 of the body's size (near equilibrium the relative test meets round-off).
-            let step_max = self.rhs.iter().fold(0.0f64, |a, d| a.max(d.abs()));
-            // The predicted decrease dec/2 below Phi's round-off cannot be acted on either.
-            if lambda.is_nan()
-                || lambda <= self.settings.tolerance * dec0
-                || lambda <= 1e-300
-                || step_max <= 1e-12 * model.length_scale
-                || dec <= 1e-13 * phi_magnitude
-            {
-                report.iterations = it; // converged before taking this step
-                break;
-            }
-            // Backtracking line search on Phi (Armijo, c = 1e-4).
-            let slope = -dec;
-            let free_index = &asm.free_index;
-            let mut alpha = 1.0;
-            let accepted = loop {
-                self.x_trial.clear();
-                self.x_trial.extend_from_slice(&x);
-                for (i, &fi) in free_index.iter().enumerate() {
+        // Rounds of Newton's method: the first with the plain penalty, each later one after stiffening the
+        // penalty of the vertices the last one left deep inside an obstacle.
+        for round in 0..=DEEP_CONTACT_ROUNDS {
+            let done = report.iterations;
+            self.last_decrements.clear();
+            let mut dec0 = 0.0;
+            // Each round starts with a factorisation; the iterations after it reuse it while it serves.
+            (self.factor_fresh, self.cg_usable) = (false, true);
+            for it in 0..self.settings.max_iterations {
+                let (phi, phi_magnitude) = self.objective_gradient(model, &x, h);
+                elastic_at_x = true;
+                let asm = self.assembler.as_ref().expect("prepared by start");
+                let n = asm.ndof();
+                self.rhs.clear();
+                self.rhs.resize(n, 0.0);
+                for (i, &fi) in asm.free_index.iter().enumerate() {
                     if fi != usize::MAX {
                         for a in 0..3 {
-                            self.x_trial[i][a] += alpha * self.rhs[3 * fi + a];
+                            self.rhs[3 * fi + a] = -self.grad[i][a];
                         }
                     }
                 }
-                let phi_trial = Self::objective(model, &self.contact, &self.x_trial, &self.y, h);
-                if phi_trial <= phi + 1e-4 * alpha * slope {
-                    break true;
+                self.neg_grad.clone_from(&self.rhs);
+                // Inexact Newton (Eisenstat and Walker): early iterations, far from the solution, need only a rough
+                // direction; the tolerance tightens with the square of the relative decrement, which keeps Newton's
+                // quadratic convergence (in that regime the next decrement is about the square of the last), so the
+                // direction and the decrement are accurate where convergence is decided.
+                let cg_tolerance = match self.last_decrements.last() {
+                    Some(&lambda) if dec0 > 0.0 => (lambda / dec0).clamp(CG_TOLERANCE, CG_LOOSEST),
+                    _ => CG_TOLERANCE,
+                };
+                if !self.newton_direction(model, &x, h, cg_tolerance) {
+                    break;
                 }
-                // When the predicted decrease is within a few hundred ulps of Phi, the comparison measures
-                // round-off: accept a trial whose change of Phi is round-off too.
-                let resolvable = dec > 1e-10 * phi_magnitude;
-                if !resolvable && phi_trial <= phi + 1e-10 * phi_magnitude {
-                    break true;
+                let asm = self.assembler.as_ref().expect("prepared by start");
+                // Newton decrement squared: g^T H^-1 g = -g . dx.
+                let dec: f64 = self
+                    .neg_grad
+                    .iter()
+                    .zip(&self.rhs)
+                    .map(|(g, d)| g * d)
+                    .sum::<f64>()
+                    .max(0.0);
+                let lambda = dec.sqrt();
+                self.last_decrements.push(lambda);
+                if it == 0 {
+                    dec0 = lambda;
                 }
-                if alpha < 1e-10 {
-                    // No decrease along the Newton direction: keep the current iterate (never accept an
-                    // increase of Phi, which is what keeps backward Euler from gaining energy).
-                    break false;
+                report.iterations = done + it + 1;
+                report.residual = if dec0 > 0.0 { lambda / dec0 } else { 0.0 };
+                // Converged: the decrement fell by the relative tolerance, or the Newton step moves no vertex by
+                // more than 1e-12 of the body's size (near equilibrium the relative test meets round-off).
+                let step_max = self.rhs.iter().fold(0.0f64, |a, d| a.max(d.abs()));
+                // The predicted decrease dec/2 below Phi's round-off cannot be acted on either.
+                if lambda.is_nan()
+                    || lambda <= self.settings.tolerance * dec0
+                    || lambda <= 1e-300
+                    || step_max <= 1e-12 * model.length_scale
+                    || dec <= 1e-13 * phi_magnitude
+                {
+                    report.iterations = done + it; // converged before taking this step
+                    break;
                 }
-                alpha *= 0.5;
-                report.line_search_steps += 1;
-            };
-            if !accepted {
+                // Backtracking line search on Phi (Armijo, c = 1e-4).
+                let slope = -dec;
+                let free_index = &asm.free_index;
+                let mut alpha = 1.0;
+                let accepted = loop {
+                    self.x_trial.clear();
+                    self.x_trial.extend_from_slice(&x);
+                    for (i, &fi) in free_index.iter().enumerate() {
+                        if fi != usize::MAX {
+                            for a in 0..3 {
+                                self.x_trial[i][a] += alpha * self.rhs[3 * fi + a];
+                            }
+                        }
+                    }
+                    let phi_trial =
+                        Self::objective(model, &self.contact, &self.x_trial, &self.y, h);
+                    if phi_trial <= phi + 1e-4 * alpha * slope {
+                        break true;
+                    }
+                    // When the predicted decrease is within a few hundred ulps of Phi, the comparison measures
+                    // round-off: accept a trial whose change of Phi is round-off too.
+                    let resolvable = dec > 1e-10 * phi_magnitude;
+                    if !resolvable && phi_trial <= phi + 1e-10 * phi_magnitude {
+                        break true;
+                    }
+                    if alpha < 1e-10 {
+                        // No decrease along the Newton direction: keep the current iterate (never accept an
+                        // increase of Phi, which is what keeps backward Euler from gaining energy).
+                        break false;
+                    }
+                    alpha *= 0.5;
+                    report.line_search_steps += 1;
+                };
+                if !accepted {
+                    break;
+                }
+                std::mem::swap(&mut x, &mut self.x_trial);
+                elastic_at_x = false;
+            }
+            if round == DEEP_CONTACT_ROUNDS
+                || self.contact.is_empty()
+                || self
+                    .contact
+                    .stiffen_deep(model, &x, self.deep_limit, DEEP_CONTACT_STIFFENING)
+                    == 0
+            {
                 break;
             }
-            std::mem::swap(&mut x, &mut self.x_trial);
-            elastic_at_x = false;
         }
         finish_positional_step(model, state, &x, &x_n, h);
         if !self.contact.is_empty() {

@@ -82,6 +82,17 @@ impl Model {
     pub fn num_tets(&self) -> usize {
         self.mesh.num_tets()
     }
+    /// Mean length of the tets' edges in the rest shape, m (each edge counted once per tet).
+    pub fn mean_rest_edge(&self) -> f64 {
+        let x = self.mesh.vertices();
+        let mut sum = 0.0;
+        for t in self.mesh.tets() {
+            for (a, b) in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)] {
+                sum += crate::math::norm(crate::math::sub(x[t[a]], x[t[b]]));
+            }
+        }
+        sum / (6.0 * self.num_tets().max(1) as f64)
+    }
     /// Tets per chunk of the per-tet passes ([`crate::exec::tet_chunk_for`] the tet count): chunk `c`
     /// holds the block positions `c * tet_chunk() ..`.
     #[inline]

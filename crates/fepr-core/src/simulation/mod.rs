@@ -143,18 +143,6 @@ struct BaseStart {
     has_forces: bool,
 }
 
-/// Mean length of the tets' edges in the rest shape, m (each edge counted once per tet).
-fn mean_edge_length(model: &Model) -> f64 {
-    let x = model.mesh.vertices();
-    let mut sum = 0.0;
-    for t in model.mesh.tets() {
-        for (a, b) in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)] {
-            sum += crate::math::norm(sub(x[t[a]], x[t[b]]));
-        }
-    }
-    sum / (6.0 * model.num_tets().max(1) as f64)
-}
-
 /// Running references (fepr-spec section 2): initial values advanced by every step's budget and impulses.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct References {
@@ -334,7 +322,7 @@ impl Simulation {
             held_normal_forces: Vec::new(),
             held_at_step_start: Vec::new(),
         };
-        sim.mean_edge = mean_edge_length(&sim.model);
+        sim.mean_edge = sim.model.mean_rest_edge();
         let c = sim.model.pressure_wave_speed();
         sim.strain_energy = 0.5 * sim.model.total_mass * c * c * STRAIN_SCALE * STRAIN_SCALE;
         sim.reset_references();

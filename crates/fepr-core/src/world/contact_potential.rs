@@ -20,7 +20,9 @@
 //! so a lone vertex arriving at speed v stops within `v h / (1 + STIFFNESS_RATIO)` of the layer `phi = d` (4 um
 //! for the example above); a vertex carrying the load of the body above it sinks in proportion to that load (the
 //! feet of a 1 m armadillo standing on a plane at dt = 1/60 stay inside the impact limit, so that its resting
-//! steps take no impact substeps; the push-out after the step repairs that depth).
+//! steps take no impact substeps; the push-out after the step repairs that depth). Backward Euler stiffens, within
+//! a step, the penalty of the vertices its solve leaves deeper than a contact test allows
+//! ([`ContactPotential::stiffen_deep`]).
 //! The solve only stops a vertex; restitution and friction are applied after it to each vertex the solve held
 //! ([`ContactPotential::apply_impacts`]): the impact's energy loss and friction are booked as contact work, and the
 //! contact force's impulse goes to the momentum targets, so that the projection neither undoes the contact's
@@ -62,6 +64,9 @@ pub struct ContactPotential {
     /// The solve evaluates the potential many times per step with each vertex moving little in between, so
     /// most mesh queries are skipped; the answers are exact either way.
     clear: std::sync::Mutex<Vec<(Vec3, f64)>>,
+    /// Per-vertex multipliers of the stiffness within the current step (empty: all 1;
+    /// [`ContactPotential::stiffen_deep`]).
+    stiffening: Vec<f64>,
 }
 
 impl Clone for ContactPotential {
@@ -81,6 +86,7 @@ impl ContactPotential {
         Self {
             obstacles: obstacles.to_vec(),
             clear: Default::default(),
+            stiffening: Vec::new(),
         }
     }
 
@@ -142,8 +148,43 @@ impl ContactPotential {
     }
 
     /// The penalty stiffness `k_i` of vertex `i` at step size `h`, N/m.
-    fn stiffness(model: &Model, i: usize, h: f64) -> f64 {
-        STIFFNESS_RATIO * model.masses[i] / (h * h)
+    fn stiffness(&self, model: &Model, i: usize, h: f64) -> f64 {
+        STIFFNESS_RATIO * self.multiplier(i) * model.masses[i] / (h * h)
+    }
+
+    /// Vertex `i`'s stiffness multiplier in this step.
+    fn multiplier(&self, i: usize) -> f64 {
+        self.stiffening.get(i).copied().unwrap_or(1.0)
+    }
+
+    /// Back to the plain stiffness (every multiplier 1): the start of a step.
+    pub fn reset_stiffening(&mut self) {
+        self.stiffening.clear();
+    }
+
+    /// Multiplies by `factor` the stiffness of every free vertex of `x` (m) that lies deeper than `limit` (m)
+    /// inside an obstacle; returns how many. Why: a vertex carrying a body's momentum into the ground sinks by its
+    /// force over the stiffness, and the push-out after the step then moves it (and, for a sliver wholly inside,
+    /// all four vertices, flattening the tet) without the elastic response; stiffened, the same solve carries the
+    /// stop into the body.
+    pub fn stiffen_deep(&mut self, model: &Model, x: &[Vec3], limit: f64, factor: f64) -> usize {
+        let mut count = 0;
+        for (i, xi) in x.iter().enumerate() {
+            if model.pinned[i]
+                || !self
+                    .obstacles
+                    .iter()
+                    .any(|ob| ob.signed_distance_below(*xi, -limit).is_some())
+            {
+                continue;
+            }
+            if self.stiffening.len() != x.len() {
+                self.stiffening = vec![1.0; x.len()];
+            }
+            self.stiffening[i] *= factor;
+            count += 1;
+        }
+        count
     }
 
     /// The obstacles whose penalty reaches the point `x` (m): `(phi - d, n)` for each (the signed distance less
@@ -172,7 +213,7 @@ impl ContactPotential {
         let mut clear = self.clear_cache(m);
         for (i, xi) in x.iter().enumerate() {
             if !model.pinned[i] {
-                let stiffness = Self::stiffness(model, i, h);
+                let stiffness = self.stiffness(model, i, h);
                 for k in 0..self.obstacles.len() {
                     if let Some((phi, n)) = self.near(&mut clear, m, k, i, *xi, margin) {
                         f(i, stiffness, phi - margin, n);
@@ -217,11 +258,17 @@ impl ContactPotential {
         });
     }
 
-    /// The velocity change (m/s) that the penalty's force at `x` (m) gives its vertex over a step of `h`: the
+    /// The velocity change (m/s) that the penalty's force at `x` (m) gives vertex `i` over a step of `h`: the
     /// impulse `-h k_i (phi - d) n` over the vertex's mass, summed over the obstacles that reach `x`; `None` when
     /// none does. Backward Euler's contact impulse at its final iterate.
-    pub fn penalty_velocity_change(&self, model: &Model, x: Vec3, h: f64) -> Option<Vec3> {
-        let k_over_m = STIFFNESS_RATIO / (h * h);
+    pub fn penalty_velocity_change(
+        &self,
+        model: &Model,
+        i: usize,
+        x: Vec3,
+        h: f64,
+    ) -> Option<Vec3> {
+        let k_over_m = STIFFNESS_RATIO * self.multiplier(i) / (h * h);
         self.reaching(Self::margin(model), x)
             .map(|(gap, n)| scale(n, -h * k_over_m * gap))
             .reduce(add)
