@@ -92,8 +92,9 @@ const CG_REFACTOR: usize = 5;
 /// A vertex the solve leaves deeper than this share of the mean rest edge inside an obstacle gets a stiffer penalty
 /// and the solve continues ([`ContactPotential::stiffen_deep`]): the depth a test of contact allows.
 const DEEP_CONTACT_FRACTION: f64 = 0.01;
-/// How many times a step may stiffen its deep vertices' penalty, each time by [`DEEP_CONTACT_STIFFENING`].
+/// How many times a step may stiffen its deep vertices' penalty.
 const DEEP_CONTACT_ROUNDS: usize = 3;
+/// The factor of each stiffening (three rounds: at most a thousand times the plain penalty).
 const DEEP_CONTACT_STIFFENING: f64 = 10.0;
 
 /// Backward Euler with Newton's method and a reused sparse symbolic factorisation.
@@ -345,19 +346,23 @@ impl ImplicitEuler {
         );
         if let Some(k) = solved {
             self.last_cg_iterations += k;
-            let descent: f64 = self
-                .neg_grad
-                .iter()
-                .zip(&self.rhs)
-                .map(|(g, d)| g * d)
-                .sum();
-            if descent > 0.0 {
+            if self.predicted_decrease() > 0.0 {
                 self.factor_fresh = k <= CG_REFACTOR;
                 return true;
             }
         }
         self.rhs.clone_from(&self.neg_grad);
         false
+    }
+
+    /// `-g . dx` for the direction `dx` in `self.rhs` (J): the Newton decrement squared when `dx` is the Newton
+    /// step, positive for a descent direction.
+    fn predicted_decrease(&self) -> f64 {
+        self.neg_grad
+            .iter()
+            .zip(&self.rhs)
+            .map(|(g, d)| g * d)
+            .sum()
     }
 
     /// Evaluate `Phi` and its gradient (into `self.grad`). Also returns the magnitude scale of `Phi`
@@ -504,8 +509,9 @@ impl Integrator for ImplicitEuler {
         Some(self)
     }
 
-    // Long (about 170 lines): one Newton solve of backward Euler, read top to bottom (prepare the pattern, iterate:
-    // gradient, Hessian, factorisation with the PSD fallback, Armijo line search; hand the last gradient over).
+    // Long (about 135 lines): one Newton solve of backward Euler, read top to bottom (prepare the pattern, iterate:
+    // gradient, Hessian, factorisation with the PSD fallback, Armijo line search; again after stiffening deep
+    // contacts; hand the last gradient over).
     fn step(
         &mut self,
         model: &Model,
@@ -560,13 +566,7 @@ impl Integrator for ImplicitEuler {
                 }
                 let asm = self.assembler.as_ref().expect("prepared by start");
                 // Newton decrement squared: g^T H^-1 g = -g . dx.
-                let dec: f64 = self
-                    .neg_grad
-                    .iter()
-                    .zip(&self.rhs)
-                    .map(|(g, d)| g * d)
-                    .sum::<f64>()
-                    .max(0.0);
+                let dec = self.predicted_decrease().max(0.0);
                 let lambda = dec.sqrt();
                 self.last_decrements.push(lambda);
                 if it == 0 {

@@ -38,11 +38,9 @@ use crate::model::{Model, State};
 
 /// Penalty stiffness per vertex in units of the vertex's inertia term `m_i / h^2` (see the module comment).
 /// Why 1e4: the vertices a resting body stands on carry the load of many vertices, and sink by that load over
-/// the stiffness. At 1e3 the 4,406-tet armadillo standing on a plane at dt = 1/60 sank its feet deeper than the
-/// impact limit (a tenth of a mean edge) on every resting step, so each was redone in 2 substeps (103 of 180
-/// steps) and Newton took 8-14 iterations per step against the push-out's strain; at 1e4 none is, 4-5
-/// iterations, half the time, and the smallest J -0.10 instead of -1.90. 1e5 gains nothing more and costs
-/// Newton iterations and line-search steps (5.8 against 4.8 per step; 4.6 times the backtracking).
+/// the stiffness. At 1e3 the feet of the 4,406-tet armadillo standing on a plane at dt = 1/60 sink deeper than
+/// the impact limit (a tenth of a mean edge) on every resting step, which is then redone in substeps; at 1e4 they
+/// do not. 1e5 costs Newton iterations and line-search steps on the same drop and gains nothing.
 pub const STIFFNESS_RATIO: f64 = 1e4;
 
 /// Approach speeds below this many steps of gravity (`RESTING_SPEED_STEPS |g| h`) are resting contact: no
@@ -179,7 +177,9 @@ impl ContactPotential {
                 continue;
             }
             if self.stiffening.len() != x.len() {
-                self.stiffening = vec![1.0; x.len()];
+                // Cleared at the step's start: refilled in place, no allocation once the step loop runs.
+                self.stiffening.clear();
+                self.stiffening.resize(x.len(), 1.0);
             }
             self.stiffening[i] *= factor;
             count += 1;
@@ -496,6 +496,61 @@ mod tests {
             .iter()
             .map(|p| [p[0] + 0.013 + 0.05 * p[2], p[1] + 0.007, p[2] - 0.011])
             .collect()
+    }
+
+    #[test]
+    fn stiffening_multiplies_only_the_deep_vertices_penalty_and_keeps_the_gradient_exact() {
+        let (model, mut pot) = model_and_potential();
+        let h = 0.01;
+        let x = positions(&model);
+        let margin = ContactPotential::margin(&model);
+        let depth = |xi: Vec3| {
+            pot.obstacles
+                .iter()
+                .map(|ob| ob.signed_distance(xi).0)
+                .fold(f64::INFINITY, f64::min)
+        };
+        let limit = 0.25;
+        let deep: Vec<bool> = x.iter().map(|&xi| depth(xi) < -limit).collect();
+        let shallow = (0..x.len()).any(|i| !deep[i] && depth(x[i]) < margin);
+        assert!(
+            deep.iter().any(|&d| d) && shallow,
+            "the sample needs deep and shallow contacts"
+        );
+        let per_vertex = |pot: &ContactPotential| {
+            let mut e = vec![0.0; x.len()];
+            pot.each_penetration(&model, &x, h, |i, k, phi, _| e[i] += 0.5 * k * phi * phi);
+            e
+        };
+        let before = per_vertex(&pot);
+        let count = pot.stiffen_deep(&model, &x, limit, 10.0);
+        assert_eq!(count, deep.iter().filter(|&&d| d).count());
+        let after = per_vertex(&pot);
+        for i in 0..x.len() {
+            let expected = if deep[i] { 10.0 * before[i] } else { before[i] };
+            assert!(
+                (after[i] - expected).abs() <= 1e-12 * expected.abs(),
+                "vertex {i}"
+            );
+        }
+        // Gradient against finite differences with the multipliers in place.
+        let mut g = vec![[0.0; 3]; x.len()];
+        pot.add_gradient(&model, &x, h, &mut g);
+        let eps = 1e-7;
+        for i in (0..x.len()).filter(|&i| deep[i]) {
+            for a in 0..3 {
+                let (mut xp, mut xm) = (x.clone(), x.clone());
+                xp[i][a] += eps;
+                xm[i][a] -= eps;
+                let fd = (pot.energy(&model, &xp, h) - pot.energy(&model, &xm, h)) / (2.0 * eps);
+                assert!(
+                    (fd - g[i][a]).abs() <= 1e-5 * (1.0 + g[i][a].abs()),
+                    "vertex {i} axis {a}"
+                );
+            }
+        }
+        pot.reset_stiffening();
+        assert_eq!(per_vertex(&pot), before);
     }
 
     #[test]
