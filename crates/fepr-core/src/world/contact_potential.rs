@@ -536,19 +536,7 @@ mod tests {
         // Gradient against finite differences with the multipliers in place.
         let mut g = vec![[0.0; 3]; x.len()];
         pot.add_gradient(&model, &x, h, &mut g);
-        let eps = 1e-7;
-        for i in (0..x.len()).filter(|&i| deep[i]) {
-            for a in 0..3 {
-                let (mut xp, mut xm) = (x.clone(), x.clone());
-                xp[i][a] += eps;
-                xm[i][a] -= eps;
-                let fd = (pot.energy(&model, &xp, h) - pot.energy(&model, &xm, h)) / (2.0 * eps);
-                assert!(
-                    (fd - g[i][a]).abs() <= 1e-5 * (1.0 + g[i][a].abs()),
-                    "vertex {i} axis {a}"
-                );
-            }
-        }
+        assert_gradient_is_the_energy_derivative(&pot, &model, &x, h, &g);
         pot.reset_stiffening();
         assert_eq!(per_vertex(&pot), before);
     }
@@ -562,13 +550,24 @@ mod tests {
         let e = pot.add_gradient(&model, &x, h, &mut g);
         assert!(e > 0.0, "some vertices penetrate");
         assert_eq!(e, pot.energy(&model, &x, h));
+        assert_gradient_is_the_energy_derivative(&pot, &model, &x, h, &g);
+    }
+
+    /// `g` against central differences of `pot`'s energy at `x`, every vertex and axis.
+    fn assert_gradient_is_the_energy_derivative(
+        pot: &ContactPotential,
+        model: &Model,
+        x: &[Vec3],
+        h: f64,
+        g: &[Vec3],
+    ) {
         let eps = 1e-7;
         for i in 0..x.len() {
             for a in 0..3 {
-                let (mut xp, mut xm) = (x.clone(), x.clone());
+                let (mut xp, mut xm) = (x.to_vec(), x.to_vec());
                 xp[i][a] += eps;
                 xm[i][a] -= eps;
-                let fd = (pot.energy(&model, &xp, h) - pot.energy(&model, &xm, h)) / (2.0 * eps);
+                let fd = (pot.energy(model, &xp, h) - pot.energy(model, &xm, h)) / (2.0 * eps);
                 assert!(
                     (fd - g[i][a]).abs() <= 1e-5 * (1.0 + g[i][a].abs()),
                     "vertex {i} axis {a}: fd {fd} analytic {}",
