@@ -11,6 +11,7 @@ mod implicit_euler;
 mod projective_dynamics;
 mod symplectic_euler;
 mod xpbd;
+mod xpbd_lanes;
 
 pub use hand_over::*;
 pub use implicit_euler::*;

@@ -14,11 +14,13 @@
 //! after each sweep, a vertex inside an obstacle is put back on its surface
 //! ([`ContactPotential::project_out`]), so the substep's velocity `(x - x_n) / h_s` already holds the contact.
 
+use super::xpbd_lanes::{self, TetLanes, LANES};
 use crate::elasticity::shape_gradients;
 use crate::error::{invalid, Result};
 use crate::integrators::{HandOver, Integrator, StepReport};
 use crate::material::{ConstraintNeoHookean, Material};
-use crate::math::{add, cofactor, det, scale, Mat3, Vec3};
+use crate::math::simd::avx2_dispatch;
+use crate::math::{add, det, scale, Mat3, Vec3};
 use crate::model::{Model, ModelKey, State};
 use crate::world::{ContactPotential, Obstacle};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::Relaxed};
@@ -210,7 +212,6 @@ fn sweep(
         }
     }
     let shared_ref = &*shared;
-    let load = |v: usize| [0, 1, 2].map(|a| f64::from_bits(shared_ref[v][a].load(Relaxed)));
     let halvings = AtomicUsize::new(0);
     // Fixed chunks of a colour (`exec::for_each_chunk_mut`, so that `exec::serial` holds).
     const TETS: usize = 64;
@@ -218,31 +219,7 @@ fn sweep(
         let start = pre.colour_start[c];
         let end = pre.colour_start[c + 1];
         crate::exec::for_each_chunk_mut(&mut lambdas[start..end], TETS, |k, lambdas| {
-            let mut halved = 0;
-            for (j, lam) in lambdas.iter_mut().enumerate() {
-                let e = start + k * TETS + j;
-                let t = pre.corners[e];
-                let p0 = [load(t[0]), load(t[1]), load(t[2]), load(t[3])];
-                let mut p = p0;
-                let w = [
-                    pre.inv_mass[t[0]],
-                    pre.inv_mass[t[1]],
-                    pre.inv_mass[t[2]],
-                    pre.inv_mass[t[3]],
-                ];
-                let alpha_tilde = [
-                    pre.compliance[e][0] * inv_hs2,
-                    pre.compliance[e][1] * inv_hs2,
-                ];
-                halved += project_tet(&mut p, &w, &pre.grads[e], alpha, alpha_tilde, lam, true);
-                for (i, &v) in t.iter().enumerate() {
-                    for a in 0..3 {
-                        // `x + (p - x)`, not `p`: the bits of the update as applied before.
-                        let moved = p0[i][a] + (p[i][a] - p0[i][a]);
-                        shared_ref[v][a].store(moved.to_bits(), Relaxed);
-                    }
-                }
-            }
+            let halved = sweep_chunk(pre, start + k * TETS, lambdas, shared_ref, alpha, inv_hs2);
             halvings.fetch_add(halved, Relaxed);
         });
     }
@@ -252,6 +229,121 @@ fn sweep(
         }
     }
     halvings.into_inner()
+}
+
+avx2_dispatch! {
+    /// [`update_chunk`] compiled for AVX2 where the CPU has it, else portable; no fused multiply-adds either way,
+    /// so the same bits.
+    fn sweep_chunk<'a>(
+        pre: &'a Prepared,
+        first: usize,
+        lambdas: &'a mut [[f64; 2]],
+        shared: &'a [[AtomicU64; 3]],
+        alpha: f64,
+        inv_hs2: f64,
+    ) -> usize => update_chunk
+}
+
+/// The updates of the tets `first..first + lambdas.len()` (colour order, one colour: no two share a vertex) on the
+/// positions in `shared`, [`LANES`] side by side ([`xpbd_lanes::full_steps`]); a lane whose full step the guard
+/// refuses is redone by [`project_tet`], which halves it. Returns the halvings.
+#[inline(always)]
+fn update_chunk(
+    pre: &Prepared,
+    first: usize,
+    lambdas: &mut [[f64; 2]],
+    shared: &[[AtomicU64; 3]],
+    alpha: f64,
+    inv_hs2: f64,
+) -> usize {
+    let load = |v: usize| [0, 1, 2].map(|a| f64::from_bits(shared[v][a].load(Relaxed)));
+    let mut halvings = 0;
+    let len = lambdas.len();
+    let mut lanes = TetLanes::default();
+    for j0 in (0..len).step_by(LANES) {
+        let n = LANES.min(len - j0);
+        // Unused lanes repeat lane 0 (computed, never written).
+        for l in 0..LANES {
+            let e = first + j0 + l.min(n - 1);
+            let t = pre.corners[e];
+            for k in 0..4 {
+                let p = load(t[k]);
+                for a in 0..3 {
+                    lanes.p[k][a][l] = p[a];
+                    lanes.g[k][a][l] = pre.grads[e][k][a];
+                }
+                lanes.w[k][l] = pre.inv_mass[t[k]];
+            }
+            for c in 0..2 {
+                lanes.at[c][l] = pre.compliance[e][c] * inv_hs2;
+                lanes.lambda[c][l] = lambdas[j0 + l.min(n - 1)][c];
+            }
+        }
+        let steps = xpbd_lanes::full_steps(&lanes, alpha);
+        for l in 0..n {
+            let e = first + j0 + l;
+            let (p0, p, k) = finish_lane(
+                &lanes,
+                &steps,
+                l,
+                &pre.grads[e],
+                alpha,
+                &mut lambdas[j0 + l],
+            );
+            halvings += k;
+            for (i, &v) in pre.corners[e].iter().enumerate() {
+                for a in 0..3 {
+                    // `x + (p - x)`, not `p`: the bits of the update as applied before.
+                    let moved = p0[i][a] + (p[i][a] - p0[i][a]);
+                    shared[v][a].store(moved.to_bits(), Relaxed);
+                }
+            }
+        }
+    }
+    halvings
+}
+
+/// Lane `l`'s update from its full step ([`xpbd_lanes::full_steps`]), as the scalar update [`project_tet`] makes
+/// it: the full step where the guard accepts it, else the guard's search from its first halving, none for a
+/// singular system. Updates the tet's multipliers `lambda`; returns its corners before and after and the halvings.
+#[inline(always)]
+fn finish_lane(
+    lanes: &TetLanes,
+    steps: &xpbd_lanes::LaneSteps,
+    l: usize,
+    g: &[Vec3; 4],
+    alpha: f64,
+    lambda: &mut [f64; 2],
+) -> ([Vec3; 4], [Vec3; 4], usize) {
+    let p0: [Vec3; 4] = std::array::from_fn(|k| [0, 1, 2].map(|a| lanes.p[k][a][l]));
+    let (t, halvings) = match steps.accepted[l] {
+        Some(true) => (1.0, 0),
+        Some(false) => {
+            let w = [0, 1, 2, 3].map(|k| lanes.w[k][l]);
+            let dp: [Vec3; 4] = std::array::from_fn(|k| [0, 1, 2].map(|a| steps.dp[k][a][l]));
+            let local = LocalStep {
+                p0: &p0,
+                dp: &dp,
+                w: &w,
+                g,
+                alpha_tilde: [lanes.at[0][l], lanes.at[1][l]],
+                lambda,
+                phi0: steps.phi0[l],
+                slope: steps.slope[l],
+                j0: steps.j[l],
+            };
+            match local.guarded_fraction(alpha, 1) {
+                Ok(found) => found,
+                Err(k) => return (p0, p0, k),
+            }
+        }
+        None => return (p0, p0, 0),
+    };
+    let p = std::array::from_fn(|k| [0, 1, 2].map(|a| p0[k][a] + t * steps.dp[k][a][l]));
+    for c in 0..2 {
+        lambda[c] += t * steps.dl[c][l];
+    }
+    (p0, p, halvings)
 }
 
 /// `F = sum_k x_k g_k^T` of a tet from its four corner positions.
@@ -268,6 +360,7 @@ fn deformation(p: &[Vec3; 4], g: &[Vec3; 4]) -> Mat3 {
 }
 
 /// The constraint values and corner gradients of a tet at corner positions `p`.
+#[cfg(test)]
 struct TetConstraints {
     /// `C_D = |F|` and `C_H = J - alpha`.
     c: [f64; 2],
@@ -286,6 +379,7 @@ fn constraint_values(p: &[Vec3; 4], g: &[Vec3; 4], alpha: f64) -> ([f64; 2], f64
     ([if norm > 1e-12 { norm } else { 0.0 }, j - alpha], j)
 }
 
+#[cfg(test)]
 fn tet_constraints(p: &[Vec3; 4], g: &[Vec3; 4], alpha: f64) -> TetConstraints {
     let f = deformation(p, g);
     let norm = crate::math::ddot(&f, &f).sqrt();
@@ -297,7 +391,7 @@ fn tet_constraints(p: &[Vec3; 4], g: &[Vec3; 4], alpha: f64) -> TetConstraints {
     };
     // C_H = J - alpha, dC_H/dF = cof F.
     let j = det(&f);
-    let q_h = cofactor(&f);
+    let q_h = crate::math::cofactor(&f);
     let mut grad = [[[0.0; 3]; 4]; 2];
     for k in 0..4 {
         for a in 0..3 {
@@ -360,6 +454,10 @@ const MAX_HALVINGS: usize = 30;
 /// updated like any other (the hydrostatic constraint pushes `J` back towards `alpha`) under the same descent
 /// test. Neither test changes the constraints or their compliance (the energy FEPR conserves); they only
 /// shorten a step. After [`MAX_HALVINGS`] the tet is left as it is for this sweep. Returns the halvings.
+///
+/// The sweeps make this update four tets at a time ([`xpbd_lanes::full_steps`], [`finish_lane`]), with the same
+/// operations in the same order; this one-tet form is the reference a test holds them to, bit for bit.
+#[cfg(test)]
 fn project_tet(
     p: &mut [Vec3; 4],
     w: &[f64; 4],
@@ -401,19 +499,7 @@ fn project_tet(
         }
     }
     let p0 = *p;
-    let at = |t: f64| {
-        let mut q = p0;
-        for k in 0..4 {
-            for a in 0..3 {
-                q[k][a] += t * dp[k][a];
-            }
-        }
-        q
-    };
-    let mut t = 1.0;
-    let mut trial = at(t);
-    let mut halvings = 0;
-    if guarded {
+    let (t, halvings) = if guarded {
         let phi0 = 0.5 * r[0] * r[0] / alpha_tilde[0] + 0.5 * r[1] * r[1] / alpha_tilde[1];
         // Phi'(0) along dp: sum_c (r_c / alpha~_c) grad C_c . dp (negative: the Gauss-Newton matrix is SPD).
         let mut slope = 0.0;
@@ -421,25 +507,93 @@ fn project_tet(
             slope += r[0] / alpha_tilde[0] * crate::math::dot(tc.grad[0][k], dp[k])
                 + r[1] / alpha_tilde[1] * crate::math::dot(tc.grad[1][k], dp[k]);
         }
-        loop {
-            let (phi, j) = local_objective(&trial, &p0, w, g, alpha, alpha_tilde, lambda);
-            let descent = phi.is_finite() && phi <= phi0 + 1e-4 * t * slope;
-            let upright = tc.j <= 0.0 || j > 0.0;
-            if descent && upright {
-                break;
-            }
-            halvings += 1;
-            t *= 0.5;
-            if halvings >= MAX_HALVINGS {
-                return halvings;
-            }
-            trial = at(t);
+        let local = LocalStep {
+            p0: &p0,
+            dp: &dp,
+            w,
+            g,
+            alpha_tilde,
+            lambda,
+            phi0,
+            slope,
+            j0: tc.j,
+        };
+        match local.guarded_fraction(alpha, 0) {
+            Ok(found) => found,
+            Err(halvings) => return halvings,
         }
-    }
+    } else {
+        (1.0, 0)
+    };
+    let trial = step_to(&p0, &dp, t);
     lambda[0] += t * dl_d;
     lambda[1] += t * dl_h;
     *p = trial;
     halvings
+}
+
+/// `p0 + t dp`.
+pub(super) fn step_to(p0: &[Vec3; 4], dp: &[Vec3; 4], t: f64) -> [Vec3; 4] {
+    let mut q = *p0;
+    for k in 0..4 {
+        for a in 0..3 {
+            q[k][a] += t * dp[k][a];
+        }
+    }
+    q
+}
+
+/// A tet's Gauss-Newton step `dp` from `p0` ([`project_tet`]), with what the guard tests it against: the local
+/// objective `phi0` and its slope along `dp` at `p0`, and `J` at `p0`.
+pub(super) struct LocalStep<'a> {
+    pub p0: &'a [Vec3; 4],
+    pub dp: &'a [Vec3; 4],
+    pub w: &'a [f64; 4],
+    pub g: &'a [Vec3; 4],
+    pub alpha_tilde: [f64; 2],
+    pub lambda: &'a [f64; 2],
+    pub phi0: f64,
+    pub slope: f64,
+    pub j0: f64,
+}
+
+impl LocalStep<'_> {
+    /// The guard's search: the step `t = 2^-k` for the first `k` from `done` (halvings already refused) whose
+    /// trial point lowers the objective (Armijo) and keeps an upright tet upright, with `k`
+    /// (`Err(MAX_HALVINGS)`: none before the limit, the tet is left as it is).
+    pub(super) fn guarded_fraction(
+        &self,
+        alpha: f64,
+        done: usize,
+    ) -> std::result::Result<(f64, usize), usize> {
+        let mut t = 1.0;
+        for _ in 0..done {
+            t *= 0.5;
+        }
+        let mut halvings = done;
+        loop {
+            let trial = step_to(self.p0, self.dp, t);
+            let (phi, j) = local_objective(
+                &trial,
+                self.p0,
+                self.w,
+                self.g,
+                alpha,
+                self.alpha_tilde,
+                self.lambda,
+            );
+            let descent = phi.is_finite() && phi <= self.phi0 + 1e-4 * t * self.slope;
+            let upright = self.j0 <= 0.0 || j > 0.0;
+            if descent && upright {
+                return Ok((t, halvings));
+            }
+            halvings += 1;
+            t *= 0.5;
+            if halvings >= MAX_HALVINGS {
+                return Err(halvings);
+            }
+        }
+    }
 }
 
 impl Integrator for Xpbd {
@@ -620,6 +774,83 @@ mod tests {
             [0.0, 0.01, 0.0],
             [0.004, 0.004, 0.0002],
         ]
+    }
+
+    /// The sweeps' four-at-a-time update against the one-tet reference, bit for bit: positions, multipliers and
+    /// halvings, on tets upright and inverted, slivers, pinned corners, and steps the guard refuses.
+    #[test]
+    fn updates_side_by_side_are_the_one_tet_update_bit_for_bit() {
+        let mut rng = Lcg(5);
+        let mat = ConstraintNeoHookean::new(1e5, 0.3).unwrap();
+        let (mut refused, mut singular, mut n) = (0, 0, 0);
+        for round in 0..300 {
+            let mut lanes = TetLanes::default();
+            let mut cases = Vec::new();
+            for l in 0..LANES {
+                let rest = if (round + l) % 3 == 0 {
+                    sliver()
+                } else {
+                    [
+                        [0.0, 0.0, 0.0],
+                        [0.02, 0.0, 0.0],
+                        [0.0, 0.02, 0.0],
+                        [0.0, 0.0, 0.02],
+                    ]
+                };
+                let (g, vol) = rest_tet(&rest);
+                let spread = [0.0005, 0.003, 0.02][(round / 3 + l) % 3];
+                let mut p0 = rest.map(|v| v.map(|c| 1.1 * c + spread * rng.next()));
+                if (round + l) % 7 == 0 {
+                    p0[3][2] = -p0[3][2]; // inverted
+                }
+                let hs = [1.0 / 600.0, 1.0 / 19200.0][round % 2];
+                let at = [
+                    1.0 / (mat.mu * vol * hs * hs),
+                    1.0 / (mat.lambda * vol * hs * hs),
+                ];
+                let mut w = [1.0 / (1000.0 * 20.0 * vol); 4];
+                if (round + l) % 5 == 0 {
+                    w[1] = 0.0; // pinned corner
+                }
+                let lambda = [rng.next() * 1e-4, rng.next() * 1e-4];
+                for k in 0..4 {
+                    for a in 0..3 {
+                        lanes.p[k][a][l] = p0[k][a];
+                        lanes.g[k][a][l] = g[k][a];
+                    }
+                    lanes.w[k][l] = w[k];
+                }
+                for c in 0..2 {
+                    lanes.at[c][l] = at[c];
+                    lanes.lambda[c][l] = lambda[c];
+                }
+                cases.push((p0, g, w, at, lambda));
+            }
+            let steps = xpbd_lanes::full_steps(&lanes, mat.alpha);
+            for (l, &(p0, g, w, at, lambda)) in cases.iter().enumerate() {
+                let (mut p, mut lam) = (p0, lambda);
+                let k_ref = project_tet(&mut p, &w, &g, mat.alpha, at, &mut lam, true);
+                let mut lam_lane = lambda;
+                let (_, p_lane, k_lane) =
+                    finish_lane(&lanes, &steps, l, &g, mat.alpha, &mut lam_lane);
+                let bits = |q: &[Vec3; 4]| q.map(|v| v.map(f64::to_bits));
+                assert_eq!(bits(&p_lane), bits(&p), "round {round} lane {l}: positions");
+                assert_eq!(
+                    lam_lane.map(f64::to_bits),
+                    lam.map(f64::to_bits),
+                    "round {round} lane {l}"
+                );
+                assert_eq!(k_lane, k_ref, "round {round} lane {l}: halvings");
+                refused += usize::from(steps.accepted[l] == Some(false));
+                singular += usize::from(steps.accepted[l].is_none());
+                n += 1;
+            }
+        }
+        eprintln!("{n} updates: {refused} full steps refused, {singular} singular");
+        assert!(
+            refused > 20 && n - refused - singular > 20,
+            "full steps taken and refused ({refused} of {n} refused)"
+        );
     }
 
     /// Random deformations of a sliver with a substep's compliance: the plain XPBD update (Gauss-Newton, full
