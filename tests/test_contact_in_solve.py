@@ -93,36 +93,71 @@ def test_momentum_the_ground_takes_is_booked_not_undone(integrator):
     assert abs(np.mean(h["pz"][-60:])) <= 0.05 * landing
 
 
+def _armadillo_drop(integrator, dt):
+    """The issue's drop: 1 m armadillo (Stable Neo-Hookean 1e5 / 0.4), 0.3 m onto a plane (restitution 0, friction
+    0.5), 0.45 s without FEPR: (lowest centre-of-mass height, most inverted tets, most impact substeps)."""
+    mesh = fepr.io.load_mesh(SHARED / "Armadillo_Tetra_4406.vtu", fit=1.0)
+    sim = fepr.Simulation(
+        mesh,
+        material=fepr.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.4),
+        density=1000.0,
+        integrator=integrator,
+        dt=dt,
+        projection=False,
+        gravity=(0.0, 0.0, -G),
+        obstacles=[fepr.Plane((0, 0, 0), (0, 0, 1), restitution=0.0, friction=0.5)],
+    )
+    x0 = sim.positions
+    sim.positions = x0 + np.array([0.0, 0.0, 0.3 - x0[:, 2].min()])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        sim.step(int(round(0.45 / dt)))
+    h = sim.history
+    return float(h["cz"].min()), int(h["inverted"].max()), int(h["base_substeps"].max())
+
+
 @pytest.mark.skipif(not (SHARED / "Armadillo_Tetra_4406.vtu").exists(), reason="needs ../shared/meshes")
 def test_armadillo_drop_with_backward_euler_at_a_sixtieth_matches_a_fine_step():
-    # The issue's drop: 1 m armadillo (Stable Neo-Hookean 1e5 / 0.4), 0.3 m onto a plane, backward Euler at
-    # dt = 1/60 against the same at dt = 1/960: no impact substeps, no more inverted tets than the fine step (3
-    # against 6), and the lowest centre-of-mass height within 11% of the fine step's: 0.113 against 0.103 m, 10.0%
-    # (1.7% of the 0.6 m the centre falls; the issue asks 10%). Backward Euler's own dissipation at the large step
-    # takes more of the impact's energy, so the body squashes less.
-    mesh = fepr.io.load_mesh(SHARED / "Armadillo_Tetra_4406.vtu", fit=1.0)
-
-    def run(dt):
-        sim = fepr.Simulation(
-            mesh,
-            material=fepr.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.4),
-            density=1000.0,
-            integrator="implicit_euler",
-            dt=dt,
-            projection=False,
-            gravity=(0.0, 0.0, -G),
-            obstacles=[fepr.Plane((0, 0, 0), (0, 0, 1), restitution=0.0, friction=0.5)],
-        )
-        x0 = sim.positions
-        sim.positions = x0 + np.array([0.0, 0.0, 0.3 - x0[:, 2].min()])
-        sim.step(int(round(0.45 / dt)))
-        h = sim.history
-        return float(h["cz"].min()), int(h["inverted"].max()), int(h["base_substeps"].max())
-
-    low, inverted, substeps = run(1 / 60)
-    low_ref, inverted_ref, _ = run(1 / 960)
+    # Backward Euler at dt = 1/60 against the same at dt = 1/960: no impact substeps, no more inverted tets than
+    # the fine step (3 against 6), and the lowest centre-of-mass height within 11% of the fine step's: 0.113
+    # against 0.103 m, 10.0% (1.7% of the 0.6 m the centre falls; the issue asks 10%). Backward Euler's own
+    # dissipation at the large step takes more of the impact's energy, so the body squashes less.
+    low, inverted, substeps = _armadillo_drop("implicit_euler", 1 / 60)
+    low_ref, inverted_ref, _ = _armadillo_drop("implicit_euler", 1 / 960)
     assert substeps == 0
     assert abs(low - low_ref) <= 0.11 * low_ref
+    assert inverted <= inverted_ref
+
+
+@pytest.mark.skipif(not (SHARED / "Armadillo_Tetra_4406.vtu").exists(), reason="needs ../shared/meshes")
+@pytest.mark.parametrize(
+    "integrator",
+    [
+        pytest.param(
+            "projective_dynamics",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="issue 34, not met: lowest COM 0.093 against 0.076 m (22%), 52 inverted against 42 "
+                "(the large step's dissipation; docs/world.md)",
+            ),
+        ),
+        pytest.param(
+            "xpbd",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="issue 34, not met: lowest COM 0.100 against 0.102 m (within 10%), but 29 inverted against 8: "
+                "one sweep per substep flattens the feet at the impact (docs/world.md)",
+            ),
+        ),
+    ],
+)
+def test_armadillo_drop_with_the_other_implicit_integrators_at_a_sixtieth_matches_a_fine_step(integrator):
+    # The issue's criterion for every implicit integrator: within 10% of the fine step's lowest centre of mass,
+    # no more inverted tets, no impact substeps.
+    low, inverted, substeps = _armadillo_drop(integrator, 1 / 60)
+    low_ref, inverted_ref, _ = _armadillo_drop(integrator, 1 / 960)
+    assert substeps == 0
+    assert abs(low - low_ref) <= 0.10 * low_ref
     assert inverted <= inverted_ref
 
 
