@@ -54,7 +54,8 @@ struct Prepared {
     key: ModelKey,
     /// Tets in colour order: colour `c` is `colour_start[c]..colour_start[c + 1]` of the arrays below.
     colour_start: Vec<usize>,
-    /// Corner vertices of each tet (colour order).
+    /// Corner vertices of each tet (colour order), by their rank in [`Model::kernel_rank`] (the order of
+    /// the sweep's positions and of `inv_mass`).
     corners: Vec<[usize; 4]>,
     grads: Vec<[Vec3; 4]>,
     /// Compliances `1 / (mu V)` and `1 / (lambda' V)` per tet.
@@ -155,7 +156,16 @@ impl Xpbd {
     }
 
     fn prepare(model: &Model, mat: ConstraintNeoHookean) -> Prepared {
-        let colours = colour_tets(model);
+        let mut colours = colour_tets(model);
+        // Within a colour (whose tets are independent: any order gives the same bits), the tets in the order of
+        // their first corner in the kernels' vertex order (`Model::kernel_rank`, which keeps neighbours close in
+        // memory): a chunk of a colour then reads and writes vertices near each other, and two threads' chunks
+        // rarely share a cache line.
+        let rank = |v: usize| model.kernel_rank[v] as usize;
+        let tets = model.mesh.tets();
+        for c in colours.iter_mut() {
+            c.sort_by_key(|&e| tets[e].iter().map(|&v| rank(v)).min());
+        }
         let mut colour_start = vec![0];
         let order: Vec<usize> = colours
             .iter()
@@ -164,20 +174,16 @@ impl Xpbd {
                 c.iter().copied()
             })
             .collect();
-        let tets = model.mesh.tets();
-        let inv_mass = (0..model.num_vertices())
-            .map(|i| {
-                if model.pinned[i] || model.masses[i] <= 0.0 {
-                    0.0
-                } else {
-                    1.0 / model.masses[i]
-                }
-            })
-            .collect();
+        let mut inv_mass = vec![0.0; model.num_vertices()];
+        for i in 0..model.num_vertices() {
+            if !(model.pinned[i] || model.masses[i] <= 0.0) {
+                inv_mass[rank(i)] = 1.0 / model.masses[i];
+            }
+        }
         Prepared {
             key: model.key(),
             colour_start,
-            corners: order.iter().map(|&e| tets[e]).collect(),
+            corners: order.iter().map(|&e| tets[e].map(rank)).collect(),
             grads: order.iter().map(|&e| shape_gradients(model, e)).collect(),
             compliance: order
                 .iter()
@@ -192,13 +198,15 @@ impl Xpbd {
 }
 
 /// One Gauss-Seidel sweep over the constraints of every tet of `pre`, colour by colour, updating `x` (m) and the
-/// multipliers `lambdas` (colour order); `inv_hs2` = `1 / h_s^2`; `shared` is scratch. Returns the step halvings
+/// multipliers `lambdas` (colour order); `rank` is [`Model::kernel_rank`]; `inv_hs2` = `1 / h_s^2`; `shared` is
+/// scratch (the positions by rank). Returns the step halvings
 /// of the guarded updates.
 ///
 /// Within a colour the tets share no vertex, so they are solved in parallel, each writing its own corners in
 /// place: exactly the sequential sweep over the colour, hence bit-identical for any number of threads.
 fn sweep(
     pre: &Prepared,
+    rank: &[u32],
     lambdas: &mut [[f64; 2]],
     shared: &mut Vec<[AtomicU64; 3]>,
     x: &mut [Vec3],
@@ -206,7 +214,8 @@ fn sweep(
     inv_hs2: f64,
 ) -> usize {
     shared.resize_with(x.len(), Default::default);
-    for (s, p) in shared.iter_mut().zip(x.iter()) {
+    for (p, &r) in x.iter().zip(rank) {
+        let s = &mut shared[r as usize];
         for a in 0..3 {
             *s[a].get_mut() = p[a].to_bits();
         }
@@ -223,7 +232,8 @@ fn sweep(
             halvings.fetch_add(halved, Relaxed);
         });
     }
-    for (p, s) in x.iter_mut().zip(shared.iter_mut()) {
+    for (p, &r) in x.iter_mut().zip(rank) {
+        let s = &mut shared[r as usize];
         for a in 0..3 {
             p[a] = f64::from_bits(*s[a].get_mut());
         }
@@ -687,6 +697,7 @@ impl Integrator for Xpbd {
             for _ in 0..self.settings.iterations {
                 halvings += sweep(
                     pre,
+                    &model.kernel_rank,
                     &mut self.lambdas,
                     &mut self.shared_x,
                     &mut state.x,
