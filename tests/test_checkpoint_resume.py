@@ -241,3 +241,20 @@ def test_a_scanned_mesh_landing_at_a_game_step_resumes_bit_for_bit(shared_meshes
     _assert_same(a, b, f"armadillo {integrator}")
     h = a.history
     assert h["contacts"].max() > 0, "the resumed steps include the landing"
+
+
+def test_backward_euler_standing_on_the_ground_resumes_bit_for_bit(shared_meshes, tmp_path):
+    """The armadillo dropped 0.3 m, landed and standing: the vertices the impact stiffened keep their contact
+    penalty from step to step while they touch the ground (at the plain one they would sink deeper than 1% of an
+    edge again, and every step would solve twice); the checkpoint carries it, else the resumed run would solve its
+    next steps with the plain penalty."""
+    mesh = fepr.io.load_mesh(shared_meshes / "Armadillo_Tetra_4406.vtu", fit=1.0)
+    sim = fepr.Simulation(
+        mesh, material=fepr.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.4), density=1000.0,
+        dt=1.0 / 60.0, integrator="implicit_euler", gravity=(0, 0, -9.81), projection=False,
+        obstacles=[fepr.Plane(point=(0, 0, float(mesh.vertices[:, 2].min()) - 0.3), restitution=0.0, friction=0.5)],
+    )  # fmt: skip
+    sim.step(40)  # landed at step 15
+    a, b = _resume_matches(sim, 2, 8, tmp_path / "ck.npz")
+    _assert_same(a, b, "armadillo standing, backward Euler")
+    assert a.history["contacts"][-1] > 0

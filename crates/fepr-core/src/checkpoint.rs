@@ -16,7 +16,7 @@ use crate::error::{FeprError, Result};
 use crate::math::Vec3;
 
 /// The layout version of a [`Carry`]; a carry of another version is refused with a clear error.
-pub const CARRY_VERSION: u32 = 1;
+pub const CARRY_VERSION: u32 = 2;
 
 /// Named arrays of `f64`: what a step carries to the next (see the module docs).
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -33,7 +33,7 @@ use crate::elasticity::HessianAssembler;
 use crate::elasticity::{
     elastic_energy, elastic_energy_gradient, ElasticSummary, ElasticWorkspace,
 };
-use crate::error::{invalid, Result};
+use crate::error::{invalid, FeprError, Result};
 use crate::integrators::{finish_positional_step, HandOver, Integrator, StepReport};
 use crate::math::{add, dot, scale, sub, Vec3};
 use crate::math::{solve_preconditioned, SparseCholesky};
@@ -94,8 +94,11 @@ const CG_REFACTOR: usize = 5;
 const DEEP_CONTACT_FRACTION: f64 = 0.01;
 /// How many times a step may stiffen its deep vertices' penalty.
 const DEEP_CONTACT_ROUNDS: usize = 3;
-/// The factor of each stiffening (three rounds: at most a thousand times the plain penalty).
+/// The factor of each stiffening.
 const DEEP_CONTACT_STIFFENING: f64 = 10.0;
+/// The stiffest penalty, in units of the plain one (a vertex keeps its stiffening from step to step while it stays
+/// in an obstacle's reach, [`ContactPotential::relax_stiffening`]).
+const DEEP_CONTACT_MOST: f64 = 1e3;
 
 /// Backward Euler with Newton's method and a reused sparse symbolic factorisation.
 #[derive(Debug, Default)]
@@ -200,7 +203,7 @@ impl ImplicitEuler {
     /// inertial prediction `y`; returns the first iterate.
     fn start(&mut self, model: &Model, state: &State, h: f64) -> Vec<Vec3> {
         let m = model.num_vertices();
-        self.contact.reset_stiffening();
+        self.contact.relax_stiffening(model, &state.x);
         // The pattern and the symbolic analysis depend on the mesh and the pin set only (masses and material
         // are read at every assembly): rebuild them when either changed since they were built.
         let structure = model.structure_key();
@@ -505,6 +508,28 @@ impl Integrator for ImplicitEuler {
         self.contact = ContactPotential::new(obstacles);
     }
 
+    fn carry(&self, c: &mut crate::checkpoint::Carry) {
+        c.put(
+            "integrator.contact_stiffening",
+            self.contact.stiffening().to_vec(),
+        );
+    }
+
+    fn resume(&mut self, c: &crate::checkpoint::Carry, num_vertices: usize) -> Result<()> {
+        let k = c.get("integrator.contact_stiffening")?;
+        if !(k.is_empty() || k.len() == num_vertices)
+            || k.iter().any(|&v| !(v.is_finite() && v >= 1.0))
+        {
+            return Err(FeprError::Simulation(format!(
+                "the checkpoint's 'integrator.contact_stiffening' entry is not one multiplier of at least 1 per \
+                 vertex ({} entries, the body has {num_vertices} vertices)",
+                k.len()
+            )));
+        }
+        self.contact.set_stiffening(k.to_vec());
+        Ok(())
+    }
+
     fn coupled_newton(&mut self) -> Option<&mut dyn crate::integrators::CoupledNewton> {
         Some(self)
     }
@@ -628,10 +653,13 @@ impl Integrator for ImplicitEuler {
             }
             if round == DEEP_CONTACT_ROUNDS
                 || self.contact.is_empty()
-                || self
-                    .contact
-                    .stiffen_deep(model, &x, self.deep_limit, DEEP_CONTACT_STIFFENING)
-                    == 0
+                || self.contact.stiffen_deep(
+                    model,
+                    &x,
+                    self.deep_limit,
+                    DEEP_CONTACT_STIFFENING,
+                    DEEP_CONTACT_MOST,
+                ) == 0
             {
                 break;
             }

@@ -102,6 +102,17 @@ pub trait Integrator: Send + Sync {
     /// steps, the default): an integrator with its own substeps then takes its substeps divided among the
     /// parts (at least one a part), so that the substeps keep their length.
     fn take_in_parts(&mut self, _parts: usize) {}
+    /// What the integrator's next steps depend on besides the model and the state, into a checkpoint (entries
+    /// named `integrator.*`; the default: nothing).
+    fn carry(&self, _c: &mut crate::checkpoint::Carry) {}
+    /// Back from [`Integrator::carry`] (for a model of `num_vertices` vertices).
+    fn resume(
+        &mut self,
+        _c: &crate::checkpoint::Carry,
+        _num_vertices: usize,
+    ) -> crate::error::Result<()> {
+        Ok(())
+    }
 }
 
 /// An implicit step whose iterations bodies in contact take together, each a linear solve that the caller

@@ -70,6 +70,7 @@ impl Simulation {
         if let Some(p) = &self.projector {
             p.carry(&self.model, &mut c);
         }
+        self.integrator.carry(&mut c);
         let start_gradient = self
             .hand_over
             .start_gradient_at(&self.model, &self.state.x)
@@ -197,6 +198,8 @@ impl Simulation {
                 start_gradient.len()
             )));
         }
+        // The integrator checks its entries before it takes them.
+        self.integrator.resume(c, m)?;
         // Everything is read and checked: nothing below fails but the world's own checks, which run first.
         self.world.set_damping(damping[0], damping[1])?;
         self.world.set_forces(&self.model, forces)?;
