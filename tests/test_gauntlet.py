@@ -93,8 +93,6 @@ ELASTIC = (
 )
 KNOWN_FAST = {
     "armadillo-SE-dt_stable-stretch-min_j": SE,
-    "armadillo-XPBD-dt1_60-stretch-min_j": XPBD,
-    "armadillo-XPBD-dt1_30-stretch-min_j": XPBD,
     "armadillo-XPBD-dt1_60-free_fall-converged": XPBD,
     "armadillo-XPBD-dt1_30-free_fall-converged": XPBD,
     "armadillo-XPBD-dt1_30-spin-converged": XPBD,
