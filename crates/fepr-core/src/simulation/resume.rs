@@ -2,6 +2,9 @@
 //! out with [`Simulation::carry`] and put back into a simulation built again from the same settings with
 //! [`Simulation::resume`]. The resumed simulation then takes the same steps as the original, bit for bit.
 //!
+//! The integrator adds what its next steps depend on ([`crate::integrators::Integrator::carry`]: backward Euler's
+//! stiffened contact penalties).
+//!
 //! What is left out, and why that keeps the steps the same: the integrators' and the projection's workspaces,
 //! factorisations and caches (the hand-over's gradient, the metric's factors, the contact potential's distance
 //! cache) are recomputed from the state and the model to the same bits when they are missing; the step's own
