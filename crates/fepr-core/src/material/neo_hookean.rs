@@ -99,7 +99,8 @@ impl Hyperelastic for NeoHookean {
         d
     }
 
-    /// Analytic eigen-system (`material::psd::project_psd_invariant`, crate-private): `dP/dF = mu I + g'(J) d2J + g''(J) c c^T`.
+    /// Analytic eigen-system (`material::psd::project_psd_invariant`, crate-private):
+    /// `dP/dF = mu I + g'(J) d2J + g''(J) c c^T`.
     fn stress_derivative_psd(&self, f: &Mat3) -> StressDerivative {
         let (_, dg, ddg) = self.volumetric(det(f));
         let form = InvariantForm {

@@ -85,8 +85,8 @@ impl Hyperelastic for StableNeoHookean {
         d
     }
 
-    /// Analytic eigen-system (`material::psd::project_psd_invariant`, crate-private): `dP/dF = a I + b d2J + lambda' c c^T +
-    /// (2 mu' / (I_C + 1)^2) f f^T` with `a = mu' (1 - 1/(I_C + 1))`, `b = lambda' (J - alpha)`.
+    /// Analytic eigen-system (`material::psd::project_psd_invariant`, crate-private):
+    /// `dP/dF = a I + b d2J + lambda' c c^T + (2 mu' / (I_C + 1)^2) f f^T` with `a = mu' (1 - 1/(I_C + 1))`, `b = lambda' (J - alpha)`.
     fn stress_derivative_psd(&self, f: &Mat3) -> StressDerivative {
         let ic = ddot(f, f);
         let form = InvariantForm {

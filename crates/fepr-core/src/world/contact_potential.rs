@@ -20,9 +20,9 @@
 //! so a lone vertex arriving at speed v stops within `v h / (1 + STIFFNESS_RATIO)` of the layer `phi = d` (4 um
 //! for the example above); a vertex carrying the load of the body above it sinks in proportion to that load (the
 //! feet of a 1 m armadillo standing on a plane at dt = 1/60 stay inside the impact limit, so that its resting
-//! steps take no impact substeps; the push-out after the step repairs that depth). Backward Euler stiffens, within
-//! a step, the penalty of the vertices its solve leaves deeper than a contact test allows
-//! ([`ContactPotential::stiffen_deep`]).
+//! steps take no impact substeps; the push-out after the step repairs that depth). Backward Euler stiffens the
+//! penalty of the vertices its solve leaves deeper than a contact test allows ([`ContactPotential::stiffen_deep`]),
+//! and keeps it while they stay in reach ([`ContactPotential::relax_stiffening`]).
 //! The solve only stops a vertex; restitution and friction are applied after it to each vertex the solve held
 //! ([`ContactPotential::apply_impacts`]): the impact's energy loss and friction are booked as contact work, and the
 //! contact force's impulse goes to the momentum targets, so that the projection neither undoes the contact's
@@ -62,8 +62,8 @@ pub struct ContactPotential {
     /// The solve evaluates the potential many times per step with each vertex moving little in between, so
     /// most mesh queries are skipped; the answers are exact either way.
     clear: std::sync::Mutex<Vec<(Vec3, f64)>>,
-    /// Per-vertex multipliers of the stiffness within the current step (empty: all 1;
-    /// [`ContactPotential::stiffen_deep`]).
+    /// Per-vertex multipliers of the stiffness (empty: all 1): raised by [`ContactPotential::stiffen_deep`], kept
+    /// while the vertex stays in reach ([`ContactPotential::relax_stiffening`]).
     stiffening: Vec<f64>,
 }
 
@@ -150,36 +150,28 @@ impl ContactPotential {
         STIFFNESS_RATIO * self.multiplier(i) * model.masses[i] / (h * h)
     }
 
-    /// Vertex `i`'s stiffness multiplier in this step.
+    /// Vertex `i`'s stiffness multiplier.
     fn multiplier(&self, i: usize) -> f64 {
         self.stiffening.get(i).copied().unwrap_or(1.0)
-    }
-
-    /// Back to the plain stiffness (every multiplier 1).
-    pub fn reset_stiffening(&mut self) {
-        self.stiffening.clear();
     }
 
     /// The start of a step from positions `x` (m): a vertex out of every obstacle's reach
     /// ([`ContactPotential::in_reach`]) is back to the plain stiffness; one still in reach keeps its multiplier.
     /// Why keep it: a vertex that an impact pushed deep keeps carrying load once the body stands on it, and at the
-    /// plain stiffness it sinks as deep again; stiffened afresh each step, every standing step was solved twice (a
-    /// second Newton round after the stiffening). The armadillo dropped 0.3 m onto a plane, backward Euler at
-    /// 1/60 without FEPR: 4.2-5.5 Newton iterations per step once it stands (steps 60-180), 2.8-3.4 with the
-    /// multipliers kept.
+    /// plain stiffness it would sink as deep again, so that every standing step would take a second Newton round
+    /// after stiffening it again (the armadillo dropped 0.3 m onto a plane, backward Euler at 1/60 without FEPR:
+    /// 2.8-3.4 Newton iterations per standing step, 4.2-5.5 with the multipliers reset each step).
     pub fn relax_stiffening(&mut self, model: &Model, x: &[Vec3]) {
         if self.stiffening.len() != x.len() {
             self.stiffening.clear();
             return;
         }
-        let reach = Self::margin(model);
         let mut any = false;
-        for (i, k) in self.stiffening.iter_mut().enumerate() {
-            let near = |ob: &Obstacle| ob.signed_distance_below(x[i], reach).is_some();
-            if *k != 1.0 && !self.obstacles.iter().any(near) {
-                *k = 1.0;
+        for i in 0..x.len() {
+            if self.stiffening[i] != 1.0 && !self.in_reach(model, x[i]) {
+                self.stiffening[i] = 1.0;
             }
-            any |= *k != 1.0;
+            any |= self.stiffening[i] != 1.0;
         }
         if !any {
             self.stiffening.clear();
@@ -197,10 +189,10 @@ impl ContactPotential {
     }
 
     /// Multiplies by `factor` the stiffness of every free vertex of `x` (m) that lies deeper than `limit` (m)
-    /// inside an obstacle, up to `most` times the plain stiffness; returns how many. Why: a vertex carrying a body's momentum into the ground sinks by its
-    /// force over the stiffness, and the push-out after the step then moves it (and, for a sliver wholly inside,
-    /// all four vertices, flattening the tet) without the elastic response; stiffened, the same solve carries the
-    /// stop into the body.
+    /// inside an obstacle, up to `most` times the plain stiffness; returns how many. Why: a vertex carrying a body's
+    /// momentum into the ground sinks by its force over the stiffness, and the push-out after the step then moves
+    /// it (and, for a sliver wholly inside, all four vertices, flattening the tet) without the elastic response;
+    /// stiffened, the same solve carries the stop into the body.
     pub fn stiffen_deep(
         &mut self,
         model: &Model,
@@ -221,7 +213,8 @@ impl ContactPotential {
                 continue;
             }
             if self.stiffening.len() != x.len() {
-                // Cleared at the step's start: refilled in place, no allocation once the step loop runs.
+                // Empty while no vertex is stiffened: refilled in place (the capacity stays), no allocation once
+                // the step loop runs.
                 self.stiffening.clear();
                 self.stiffening.resize(x.len(), 1.0);
             }
@@ -337,8 +330,8 @@ impl ContactPotential {
     /// - Coulomb friction: the tangential velocity loses at most `friction` times the normal velocity change
     ///   `dv . n` (it stops below that); its kinetic energy change is booked too.
     ///
-    /// Returns the contacts' work (J, <= 0 against static obstacles), their impulse `sum m (dv + friction's change)` (kg m/s) and its
-    /// moment about the centre of mass (kg m^2/s).
+    /// Returns the contacts' work (J, <= 0 against static obstacles), their impulse `sum m (dv + friction's change)`
+    /// (kg m/s) and its moment about the centre of mass (kg m^2/s).
     pub fn apply_impacts(
         &self,
         model: &Model,
@@ -621,7 +614,7 @@ mod tests {
         let mut g = vec![[0.0; 3]; x.len()];
         pot.add_gradient(&model, &x, h, &mut g);
         assert_gradient_is_the_energy_derivative(&pot, &model, &x, h, &g);
-        pot.reset_stiffening();
+        pot.set_stiffening(Vec::new());
         assert_eq!(per_vertex(&pot), before);
     }
 
