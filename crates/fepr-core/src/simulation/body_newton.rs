@@ -50,7 +50,14 @@ const FRICTION_SLIP_SPEED: f64 = 1e-5;
 /// stiffer, a block set sliding on a slab with FEPR was thrown off it.
 const ROW_STIFFNESS_RATIO: f64 = 1e3;
 
-/// Iterations that look for new rows and take the rows' geometry again (each a detection pass).
+/// The depth inside the other body, in its finer body's mean edges, past which a row is stiffened after a
+/// round of Newton iterations and the solve continues: the depth the contact tests allow.
+const DEEP_ROW_FRACTION: f64 = 0.01;
+/// How many times a step may stiffen its deep rows, and by what factor each time.
+const DEEP_ROW_ROUNDS: usize = 3;
+const DEEP_ROW_STIFFENING: f64 = 10.0;
+
+/// Iterations of each round that look for new rows and take the rows' geometry again (each a detection pass).
 const GEOMETRY_ITERATIONS: usize = 4;
 
 /// Rows a vertex may have against one other body (the faces of a crease it sits in).
@@ -471,6 +478,21 @@ fn swept_box(sim: &Simulation, h: f64, margin: f64) -> (Vec3, Vec3) {
     (lo, hi)
 }
 
+/// Stiffen the rows deeper than `limit` (m) at `xs` by [`DEEP_ROW_STIFFENING`]; returns how many. The plain
+/// penalty holds a vertex at `f h^2 K / ROW_STIFFNESS_RATIO` inside, which is deep where a few vertices stop a
+/// body much heavier than theirs: a scanned bunny landing on an armadillo at 2.6 m/s ended a step 1 cm inside it,
+/// and the step was redone in 16 parts.
+fn stiffen_deep_rows(rows: &mut [Row], xs: &[Vec<Vec3>], start: &[Vec<Vec3>], limit: f64) -> usize {
+    let mut count = 0;
+    for row in rows.iter_mut() {
+        if row.measure(xs, start).0 < -limit {
+            row.stiffness *= DEEP_ROW_STIFFENING;
+            count += 1;
+        }
+    }
+    count
+}
+
 /// The largest fraction `alpha` in [0, 1] of the way from `start` to `xs` at which no row's gap is below its
 /// kept one (each row's gap is linear along the way, its face held): 1 where no row is inside at `xs`, 0 where
 /// a row inside at `xs` was not outside at the start.
@@ -595,147 +617,183 @@ fn minimise_together(
     // The line search's trial positions (every entry written before it is read).
     let mut trial = xs.clone();
     let mut rows: Vec<Row> = Vec::new();
-    let (mut iterations, mut residual, mut dec0) = (0, 0.0, 0.0);
-    for it in 0..max_iterations {
-        // Rows for the vertices the iterate brings near another body, the others' faces followed, in the
-        // first iterations; then the rows stay as they are, so that the later iterations minimise one fixed
-        // objective.
-        if it < GEOMETRY_ITERATIONS {
-            detect(sims, &xs, &start, &mut rows, margin, h, coefficients);
-            follow(sims, &xs, &mut rows);
-        }
-        if it == 0 && xs != start {
-            // The first iterate (each body's inertial prediction, or its start) may put vertices inside the
-            // other body, where the rows' stiff penalty stores energy that the line search only has to lower,
-            // not to remove: the minimisation then releases it into the bodies (a scanned bunny landing on an
-            // armadillo was thrown back up, 32 J -> 78 J, over the 16 parts of its step, 2-4 J a part). Start
-            // instead where no row's gap is below its kept one: the largest fraction of the way from the
-            // step's start to that iterate (each row's gap is linear along the way with its face held).
-            let alpha = start_fraction(&rows, &xs, &start);
-            if alpha < 1.0 {
-                for (k, sim) in sims.iter_mut().enumerate() {
-                    for (x, x0) in xs[k].iter_mut().zip(&start[k]) {
-                        *x = add(*x0, scale(sub(*x, *x0), alpha));
+    let (mut iterations, mut residual) = (0, 0.0);
+    // The depth (m) past which a row is stiffened after a round: a hundredth of the finer body's mean edge.
+    let deep_limit = DEEP_ROW_FRACTION
+        * sims
+            .iter()
+            .map(|s| s.mean_edge)
+            .fold(f64::INFINITY, f64::min);
+    // Rounds of Newton's method: the first with the plain penalty, each later one after stiffening the rows the
+    // last one left deep inside (as backward Euler does with its obstacles' penalty).
+    'rounds: for round in 0..=DEEP_ROW_ROUNDS {
+        let done = iterations;
+        // Each round's tolerance is relative to its own first decrement (relative to the step's first, a
+        // stiffened round's correction was below it and the round ended before it moved the rows out).
+        let mut dec0 = 0.0;
+        let mut converged = false;
+        for it in 0..max_iterations {
+            let first_iteration = round == 0 && it == 0;
+            // Rows for the vertices the iterate brings near another body, the others' faces followed, in the
+            // first iterations of each round (a stiffened round starts where the last one's iterate left the
+            // vertices, which may have slid onto other faces); then the rows stay as they are, so that the later
+            // iterations minimise one fixed objective.
+            if it < GEOMETRY_ITERATIONS {
+                detect(sims, &xs, &start, &mut rows, margin, h, coefficients);
+                follow(sims, &xs, &mut rows);
+            }
+            if first_iteration && xs != start {
+                // The first iterate (each body's inertial prediction, or its start) may put vertices inside the
+                // other body, where the rows' stiff penalty stores energy that the line search only has to lower,
+                // not to remove: the minimisation then releases it into the bodies (a scanned bunny landing on an
+                // armadillo was thrown back up, 32 J -> 78 J, over the 16 parts of its step, 2-4 J a part). Start
+                // instead where no row's gap is below its kept one: the largest fraction of the way from the
+                // step's start to that iterate (each row's gap is linear along the way with its face held).
+                let alpha = start_fraction(&rows, &xs, &start);
+                if alpha < 1.0 {
+                    for (k, sim) in sims.iter_mut().enumerate() {
+                        for (x, x0) in xs[k].iter_mut().zip(&start[k]) {
+                            *x = add(*x0, scale(sub(*x, *x0), alpha));
+                        }
+                        newton(sim).set_positions(&xs[k]);
                     }
-                    newton(sim).set_positions(&xs[k]);
                 }
             }
-        }
-        let mut phi = 0.0;
-        let mut magnitude = 0.0;
-        let mut grads = Vec::with_capacity(nb);
-        let mut failed = false;
-        for sim in sims.iter_mut() {
-            match with_newton(sim, |n, model| n.linearise(model)) {
-                Some((p, m)) => {
-                    phi += p;
-                    magnitude += m;
-                    grads.push(newton(sim).gradient().to_vec());
+            let mut phi = 0.0;
+            let mut magnitude = 0.0;
+            let mut grads = Vec::with_capacity(nb);
+            let mut failed = false;
+            for sim in sims.iter_mut() {
+                match with_newton(sim, |n, model| n.linearise(model)) {
+                    Some((p, m)) => {
+                        phi += p;
+                        magnitude += m;
+                        grads.push(newton(sim).gradient().to_vec());
+                    }
+                    None => {
+                        failed = true;
+                        break;
+                    }
                 }
-                None => {
-                    failed = true;
-                    break;
+            }
+            if failed {
+                break 'rounds;
+            }
+            let mut terms = Vec::new();
+            for (r, row) in rows.iter().enumerate() {
+                let e = row.energy(&xs, &start, eps);
+                phi += e;
+                magnitude += e;
+                let (normal, rubs, friction) = row.forces(&xs, &start, eps);
+                // The row's gradient is minus its forces: on the vertex, and the opposite on the corners.
+                let force = add(scale(row.pair.normal, normal), friction);
+                let p = &row.pair;
+                grads[p.body][p.vertex] = sub(grads[p.body][p.vertex], force);
+                for c in 0..3 {
+                    let j = p.triangle[c];
+                    grads[p.other][j] = add(grads[p.other][j], scale(force, p.weights[c]));
                 }
-            }
-        }
-        if failed {
-            break;
-        }
-        let mut terms = Vec::new();
-        for (r, row) in rows.iter().enumerate() {
-            let e = row.energy(&xs, &start, eps);
-            phi += e;
-            magnitude += e;
-            let (normal, rubs, friction) = row.forces(&xs, &start, eps);
-            // The row's gradient is minus its forces: on the vertex, and the opposite on the corners.
-            let force = add(scale(row.pair.normal, normal), friction);
-            let p = &row.pair;
-            grads[p.body][p.vertex] = sub(grads[p.body][p.vertex], force);
-            for c in 0..3 {
-                let j = p.triangle[c];
-                grads[p.other][j] = add(grads[p.other][j], scale(force, p.weights[c]));
-            }
-            if normal > 0.0 {
-                terms.push(Term {
-                    row: r,
-                    dir: p.normal,
-                    stiffness: row.stiffness,
-                });
-            }
-            if rubs > 0.0 {
-                for (dir, stiffness) in row.friction_hessian(&xs, &start, eps) {
+                if normal > 0.0 {
                     terms.push(Term {
                         row: r,
-                        dir,
-                        stiffness,
+                        dir: p.normal,
+                        stiffness: row.stiffness,
                     });
                 }
-            }
-        }
-        for (k, sim) in sims.iter().enumerate() {
-            for (i, g) in grads[k].iter_mut().enumerate() {
-                if sim.model.pinned[i] {
-                    *g = [0.0; 3];
+                if rubs > 0.0 {
+                    for (dir, stiffness) in row.friction_hessian(&xs, &start, eps) {
+                        terms.push(Term {
+                            row: r,
+                            dir,
+                            stiffness,
+                        });
+                    }
                 }
             }
-        }
-        let dx = direction(sims, &rows, &terms, &grads);
-        // Newton decrement squared: -g . dx.
-        let dec = -grads
-            .iter()
-            .zip(&dx)
-            .flat_map(|(g, d)| g.iter().zip(d).map(|(a, b)| dot(*a, *b)))
-            .sum::<f64>();
-        let dec = dec.max(0.0);
-        let lambda = dec.sqrt();
-        if it == 0 {
-            dec0 = lambda;
-        }
-        iterations = it + 1;
-        residual = if dec0 > 0.0 { lambda / dec0 } else { 0.0 };
-        let step_max = dx
-            .iter()
-            .flatten()
-            .flat_map(|v| v.iter())
-            .fold(0.0f64, |a, d| a.max(d.abs()));
-        if lambda.is_nan()
-            || lambda <= tolerance * dec0
-            || lambda <= 1e-300
-            || step_max <= 1e-12 * length
-            || dec <= 1e-13 * magnitude
-        {
-            iterations = it;
-            break;
-        }
-        // Backtracking line search on the joint objective (Armijo, c = 1e-4), as backward Euler's own.
-        let mut alpha = 1.0;
-        let accepted = loop {
-            for k in 0..nb {
-                for (i, t) in trial[k].iter_mut().enumerate() {
-                    *t = add(xs[k][i], scale(dx[k][i], alpha));
+            for (k, sim) in sims.iter().enumerate() {
+                for (i, g) in grads[k].iter_mut().enumerate() {
+                    if sim.model.pinned[i] {
+                        *g = [0.0; 3];
+                    }
                 }
             }
-            let mut phi_trial: f64 = rows.iter().map(|r| r.energy(&trial, &start, eps)).sum();
+            let dx = direction(sims, &rows, &terms, &grads);
+            // Newton decrement squared: -g . dx.
+            let dec = -grads
+                .iter()
+                .zip(&dx)
+                .flat_map(|(g, d)| g.iter().zip(d).map(|(a, b)| dot(*a, *b)))
+                .sum::<f64>();
+            let dec = dec.max(0.0);
+            let lambda = dec.sqrt();
+            if it == 0 {
+                dec0 = lambda;
+            }
+            iterations = done + it + 1;
+            residual = if dec0 > 0.0 { lambda / dec0 } else { 0.0 };
+            let step_max = dx
+                .iter()
+                .flatten()
+                .flat_map(|v| v.iter())
+                .fold(0.0f64, |a, d| a.max(d.abs()));
+            if lambda.is_nan()
+                || lambda <= tolerance * dec0
+                || lambda <= 1e-300
+                || step_max <= 1e-12 * length
+                || dec <= 1e-13 * magnitude
+            {
+                iterations = done + it;
+                converged = true;
+                break;
+            }
+            // Backtracking line search on the joint objective (Armijo, c = 1e-4), as backward Euler's own.
+            let mut alpha = 1.0;
+            let accepted = loop {
+                for k in 0..nb {
+                    for (i, t) in trial[k].iter_mut().enumerate() {
+                        *t = add(xs[k][i], scale(dx[k][i], alpha));
+                    }
+                }
+                let mut phi_trial: f64 = rows.iter().map(|r| r.energy(&trial, &start, eps)).sum();
+                for (k, sim) in sims.iter_mut().enumerate() {
+                    phi_trial += with_newton(sim, |n, model| n.objective(model, &trial[k]));
+                }
+                if phi_trial <= phi - 1e-4 * alpha * dec {
+                    break true;
+                }
+                if dec <= 1e-10 * magnitude && phi_trial <= phi + 1e-10 * magnitude {
+                    break true;
+                }
+                if alpha < 1e-10 {
+                    break false;
+                }
+                alpha *= 0.5;
+            };
+            if !accepted {
+                break;
+            }
+            std::mem::swap(&mut xs, &mut trial);
             for (k, sim) in sims.iter_mut().enumerate() {
-                phi_trial += with_newton(sim, |n, model| n.objective(model, &trial[k]));
+                newton(sim).set_positions(&xs[k]);
             }
-            if phi_trial <= phi - 1e-4 * alpha * dec {
-                break true;
-            }
-            if dec <= 1e-10 * magnitude && phi_trial <= phi + 1e-10 * magnitude {
-                break true;
-            }
-            if alpha < 1e-10 {
-                break false;
-            }
-            alpha *= 0.5;
-        };
-        if !accepted {
+        }
+        if round == DEEP_ROW_ROUNDS {
             break;
         }
-        std::mem::swap(&mut xs, &mut trial);
-        for (k, sim) in sims.iter_mut().enumerate() {
-            newton(sim).set_positions(&xs[k]);
+        // Another round where a vertex is deeper inside the other body than the impact limit `margin` (exact
+        // queries: through a face its rows do not hold, too; the next round's detection gives it a row), for
+        // which the step would be redone in parts, each a solve; else only after a converged round with rows to
+        // stiffen: a round that ran to the cap (rows that rub in static friction, whose zone is a
+        // hundred-thousandth of a metre per second wide) would run to it again.
+        let deep_vertex = body_contact_pairs(&mut iterates(sims, &xs), margin)
+            .iter()
+            .any(|p| p.depth > margin);
+        if !(converged || deep_vertex) {
+            break;
+        }
+        let stiffened = stiffen_deep_rows(&mut rows, &xs, &start, deep_limit);
+        if stiffened == 0 && !deep_vertex {
+            break;
         }
     }
     // The rows' forces at the end, and what they gave each body (on its free vertices).
@@ -892,6 +950,28 @@ mod tests {
         let (inside, x_in, mut start_in) = row_and_positions(2e-3, [0.0, 0.0]);
         start_in[0][0][2] = -1e-3;
         assert_eq!(start_fraction(&[inside], &x_in, &start_in), 0.0);
+    }
+
+    /// After a round, only the rows deeper than the limit are stiffened, each by the stiffening factor: a row
+    /// pressed 2 mm in with a limit of 1 mm, not one 0.5 mm in nor one with a gap.
+    #[test]
+    fn only_rows_deeper_than_the_limit_are_stiffened() {
+        let mut rows = Vec::new();
+        let mut positions = Vec::new();
+        for depth in [2e-3, 5e-4, -1e-3] {
+            let (row, x, start) = row_and_positions(depth, [0.0, 0.0]);
+            rows.push(row);
+            positions.push((x, start));
+        }
+        let k = rows[0].stiffness;
+        let mut stiffened = 0;
+        for (row, (x, start)) in rows.iter_mut().zip(&positions) {
+            stiffened += stiffen_deep_rows(std::slice::from_mut(row), x, start, 1e-3);
+        }
+        assert_eq!(stiffened, 1);
+        assert_eq!(rows[0].stiffness, DEEP_ROW_STIFFENING * k);
+        assert_eq!(rows[1].stiffness, k);
+        assert_eq!(rows[2].stiffness, k);
     }
 
     /// The row's forces are minus the gradient of its energy (central differences), on the vertex and on the
