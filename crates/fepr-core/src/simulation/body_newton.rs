@@ -577,6 +577,208 @@ pub(super) fn advance_newton_together(
     }
 }
 
+/// What a joint minimisation holds fixed over its rounds.
+struct JointSolve<'a> {
+    coefficients: &'a [BodyCoefficients],
+    /// The positions at the start of the part (one array per body, m).
+    start: Vec<Vec<Vec3>>,
+    /// The part's length (s), the impact limit rows are found within (m), the friction mollifier's width (m),
+    /// the finer body's length scale (m), and the Newton settings.
+    h: f64,
+    margin: f64,
+    eps: f64,
+    length: f64,
+    max_iterations: usize,
+    tolerance: f64,
+}
+
+/// How a round of Newton iterations ended: converged, at the iteration cap or with a line search that found no
+/// decrease (`Stopped`), or with a body whose Hessian could not be factorised (`Failed`: the solve stops).
+#[derive(PartialEq)]
+enum RoundEnd {
+    Converged,
+    Stopped,
+    Failed,
+}
+
+/// One round of the joint Newton minimisation from `xs` (one array per body, m; `trial` its line search's
+/// scratch), with `rows` (found and followed in the round's first iterations). `iterations` and `residual`
+/// are the step's so far (iterations counted on from theirs) and are updated.
+#[allow(clippy::too_many_arguments)]
+fn newton_round(
+    sims: &mut [&mut Simulation],
+    solve: &JointSolve,
+    rows: &mut Vec<Row>,
+    xs: &mut Vec<Vec<Vec3>>,
+    trial: &mut Vec<Vec<Vec3>>,
+    first_round: bool,
+    iterations: &mut usize,
+    residual: &mut f64,
+) -> RoundEnd {
+    let nb = sims.len();
+    let (eps, max_iterations) = (solve.eps, solve.max_iterations);
+    let done = *iterations;
+    // Each round's tolerance is relative to its own first decrement (relative to the step's first, a
+    // stiffened round's correction was below it and the round ended before it moved the rows out).
+    let mut dec0 = 0.0;
+    for it in 0..max_iterations {
+        let first_iteration = first_round && it == 0;
+        // Rows for the vertices the iterate brings near another body, the others' faces followed, in the
+        // first iterations of each round (a stiffened round starts where the last one's iterate left the
+        // vertices, which may have slid onto other faces); then the rows stay as they are, so that the later
+        // iterations minimise one fixed objective.
+        if it < GEOMETRY_ITERATIONS {
+            detect(
+                sims,
+                xs,
+                &solve.start,
+                rows,
+                solve.margin,
+                solve.h,
+                solve.coefficients,
+            );
+            follow(sims, xs, rows);
+        }
+        if first_iteration && *xs != solve.start {
+            // The first iterate (each body's inertial prediction, or its start) may put vertices inside the
+            // other body, where the rows' stiff penalty stores energy that the line search only has to lower,
+            // not to remove: the minimisation then releases it into the bodies (a scanned bunny landing on an
+            // armadillo was thrown back up, 32 J -> 78 J, over the 16 parts of its step, 2-4 J a part). Start
+            // instead where no row's gap is below its kept one: the largest fraction of the way from the
+            // step's start to that iterate (each row's gap is linear along the way with its face held).
+            let alpha = start_fraction(rows, xs, &solve.start);
+            if alpha < 1.0 {
+                for (k, sim) in sims.iter_mut().enumerate() {
+                    for (x, x0) in xs[k].iter_mut().zip(&solve.start[k]) {
+                        *x = add(*x0, scale(sub(*x, *x0), alpha));
+                    }
+                    newton(sim).set_positions(&xs[k]);
+                }
+            }
+        }
+        let mut phi = 0.0;
+        let mut magnitude = 0.0;
+        let mut grads = Vec::with_capacity(nb);
+        let mut failed = false;
+        for sim in sims.iter_mut() {
+            match with_newton(sim, |n, model| n.linearise(model)) {
+                Some((p, m)) => {
+                    phi += p;
+                    magnitude += m;
+                    grads.push(newton(sim).gradient().to_vec());
+                }
+                None => {
+                    failed = true;
+                    break;
+                }
+            }
+        }
+        if failed {
+            return RoundEnd::Failed;
+        }
+        let mut terms = Vec::new();
+        for (r, row) in rows.iter().enumerate() {
+            let e = row.energy(xs, &solve.start, eps);
+            phi += e;
+            magnitude += e;
+            let (normal, rubs, friction) = row.forces(xs, &solve.start, eps);
+            // The row's gradient is minus its forces: on the vertex, and the opposite on the corners.
+            let force = add(scale(row.pair.normal, normal), friction);
+            let p = &row.pair;
+            grads[p.body][p.vertex] = sub(grads[p.body][p.vertex], force);
+            for c in 0..3 {
+                let j = p.triangle[c];
+                grads[p.other][j] = add(grads[p.other][j], scale(force, p.weights[c]));
+            }
+            if normal > 0.0 {
+                terms.push(Term {
+                    row: r,
+                    dir: p.normal,
+                    stiffness: row.stiffness,
+                });
+            }
+            if rubs > 0.0 {
+                for (dir, stiffness) in row.friction_hessian(xs, &solve.start, eps) {
+                    terms.push(Term {
+                        row: r,
+                        dir,
+                        stiffness,
+                    });
+                }
+            }
+        }
+        for (k, sim) in sims.iter().enumerate() {
+            for (i, g) in grads[k].iter_mut().enumerate() {
+                if sim.model.pinned[i] {
+                    *g = [0.0; 3];
+                }
+            }
+        }
+        let dx = direction(sims, rows, &terms, &grads);
+        // Newton decrement squared: -g . dx.
+        let dec = -grads
+            .iter()
+            .zip(&dx)
+            .flat_map(|(g, d)| g.iter().zip(d).map(|(a, b)| dot(*a, *b)))
+            .sum::<f64>();
+        let dec = dec.max(0.0);
+        let lambda = dec.sqrt();
+        if it == 0 {
+            dec0 = lambda;
+        }
+        *iterations = done + it + 1;
+        *residual = if dec0 > 0.0 { lambda / dec0 } else { 0.0 };
+        let step_max = dx
+            .iter()
+            .flatten()
+            .flat_map(|v| v.iter())
+            .fold(0.0f64, |a, d| a.max(d.abs()));
+        if lambda.is_nan()
+            || lambda <= solve.tolerance * dec0
+            || lambda <= 1e-300
+            || step_max <= 1e-12 * solve.length
+            || dec <= 1e-13 * magnitude
+        {
+            *iterations = done + it;
+            return RoundEnd::Converged;
+        }
+        // Backtracking line search on the joint objective (Armijo, c = 1e-4), as backward Euler's own.
+        let mut alpha = 1.0;
+        let accepted = loop {
+            for k in 0..nb {
+                for (i, t) in trial[k].iter_mut().enumerate() {
+                    *t = add(xs[k][i], scale(dx[k][i], alpha));
+                }
+            }
+            let mut phi_trial: f64 = rows
+                .iter()
+                .map(|r| r.energy(trial, &solve.start, eps))
+                .sum();
+            for (k, sim) in sims.iter_mut().enumerate() {
+                phi_trial += with_newton(sim, |n, model| n.objective(model, &trial[k]));
+            }
+            if phi_trial <= phi - 1e-4 * alpha * dec {
+                break true;
+            }
+            if dec <= 1e-10 * magnitude && phi_trial <= phi + 1e-10 * magnitude {
+                break true;
+            }
+            if alpha < 1e-10 {
+                break false;
+            }
+            alpha *= 0.5;
+        };
+        if !accepted {
+            break;
+        }
+        std::mem::swap(xs, trial);
+        for (k, sim) in sims.iter_mut().enumerate() {
+            newton(sim).set_positions(&xs[k]);
+        }
+    }
+    RoundEnd::Stopped
+}
+
 /// [`advance_newton_together`] for bodies that may touch: one joint Newton minimisation.
 fn minimise_together(
     sims: &mut [&mut Simulation],
@@ -600,7 +802,6 @@ fn minimise_together(
             .begin(model, state, h);
     }
     let v_start: Vec<Vec<Vec3>> = sims.iter().map(|s| s.state.v.clone()).collect();
-    let start: Vec<Vec<Vec3>> = sims.iter().map(|s| s.state.x.clone()).collect();
     let mut xs: Vec<Vec<Vec3>> = sims
         .iter_mut()
         .map(|s| newton(s).positions().to_vec())
@@ -609,11 +810,20 @@ fn minimise_together(
         let (ni, ti) = newton(s).limits();
         (n.max(ni), t.min(ti))
     });
-    let eps = FRICTION_SLIP_SPEED * h;
-    let length = sims
-        .iter()
-        .map(|s| s.model.length_scale)
-        .fold(f64::INFINITY, f64::min);
+    let solve = JointSolve {
+        coefficients,
+        start: sims.iter().map(|s| s.state.x.clone()).collect(),
+        h,
+        margin,
+        eps: FRICTION_SLIP_SPEED * h,
+        length: sims
+            .iter()
+            .map(|s| s.model.length_scale)
+            .fold(f64::INFINITY, f64::min),
+        max_iterations,
+        tolerance,
+    };
+    let (start, eps) = (&solve.start, solve.eps);
     // The line search's trial positions (every entry written before it is read).
     let mut trial = xs.clone();
     let mut rows: Vec<Row> = Vec::new();
@@ -626,158 +836,18 @@ fn minimise_together(
             .fold(f64::INFINITY, f64::min);
     // Rounds of Newton's method: the first with the plain penalty, each later one after stiffening the rows the
     // last one left deep inside (as backward Euler does with its obstacles' penalty).
-    'rounds: for round in 0..=DEEP_ROW_ROUNDS {
-        let done = iterations;
-        // Each round's tolerance is relative to its own first decrement (relative to the step's first, a
-        // stiffened round's correction was below it and the round ended before it moved the rows out).
-        let mut dec0 = 0.0;
-        let mut converged = false;
-        for it in 0..max_iterations {
-            let first_iteration = round == 0 && it == 0;
-            // Rows for the vertices the iterate brings near another body, the others' faces followed, in the
-            // first iterations of each round (a stiffened round starts where the last one's iterate left the
-            // vertices, which may have slid onto other faces); then the rows stay as they are, so that the later
-            // iterations minimise one fixed objective.
-            if it < GEOMETRY_ITERATIONS {
-                detect(sims, &xs, &start, &mut rows, margin, h, coefficients);
-                follow(sims, &xs, &mut rows);
-            }
-            if first_iteration && xs != start {
-                // The first iterate (each body's inertial prediction, or its start) may put vertices inside the
-                // other body, where the rows' stiff penalty stores energy that the line search only has to lower,
-                // not to remove: the minimisation then releases it into the bodies (a scanned bunny landing on an
-                // armadillo was thrown back up, 32 J -> 78 J, over the 16 parts of its step, 2-4 J a part). Start
-                // instead where no row's gap is below its kept one: the largest fraction of the way from the
-                // step's start to that iterate (each row's gap is linear along the way with its face held).
-                let alpha = start_fraction(&rows, &xs, &start);
-                if alpha < 1.0 {
-                    for (k, sim) in sims.iter_mut().enumerate() {
-                        for (x, x0) in xs[k].iter_mut().zip(&start[k]) {
-                            *x = add(*x0, scale(sub(*x, *x0), alpha));
-                        }
-                        newton(sim).set_positions(&xs[k]);
-                    }
-                }
-            }
-            let mut phi = 0.0;
-            let mut magnitude = 0.0;
-            let mut grads = Vec::with_capacity(nb);
-            let mut failed = false;
-            for sim in sims.iter_mut() {
-                match with_newton(sim, |n, model| n.linearise(model)) {
-                    Some((p, m)) => {
-                        phi += p;
-                        magnitude += m;
-                        grads.push(newton(sim).gradient().to_vec());
-                    }
-                    None => {
-                        failed = true;
-                        break;
-                    }
-                }
-            }
-            if failed {
-                break 'rounds;
-            }
-            let mut terms = Vec::new();
-            for (r, row) in rows.iter().enumerate() {
-                let e = row.energy(&xs, &start, eps);
-                phi += e;
-                magnitude += e;
-                let (normal, rubs, friction) = row.forces(&xs, &start, eps);
-                // The row's gradient is minus its forces: on the vertex, and the opposite on the corners.
-                let force = add(scale(row.pair.normal, normal), friction);
-                let p = &row.pair;
-                grads[p.body][p.vertex] = sub(grads[p.body][p.vertex], force);
-                for c in 0..3 {
-                    let j = p.triangle[c];
-                    grads[p.other][j] = add(grads[p.other][j], scale(force, p.weights[c]));
-                }
-                if normal > 0.0 {
-                    terms.push(Term {
-                        row: r,
-                        dir: p.normal,
-                        stiffness: row.stiffness,
-                    });
-                }
-                if rubs > 0.0 {
-                    for (dir, stiffness) in row.friction_hessian(&xs, &start, eps) {
-                        terms.push(Term {
-                            row: r,
-                            dir,
-                            stiffness,
-                        });
-                    }
-                }
-            }
-            for (k, sim) in sims.iter().enumerate() {
-                for (i, g) in grads[k].iter_mut().enumerate() {
-                    if sim.model.pinned[i] {
-                        *g = [0.0; 3];
-                    }
-                }
-            }
-            let dx = direction(sims, &rows, &terms, &grads);
-            // Newton decrement squared: -g . dx.
-            let dec = -grads
-                .iter()
-                .zip(&dx)
-                .flat_map(|(g, d)| g.iter().zip(d).map(|(a, b)| dot(*a, *b)))
-                .sum::<f64>();
-            let dec = dec.max(0.0);
-            let lambda = dec.sqrt();
-            if it == 0 {
-                dec0 = lambda;
-            }
-            iterations = done + it + 1;
-            residual = if dec0 > 0.0 { lambda / dec0 } else { 0.0 };
-            let step_max = dx
-                .iter()
-                .flatten()
-                .flat_map(|v| v.iter())
-                .fold(0.0f64, |a, d| a.max(d.abs()));
-            if lambda.is_nan()
-                || lambda <= tolerance * dec0
-                || lambda <= 1e-300
-                || step_max <= 1e-12 * length
-                || dec <= 1e-13 * magnitude
-            {
-                iterations = done + it;
-                converged = true;
-                break;
-            }
-            // Backtracking line search on the joint objective (Armijo, c = 1e-4), as backward Euler's own.
-            let mut alpha = 1.0;
-            let accepted = loop {
-                for k in 0..nb {
-                    for (i, t) in trial[k].iter_mut().enumerate() {
-                        *t = add(xs[k][i], scale(dx[k][i], alpha));
-                    }
-                }
-                let mut phi_trial: f64 = rows.iter().map(|r| r.energy(&trial, &start, eps)).sum();
-                for (k, sim) in sims.iter_mut().enumerate() {
-                    phi_trial += with_newton(sim, |n, model| n.objective(model, &trial[k]));
-                }
-                if phi_trial <= phi - 1e-4 * alpha * dec {
-                    break true;
-                }
-                if dec <= 1e-10 * magnitude && phi_trial <= phi + 1e-10 * magnitude {
-                    break true;
-                }
-                if alpha < 1e-10 {
-                    break false;
-                }
-                alpha *= 0.5;
-            };
-            if !accepted {
-                break;
-            }
-            std::mem::swap(&mut xs, &mut trial);
-            for (k, sim) in sims.iter_mut().enumerate() {
-                newton(sim).set_positions(&xs[k]);
-            }
-        }
-        if round == DEEP_ROW_ROUNDS {
+    for round in 0..=DEEP_ROW_ROUNDS {
+        let end = newton_round(
+            sims,
+            &solve,
+            &mut rows,
+            &mut xs,
+            &mut trial,
+            round == 0,
+            &mut iterations,
+            &mut residual,
+        );
+        if end == RoundEnd::Failed || round == DEEP_ROW_ROUNDS {
             break;
         }
         // Another round where a vertex is deeper inside the other body than the impact limit `margin` (exact
@@ -788,10 +858,10 @@ fn minimise_together(
         let deep_vertex = body_contact_pairs(&mut iterates(sims, &xs), margin)
             .iter()
             .any(|p| p.depth > margin);
-        if !(converged || deep_vertex) {
+        if !(end == RoundEnd::Converged || deep_vertex) {
             break;
         }
-        let stiffened = stiffen_deep_rows(&mut rows, &xs, &start, deep_limit);
+        let stiffened = stiffen_deep_rows(&mut rows, &xs, start, deep_limit);
         if stiffened == 0 && !deep_vertex {
             break;
         }
@@ -800,7 +870,7 @@ fn minimise_together(
     let mut held = vec![[0.0; 3]; nb];
     let mut booked = Vec::with_capacity(rows.len());
     for row in &rows {
-        let (normal, _, friction) = row.forces(&xs, &start, eps);
+        let (normal, _, friction) = row.forces(&xs, start, eps);
         if normal == 0.0 && friction == [0.0; 3] {
             continue;
         }
