@@ -139,6 +139,20 @@ def test_an_implicit_collision_at_a_sixtieth_keeps_the_momenta_and_each_bodys_bo
 SHARED = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "meshes"
 
 
+def _thrown_armadillos(integrator, dt):
+    """Two scanned armadillos (fit to 0.6 m and 0.5 m, Stable Neo-Hookean 1e5 / 0.4) thrown at each other at
+    2 m/s each, in space; with the smaller mean edge of the two (m)."""
+    mat = fepr.StableNeoHookean(1e5, 0.4)
+    meshes = [fepr.io.load_mesh(SHARED / "Armadillo_Tetra_4406.vtu", fit=fit) for fit in (0.6, 0.5)]
+    big, small = (fepr.Simulation(m, material=mat, density=1000, dt=dt, integrator=integrator) for m in meshes)
+    big.positions = big.positions - big.positions.mean(0) + np.array([-0.45, 0.0, 0.0])
+    small.positions = small.positions - small.positions.mean(0) + np.array([0.45, 0.1, 0.05])
+    big.velocities = np.tile([2.0, 0.0, 0.0], (len(big.positions), 1))
+    small.velocities = np.tile([-2.0, 0.0, 0.0], (len(small.positions), 1))
+    system = MultiBody([big, small], names=["big", "small"])
+    return big, small, system, min(_mean_edge(m) for m in meshes)
+
+
 @pytest.mark.skipif(not (SHARED / "Armadillo_Tetra_4406.vtu").exists(), reason="needs ../shared/meshes")
 @pytest.mark.parametrize("dt", [1 / 30, 1 / 60])
 def test_scanned_bodies_meeting_fast_keep_their_shape_momenta_and_books(dt):
@@ -147,19 +161,9 @@ def test_scanned_bodies_meeting_fast_keep_their_shape_momenta_and_books(dt):
     that took that in one step bent the surfaces through each other (a step went from 45 J to 551 J with 338
     inverted tets, and the failed projections let the scene's angular momentum drift by 12%); such a step is
     redone in parts, and a projection that fails still holds the momenta."""
-    mat = fepr.StableNeoHookean(1e5, 0.4)
-    meshes = [fepr.io.load_mesh(SHARED / "Armadillo_Tetra_4406.vtu", fit=fit) for fit in (0.6, 0.5)]
-    big, small = (
-        fepr.Simulation(m, material=mat, density=1000, dt=dt, integrator="projective_dynamics") for m in meshes
-    )
-    big.positions = big.positions - big.positions.mean(0) + np.array([-0.45, 0.0, 0.0])
-    small.positions = small.positions - small.positions.mean(0) + np.array([0.45, 0.1, 0.05])
-    big.velocities = np.tile([2.0, 0.0, 0.0], (len(big.positions), 1))
-    small.velocities = np.tile([-2.0, 0.0, 0.0], (len(small.positions), 1))
-    system = MultiBody([big, small], names=["big", "small"])
+    big, small, system, edge = _thrown_armadillos("projective_dynamics", dt)
     _, p0, l0 = _totals(system)
     mv = system.total_mass * 2.0
-    edge = min(_mean_edge(m) for m in meshes)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         system.step(int(round(0.4 / dt)))
@@ -181,15 +185,7 @@ def test_backward_euler_holds_scanned_bodies_meeting_fast_without_redoing_their_
     inside the other body, and three of the 24 steps were redone in 16 parts; rows left deeper than a hundredth
     of an edge are stiffened and the solve goes on, and at most one step is redone. Momenta, books, shape and
     penetration hold."""
-    mat = fepr.StableNeoHookean(1e5, 0.4)
-    meshes = [fepr.io.load_mesh(SHARED / "Armadillo_Tetra_4406.vtu", fit=fit) for fit in (0.6, 0.5)]
-    big, small = (fepr.Simulation(m, material=mat, density=1000, dt=1 / 60, integrator="implicit_euler")
-                  for m in meshes)
-    big.positions = big.positions - big.positions.mean(0) + np.array([-0.45, 0.0, 0.0])
-    small.positions = small.positions - small.positions.mean(0) + np.array([0.45, 0.1, 0.05])
-    big.velocities = np.tile([2.0, 0.0, 0.0], (len(big.positions), 1))
-    small.velocities = np.tile([-2.0, 0.0, 0.0], (len(small.positions), 1))
-    system = MultiBody([big, small], names=["big", "small"])
+    big, small, system, edge = _thrown_armadillos("implicit_euler", 1 / 60)
     _, p0, l0 = _totals(system)
     mv = system.total_mass * 2.0
     with warnings.catch_warnings():
@@ -203,7 +199,6 @@ def test_backward_euler_holds_scanned_bodies_meeting_fast_without_redoing_their_
         h = body.history
         assert np.max(np.abs(h["total"] - h["total"][0] - h["budget_total"])) <= 1e-8 * abs(h["total"][0])
         assert h["min_j"].min() > 0.1 and h["inverted"].max() == 0
-    edge = min(_mean_edge(m) for m in meshes)
     assert _penetration(big.positions, small) <= 0.01 * edge and _penetration(small.positions, big) <= 0.01 * edge
 
 
