@@ -180,11 +180,11 @@ def test_scanned_bodies_meeting_fast_keep_their_shape_momenta_and_books(dt):
 
 @pytest.mark.skipif(not (SHARED / "Armadillo_Tetra_4406.vtu").exists(), reason="needs ../shared/meshes")
 def test_backward_euler_holds_scanned_bodies_meeting_fast_without_redoing_their_steps():
-    """The two scanned armadillos thrown at each other at 4 m/s, backward Euler at 1/60 with FEPR: the plain
-    penalty of the joint solve's rows let a few vertices that stop a whole arm end a step 0.2-0.4 mean edges
-    inside the other body, and three of the 24 steps were redone in 16 parts; rows left deeper than a hundredth
-    of an edge are stiffened and the solve goes on, and at most one step is redone. Momenta, books, shape and
-    penetration hold."""
+    """The two scanned armadillos thrown at each other at 4 m/s, backward Euler at 1/60 with FEPR: with the
+    plain penalty of the joint solve's rows, three of the 24 steps ended with vertices deeper inside the other
+    body than a tenth of an edge and were redone in 16 parts; rows left deeper than a hundredth of an edge are
+    stiffened and the solve goes on, and at most one step is redone. Momenta, books, shape and penetration
+    hold."""
     big, small, system, edge = _thrown_armadillos("implicit_euler", 1 / 60)
     _, p0, l0 = _totals(system)
     mv = system.total_mass * 2.0
