@@ -618,8 +618,8 @@ fn newton_round(
     let nb = sims.len();
     let (eps, max_iterations) = (solve.eps, solve.max_iterations);
     let done = *iterations;
-    // Each round's tolerance is relative to its own first decrement (relative to the step's first, a
-    // stiffened round's correction was below it and the round ended before it moved the rows out).
+    // Each round's tolerance is relative to its own first decrement: a stiffened round's correction can be
+    // below the step's first one's tolerance, and the round would end before it moved the rows out.
     let mut dec0 = 0.0;
     for it in 0..max_iterations {
         let first_iteration = first_round && it == 0;
